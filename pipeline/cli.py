@@ -1,0 +1,116 @@
+"""The `ftcal` command: one subcommand per pipeline stage (added with each stage), plus inspection tools.
+
+Errors the user can fix (`FtcalError`) print one line, ``ftcal: error: <message>``, on stderr and
+exit with status 2; Ctrl-C exits with 130. Anything else is a bug and shows its traceback.
+"""
+
+from __future__ import annotations
+
+import argparse
+import sys
+from collections.abc import Sequence
+from pathlib import Path
+
+from pipeline import __version__
+from pipeline.errors import FtcalError
+
+EXIT_OK = 0
+EXIT_USAGE = 2  # as argparse: bad arguments or bad input the user can fix
+EXIT_INTERRUPTED = 130  # 128 + SIGINT, as shells report Ctrl-C
+
+
+def _cmd_robot(args: argparse.Namespace) -> int:
+    """Print the robot's FT sensors (and which foot pair each belongs to) as a table."""
+    from rich.console import Console
+    from rich.table import Table
+
+    from pipeline.config import load_params, repo_root, resolve_urdf
+    from pipeline.robot import load_robot  # deferred: imports pinocchio
+
+    params = load_params(args.params)
+    # --urdf is typed by the user: relative to the working directory; params' urdf: to the repo root.
+    urdf = args.urdf if args.urdf is not None else resolve_urdf(params.robot.urdf, repo_root())
+    robot = load_robot(urdf)
+
+    pair_of = {}
+    for pair in params.robot.foot_pairs:
+        pair_of[pair.front] = f"{pair.name} (front)"
+        pair_of[pair.rear] = f"{pair.name} (rear)"
+
+    table = Table(title=f"{robot.name}: {len(robot.sensors)} FT sensors", title_justify="left")
+    for header in ("sensor", "joint", "parent link", "child link", "frame", "direction", "foot pair"):
+        table.add_column(header, no_wrap=True)
+    for sensor in robot.sensors.values():
+        table.add_row(
+            sensor.name,
+            sensor.joint,
+            sensor.parent_link,
+            sensor.child_link,
+            sensor.frame,
+            sensor.direction,
+            pair_of.get(sensor.name, ""),
+        )
+    # Wide enough not to fold link names when the output is piped (rich would assume 80 columns).
+    console = Console(width=None if sys.stdout.isatty() else 200)
+    console.print(table)
+    console.print(f"URDF: {robot.urdf_path}  ({len(robot.joint_names)} movable joints)")
+
+    missing = sorted(name for name in pair_of if name not in robot.sensors)
+    if missing:
+        Console(stderr=True).print(
+            f"[yellow]warning:[/] robot.foot_pairs names sensors that {robot.name} does not have: "
+            + ", ".join(missing)
+        )
+    return EXIT_OK
+
+
+def build_parser() -> argparse.ArgumentParser:
+    """The argument parser of `ftcal` with its subcommands."""
+    parser = argparse.ArgumentParser(
+        prog="ftcal",
+        description="In-situ calibration of 6-axis force/torque sensors on humanoid robots.",
+        epilog="The full pipeline runs with `dvc repro`; these commands run or inspect single steps.",
+    )
+    parser.add_argument("--version", action="version", version=f"%(prog)s {__version__}")
+    sub = parser.add_subparsers(dest="command", required=True, metavar="COMMAND")
+
+    robot = sub.add_parser("robot", help="print the robot's FT sensors", description=_cmd_robot.__doc__)
+    robot.add_argument(
+        "--params",
+        type=Path,
+        default=None,
+        metavar="PATH",
+        help="params file (default: params.yaml at the repo root)",
+    )
+    robot.add_argument(
+        "--urdf",
+        default=None,
+        metavar="PATH_OR_NAME",
+        help="URDF file or icub-models robot name (default: robot.urdf from params)",
+    )
+    robot.set_defaults(func=_cmd_robot)
+    return parser
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    """Run `ftcal` with `argv` (default: the command line); return the exit status."""
+    parser = build_parser()
+    try:
+        args = parser.parse_args(argv)
+    except SystemExit as exc:  # --help, --version, usage errors: argparse has printed what to say
+        if exc.code is None:
+            return EXIT_OK
+        return exc.code if isinstance(exc.code, int) else EXIT_USAGE
+    try:
+        return args.func(args)
+    except FtcalError as exc:
+        message = " ".join(str(exc).split("\n")).strip() or type(exc).__name__
+        print(f"ftcal: error: {message}", file=sys.stderr)
+        return EXIT_USAGE
+    except KeyboardInterrupt:
+        print("ftcal: interrupted", file=sys.stderr)
+        return EXIT_INTERRUPTED
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,230 @@
+"""params.yaml, loaded once into frozen, validated dataclasses.
+
+Only the shared sections (`seed`, `robot`) are typed here; each stage adds its own section and
+dataclass when it arrives. `Params.raw` keeps the whole parsed file for the sections not typed yet.
+
+Every problem is a `ConfigError` whose message names the file and the dotted key, e.g.
+``params.yaml: robot.gravity must be a positive number, got -1``.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Mapping
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import yaml
+
+from pipeline.errors import ConfigError
+
+PARAMS_FILE = "params.yaml"
+PIPELINE_FILE = "dvc.yaml"  # marks the repo root
+
+_MAX_SEED = 2**32  # numpy and torch accept seeds in [0, 2**32)
+
+
+def repo_root() -> Path:
+    """The project root: the nearest directory holding dvc.yaml, walking up from the working directory.
+
+    Falls back to the parent of the installed `pipeline` package if it holds dvc.yaml (an editable
+    install run from elsewhere), and finally to the working directory.
+    """
+    cwd = Path.cwd().resolve()
+    for directory in (cwd, *cwd.parents):
+        if (directory / PIPELINE_FILE).is_file():
+            return directory
+    package_parent = Path(__file__).resolve().parent.parent
+    if (package_parent / PIPELINE_FILE).is_file():
+        return package_parent
+    return cwd
+
+
+def resolve_urdf(urdf: str, root: Path) -> str:
+    """Resolve `robot.urdf` from params: a model name stays as is, a relative path is taken from `root`.
+
+    A value is a path if it ends in ``.urdf`` or contains a path separator; otherwise it is a robot
+    name of the icub-models package (e.g. ``iCubGenova09``).
+    """
+    if not (urdf.endswith(".urdf") or "/" in urdf or "\\" in urdf):
+        return urdf
+    path = Path(urdf).expanduser()
+    return str(path if path.is_absolute() else (root / path))
+
+
+def _check_name(value: object, key: str) -> None:
+    if not isinstance(value, str) or not value.strip():
+        raise ConfigError(f"{key} must be a non-empty string, got {value!r}")
+
+
+@dataclass(frozen=True)
+class FootPairParams:
+    """The front and rear FT sensors of one foot, whose sum is compared in the sole frame.
+
+    `name` is the sensor group name (the key under `robot.foot_pairs`); `front` and `rear` are
+    FT sensor names and `sole` a link/frame name, all as written in the URDF.
+    """
+
+    name: str
+    front: str
+    rear: str
+    sole: str
+
+    def __post_init__(self) -> None:
+        _check_name(self.name, "robot.foot_pairs key")
+        prefix = f"robot.foot_pairs.{self.name}"
+        for attr in ("front", "rear", "sole"):
+            _check_name(getattr(self, attr), f"{prefix}.{attr}")
+        if self.front == self.rear:
+            raise ConfigError(f"{prefix}.rear must differ from {prefix}.front, both are {self.front!r}")
+
+    @property
+    def sensors(self) -> tuple[str, str]:
+        """(front, rear) sensor names."""
+        return (self.front, self.rear)
+
+
+@dataclass(frozen=True)
+class RobotParams:
+    """The robot model and the physical constants shared by every stage (section `robot`)."""
+
+    urdf: str  # icub-models robot name or URDF path (relative paths: from the repo root)
+    gravity: float  # m/s^2, magnitude; world z is up, so gravity is (0, 0, -gravity)
+    foot_pairs: tuple[FootPairParams, ...] = ()
+
+    def __post_init__(self) -> None:
+        _check_name(self.urdf, "robot.urdf")
+        g = self.gravity
+        if isinstance(g, bool) or not isinstance(g, int | float) or not math.isfinite(g) or g <= 0:
+            raise ConfigError(f"robot.gravity must be a positive number, got {g!r}")
+        object.__setattr__(self, "gravity", float(g))
+        seen_names: set[str] = set()
+        used_by: dict[str, str] = {}
+        for pair in self.foot_pairs:
+            if not isinstance(pair, FootPairParams):
+                raise ConfigError(f"robot.foot_pairs must hold foot pairs, got {pair!r}")
+            if pair.name in seen_names:
+                raise ConfigError(f"robot.foot_pairs.{pair.name} is defined twice")
+            seen_names.add(pair.name)
+            for sensor in pair.sensors:
+                if sensor in used_by:
+                    raise ConfigError(
+                        f"robot.foot_pairs.{pair.name}: sensor {sensor!r} is already in "
+                        f"robot.foot_pairs.{used_by[sensor]}"
+                    )
+                used_by[sensor] = pair.name
+
+
+@dataclass(frozen=True)
+class Params:
+    """The whole of params.yaml: typed shared sections plus the raw dict for the stage sections."""
+
+    seed: int  # master seed, in [0, 2**32)
+    robot: RobotParams
+    raw: Mapping[str, Any] = field(default_factory=dict, repr=False, compare=False)
+
+    def __post_init__(self) -> None:
+        s = self.seed
+        if isinstance(s, bool) or not isinstance(s, int) or not 0 <= s < _MAX_SEED:
+            raise ConfigError(f"seed must be an integer in [0, 2**32), got {s!r}")
+
+
+# --- loading -----------------------------------------------------------------------------------
+
+
+class _UniqueKeyLoader(yaml.SafeLoader):
+    """SafeLoader that rejects duplicate keys (PyYAML silently keeps the last one)."""
+
+
+def _construct_unique_mapping(loader: _UniqueKeyLoader, node: yaml.MappingNode, deep: bool = False) -> dict:
+    keys: set[Any] = set()
+    for key_node, _ in node.value:
+        key = loader.construct_object(key_node, deep=deep)
+        if key in keys:
+            raise yaml.constructor.ConstructorError(
+                "while constructing a mapping",
+                node.start_mark,
+                f"found duplicate key {key!r}",
+                key_node.start_mark,
+            )
+        keys.add(key)
+    return loader.construct_mapping(node, deep=deep)
+
+
+_UniqueKeyLoader.add_constructor(yaml.resolver.BaseResolver.DEFAULT_MAPPING_TAG, _construct_unique_mapping)
+
+
+def _display(path: Path) -> str:
+    """The path as the user would write it: relative to the working directory when under it."""
+    try:
+        return str(path.resolve().relative_to(Path.cwd().resolve()))
+    except ValueError:
+        return str(path)
+
+
+def _read_yaml(path: Path) -> Any:
+    try:
+        text = path.read_text(encoding="utf-8")
+    except FileNotFoundError:
+        raise ConfigError("file not found") from None
+    except (OSError, UnicodeDecodeError) as exc:
+        raise ConfigError(f"cannot read: {exc}") from None
+    try:
+        return yaml.load(text, Loader=_UniqueKeyLoader)  # a SafeLoader subclass
+    except yaml.YAMLError as exc:
+        mark = getattr(exc, "problem_mark", None)
+        where = f"line {mark.line + 1}, column {mark.column + 1}: " if mark is not None else ""
+        problem = getattr(exc, "problem", None) or str(exc)
+        raise ConfigError(f"invalid YAML at {where}{problem}") from None
+
+
+def _section(data: Mapping[str, Any], key: str, expected: set[str]) -> None:
+    """Check that mapping `data` (at dotted `key`) has exactly the expected keys."""
+    unknown = sorted(str(k) for k in data if k not in expected)
+    if unknown:
+        allowed = ", ".join(sorted(expected))
+        raise ConfigError(f"unknown key {key}.{unknown[0]} (allowed: {allowed})")
+    missing = sorted(expected - set(data))
+    if missing:
+        raise ConfigError(f"missing key {key}.{missing[0]}")
+
+
+def _mapping(value: Any, key: str) -> Mapping[str, Any]:
+    if not isinstance(value, Mapping):
+        raise ConfigError(f"{key} must be a mapping, got {value!r}")
+    return value
+
+
+def _parse(data: Any) -> Params:
+    if data is None:
+        raise ConfigError("the file is empty")
+    data = _mapping(data, "the top level")
+    for key in ("seed", "robot"):
+        if key not in data:
+            raise ConfigError(f"missing key {key}")
+    robot = _mapping(data["robot"], "robot")
+    # foot_pairs is required: a robot without feet says `foot_pairs: {}` explicitly.
+    _section(robot, "robot", {"urdf", "gravity", "foot_pairs"})
+    pairs = []
+    for name, pair in _mapping(robot["foot_pairs"], "robot.foot_pairs").items():
+        key = f"robot.foot_pairs.{name}"
+        pair = _mapping(pair, key)
+        _section(pair, key, {"front", "rear", "sole"})
+        pairs.append(FootPairParams(name=name, front=pair["front"], rear=pair["rear"], sole=pair["sole"]))
+    robot_params = RobotParams(urdf=robot["urdf"], gravity=robot["gravity"], foot_pairs=tuple(pairs))
+    return Params(seed=data["seed"], robot=robot_params, raw=dict(data))
+
+
+def load_params(path: str | Path | None = None) -> Params:
+    """Load and validate params.yaml (default: ``<repo_root()>/params.yaml``).
+
+    Raises:
+        ConfigError: the file is missing or unreadable, is not valid YAML, or has a missing, unknown
+            or invalid key; the message starts with the file name and names the dotted key.
+    """
+    path = Path(path) if path is not None else repo_root() / PARAMS_FILE
+    try:
+        return _parse(_read_yaml(path))
+    except ConfigError as exc:
+        raise ConfigError(f"{_display(path)}: {exc}") from None

@@ -1,0 +1,46 @@
+"""Shared fixtures: the robots every physics test runs on."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import pytest
+
+from pipeline.robot import RobotModel, load_robot
+
+REPO = Path(__file__).resolve().parents[1]
+ERGOCUB_URDF = REPO.parent / "shared" / "robots" / "ergoCubSN001" / "model.urdf"
+ROBOTS = ["iCubGenova09", "ergoCubSN001"]
+GRAVITY = 9.80665
+FOOT_PAIRS = {"l_foot": ("l_foot_front_ft", "l_foot_rear_ft", "l_sole"),
+              "r_foot": ("r_foot_front_ft", "r_foot_rear_ft", "r_sole")}
+
+
+def robot_source(name: str) -> str:
+    """URDF path or icub-models name of a test robot; skips when ../shared is absent (users' clones)."""
+    if name == "ergoCubSN001":
+        if not ERGOCUB_URDF.is_file():
+            pytest.skip(f"{ERGOCUB_URDF} is absent (../shared is only beside developer checkouts)")
+        return str(ERGOCUB_URDF)
+    return name
+
+
+_CACHE: dict[str, RobotModel] = {}
+
+
+@pytest.fixture(params=ROBOTS, scope="session")
+def robot(request: pytest.FixtureRequest) -> RobotModel:
+    """Each test robot, loaded once per session."""
+    source = robot_source(request.param)
+    if source not in _CACHE:
+        _CACHE[source] = load_robot(source)
+    return _CACHE[source]
+
+
+@pytest.fixture(scope="session")
+def icub() -> RobotModel:
+    return load_robot("iCubGenova09")
+
+
+def foot_pairs(robot: RobotModel) -> list:
+    return [robot.foot_pair(name, *sensors) for name, sensors in FOOT_PAIRS.items()]

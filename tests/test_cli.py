@@ -1,0 +1,83 @@
+"""The `ftcal` command: one-line errors with exit 2, --version, and the robot table."""
+
+from __future__ import annotations
+
+import os
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+
+from pipeline import __version__
+from pipeline.cli import main
+
+ROOT = Path(__file__).resolve().parent.parent
+
+
+def test_bad_params_path_is_a_one_line_error(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    missing = tmp_path / "missing_params.yaml"
+    assert main(["robot", "--params", str(missing)]) == 2
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1
+    assert err.startswith("ftcal: error: ")
+    assert str(missing) in err
+
+
+def test_invalid_params_value_names_file_and_key(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    bad = tmp_path / "params.yaml"
+    bad.write_text("seed: 42\nrobot:\n  urdf: iCubGenova09\n  gravity: -1\n  foot_pairs: {}\n")
+    assert main(["robot", "--params", str(bad)]) == 2
+    err = capsys.readouterr().err
+    assert err == f"ftcal: error: {bad}: robot.gravity must be a positive number, got -1\n"
+
+
+def test_python_m_entry_point(tmp_path: Path) -> None:
+    bad = tmp_path / "broken.yaml"
+    bad.write_text("seed: [42\n")
+    env = {
+        **os.environ,
+        "PYTHONPATH": os.pathsep.join(filter(None, [str(ROOT), os.environ.get("PYTHONPATH")])),
+    }
+    result = subprocess.run(
+        [sys.executable, "-m", "pipeline.cli", "robot", "--params", str(bad)],
+        capture_output=True,
+        text=True,
+        env=env,
+        cwd=tmp_path,
+        timeout=60,
+    )
+    assert result.returncode == 2
+    assert result.stdout == ""
+    lines = result.stderr.splitlines()
+    assert len(lines) == 1, result.stderr
+    # The file is shown relative to the working directory, as the user would type it.
+    assert lines[0].startswith("ftcal: error: broken.yaml: invalid YAML at line 2")
+
+
+def test_version(capsys: pytest.CaptureFixture[str]) -> None:
+    assert main(["--version"]) == 0
+    assert capsys.readouterr().out.strip() == f"ftcal {__version__}"
+
+
+def test_no_command_is_a_usage_error(capsys: pytest.CaptureFixture[str]) -> None:
+    assert main([]) == 2
+    assert "usage: ftcal" in capsys.readouterr().err
+
+
+def test_robot_prints_ft_sensors(capsys: pytest.CaptureFixture[str]) -> None:
+    pytest.importorskip("pipeline.robot")
+    assert main(["robot"]) == 0
+    out = capsys.readouterr().out
+    for sensor in ("l_leg_ft", "r_leg_ft", "l_arm_ft", "r_arm_ft", "l_foot_front_ft", "r_foot_rear_ft"):
+        assert sensor in out
+    assert "child_to_parent" in out and "parent_to_child" in out
+    assert "l_foot (front)" in out
+
+
+def test_robot_bad_urdf_is_a_one_line_error(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    pytest.importorskip("pipeline.robot")
+    missing = tmp_path / "nope.urdf"
+    assert main(["robot", "--urdf", str(missing)]) == 2
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and err.startswith("ftcal: error: ")

@@ -1,0 +1,80 @@
+"""Our expected FT wrenches against iDynTree's ExtWrenchesAndJointTorquesEstimator (test-only oracle).
+
+For every contact case, >= 200 random in-limit (q, dq, ddq): every sensor agrees within 1e-6 N / Nm
+wherever our switch is 1, and our switch is 0 exactly where the contact set leaves both sides of the
+sensor's cut touching (sides computed here from the URDF, independently of pipeline.robot).
+"""
+
+from __future__ import annotations
+
+import xml.etree.ElementTree as ET
+
+import numpy as np
+import pytest
+
+from pipeline.dynamics import ContactCase, expected_wrenches
+from pipeline.robot import RobotModel
+from tests.conftest import GRAVITY, foot_pairs
+from tests.idyntree_ref import IDynTreeFT, random_in_limits
+
+N_SAMPLES = 200
+CASES = {
+    "pole": (["root_link"], "root_link"),
+    "l_sole_fixed": (["l_foot_front", "l_foot_rear"], "l_sole"),
+    "r_sole_fixed": (["r_foot_front", "r_foot_rear"], "r_sole"),
+    "only_l_foot_front": (["l_foot_front"], "l_sole"),
+    "only_r_foot_rear": (["r_foot_rear"], "r_sole"),
+    "double_support": (["l_foot_front", "l_foot_rear", "r_foot_front", "r_foot_rear"], "l_sole"),
+}
+
+_ORACLES: dict[str, IDynTreeFT] = {}
+
+
+def oracle(robot: RobotModel) -> IDynTreeFT:
+    key = str(robot.urdf_path)
+    if key not in _ORACLES:
+        _ORACLES[key] = IDynTreeFT(robot.urdf_path, robot.joint_names)
+    return _ORACLES[key]
+
+
+def both_sides_touch(urdf: str, sensor: str, contacts: list[str]) -> bool:
+    """Cut the URDF graph at the sensor's joint; do contacts lie in both connected components?"""
+    root = ET.parse(urdf).getroot()
+    joint = next(s.find("parent").get("joint") for s in root.findall("sensor") if s.get("name") == sensor)
+    edges = [(j.find("parent").get("link"), j.find("child").get("link"))
+             for j in root.findall("joint") if j.get("name") != joint]
+    start = next(j.find("child").get("link") for j in root.findall("joint") if j.get("name") == joint)
+    side, grew = {start}, True
+    while grew:
+        grew = False
+        for a, b in edges:
+            if (a in side) != (b in side):
+                side |= {a, b}
+                grew = True
+    inside = [c in side for c in contacts]
+    return any(inside) and not all(inside)
+
+
+@pytest.mark.parametrize("name", list(CASES))
+def test_expected_wrenches_match_idyntree(robot: RobotModel, name: str) -> None:
+    contacts, fixed = CASES[name]
+    gravity = np.array([0.0, 0.0, -GRAVITY])
+    rng = np.random.default_rng(list(CASES).index(name))
+    q, dq, ddq = random_in_limits(robot.urdf_path, robot.joint_names, N_SAMPLES, rng)
+    ours = expected_wrenches(robot, q, dq, ddq, ContactCase.make(contacts, fixed, gravity), foot_pairs(robot))
+    ref = oracle(robot).expected(q, dq, ddq, contacts, fixed, gravity)
+    assert set(ref) == set(robot.sensors)
+    compared = 0
+    for sensor in robot.sensors:
+        touching = both_sides_touch(str(robot.urdf_path), sensor, contacts)
+        np.testing.assert_array_equal(ours.switch[sensor], np.full(N_SAMPLES, 0 if touching else 1),
+                                      err_msg=f"switch of {sensor} in {name}")
+        if not touching:
+            np.testing.assert_allclose(ours.wrench[sensor], ref[sensor], rtol=0, atol=1e-6,
+                                       err_msg=f"{sensor} in {name}")
+            compared += 1
+    assert compared == sum(not both_sides_touch(str(robot.urdf_path), s, contacts) for s in robot.sensors)
+    if name == "double_support":
+        assert compared == 2  # only the arms
+    else:
+        assert compared >= 6
