@@ -7,6 +7,7 @@ exit with status 2; Ctrl-C exits with 130. Anything else is a bug and shows its 
 from __future__ import annotations
 
 import argparse
+import importlib
 import sys
 from collections.abc import Sequence
 from pathlib import Path
@@ -17,6 +18,11 @@ from pipeline.errors import FtcalError
 EXIT_OK = 0
 EXIT_USAGE = 2  # as argparse: bad arguments or bad input the user can fix
 EXIT_INTERRUPTED = 130  # 128 + SIGINT, as shells report Ctrl-C
+
+# Stage modules, in pipeline order. Each defines ``add_cli(subparsers)``, which adds its subcommand
+# (same name as its DVC stage) with ``set_defaults(func=...)``; a module not written yet is skipped.
+STAGE_MODULES = ("pipeline.simulate", "pipeline.ingest", "pipeline.smooth", "pipeline.label",
+                 "pipeline.train", "pipeline.evaluate")
 
 
 def _cmd_robot(args: argparse.Namespace) -> int:
@@ -89,6 +95,15 @@ def build_parser() -> argparse.ArgumentParser:
         help="URDF file or icub-models robot name (default: robot.urdf from params)",
     )
     robot.set_defaults(func=_cmd_robot)
+
+    for module_name in STAGE_MODULES:
+        try:
+            module = importlib.import_module(module_name)
+        except ModuleNotFoundError as exc:
+            if exc.name == module_name:
+                continue
+            raise
+        module.add_cli(sub)
     return parser
 
 

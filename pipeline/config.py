@@ -13,7 +13,7 @@ import math
 from collections.abc import Mapping
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any
+from typing import Any, TypeVar
 
 import yaml
 
@@ -21,6 +21,8 @@ from pipeline.errors import ConfigError
 
 PARAMS_FILE = "params.yaml"
 PIPELINE_FILE = "dvc.yaml"  # marks the repo root
+
+T = TypeVar("T")
 
 _MAX_SEED = 2**32  # numpy and torch accept seeds in [0, 2**32)
 
@@ -117,11 +119,47 @@ class RobotParams:
 
 
 @dataclass(frozen=True)
+class TopicParams:
+    """MCAP topic names (section `topics`), shared by the simulator and ingest.
+
+    Per-sensor names are templates in which ``{sensor}`` stands for the FT sensor name of the URDF.
+    The ``sim_*`` topics carry simulated truth: evaluation only, never a training input.
+    """
+
+    joint_states: str  # sensor_msgs/msg/JointState: encoder positions (rad), velocities (rad/s)
+    ft_wrench: str  # geometry_msgs/msg/WrenchStamped: raw wrench, N and Nm, sensor frame
+    ft_imu: str  # sensor_msgs/msg/Imu: FT board accelerometer (m/s^2, proper) and gyroscope (rad/s)
+    ft_temperature: str  # sensor_msgs/msg/Temperature: deg C
+    sim_wrench_true: str  # WrenchStamped: the true wrench through the sensor
+    sim_wrench_distorted: str  # WrenchStamped: the sensor's noise-free distorted reading
+    sim_wrench_oracle: str  # WrenchStamped: the oracle calibration of the raw reading (noise floor)
+    sim_contacts: str  # std_msgs/msg/String: comma-separated links touching the environment
+
+    PER_SENSOR = ("ft_wrench", "ft_imu", "ft_temperature", "sim_wrench_true", "sim_wrench_distorted",
+                  "sim_wrench_oracle")
+
+    def __post_init__(self) -> None:
+        for name in self.__dataclass_fields__:
+            value = getattr(self, name)
+            _check_name(value, f"topics.{name}")
+            if not value.startswith("/"):
+                raise ConfigError(f"topics.{name} must start with '/', got {value!r}")
+            if (name in self.PER_SENSOR) != ("{sensor}" in value):
+                need = "must" if name in self.PER_SENSOR else "must not"
+                raise ConfigError(f"topics.{name} {need} contain {{sensor}}, got {value!r}")
+
+    def sensor_topic(self, kind: str, sensor: str) -> str:
+        """The topic of `kind` (a per-sensor field name, e.g. 'ft_wrench') for FT sensor `sensor`."""
+        return getattr(self, kind).replace("{sensor}", sensor)
+
+
+@dataclass(frozen=True)
 class Params:
     """The whole of params.yaml: typed shared sections plus the raw dict for the stage sections."""
 
     seed: int  # master seed, in [0, 2**32)
     robot: RobotParams
+    topics: TopicParams
     raw: Mapping[str, Any] = field(default_factory=dict, repr=False, compare=False)
 
     def __post_init__(self) -> None:
@@ -213,7 +251,30 @@ def _parse(data: Any) -> Params:
         _section(pair, key, {"front", "rear", "sole"})
         pairs.append(FootPairParams(name=name, front=pair["front"], rear=pair["rear"], sole=pair["sole"]))
     robot_params = RobotParams(urdf=robot["urdf"], gravity=robot["gravity"], foot_pairs=tuple(pairs))
-    return Params(seed=data["seed"], robot=robot_params, raw=dict(data))
+    if "topics" not in data:
+        raise ConfigError("missing key topics")
+    topics = _mapping(data["topics"], "topics")
+    _section(topics, "topics", set(TopicParams.__dataclass_fields__))
+    return Params(seed=data["seed"], robot=robot_params, topics=TopicParams(**topics), raw=dict(data))
+
+
+def stage_section(params: Params, key: str, cls: type[T]) -> T:
+    """Build a stage's frozen params dataclass `cls` from section `key` of params.yaml.
+
+    Every field of `cls` must be present and no other key; the dataclass's ``__post_init__`` checks the
+    values (raising ConfigError naming ``<key>.<field>``). Errors are prefixed with the params file.
+    """
+    where = params.raw.get("__file__", PARAMS_FILE)
+    try:
+        if key not in params.raw:
+            raise ConfigError(f"missing section {key}")
+        data = _mapping(params.raw[key], key)
+        _section(data, key, set(cls.__dataclass_fields__))
+        return cls(**data)
+    except ConfigError as exc:
+        raise ConfigError(f"{where}: {exc}") from None
+    except TypeError as exc:  # a value of the wrong type that __post_init__ did not catch
+        raise ConfigError(f"{where}: {key}: {exc}") from None
 
 
 def load_params(path: str | Path | None = None) -> Params:
@@ -225,6 +286,8 @@ def load_params(path: str | Path | None = None) -> Params:
     """
     path = Path(path) if path is not None else repo_root() / PARAMS_FILE
     try:
-        return _parse(_read_yaml(path))
+        params = _parse(_read_yaml(path))
+        params.raw["__file__"] = _display(path)  # type: ignore[index]
+        return params
     except ConfigError as exc:
         raise ConfigError(f"{_display(path)}: {exc}") from None

@@ -21,6 +21,7 @@ from pipeline.config import (
 from pipeline.errors import ConfigError
 
 ROOT = Path(__file__).resolve().parent.parent
+REPO_PARAMS = ROOT / "params.yaml"
 
 
 @pytest.fixture(scope="module")
@@ -170,3 +171,35 @@ def test_resolve_urdf() -> None:
     assert resolve_urdf("iCubGenova09", root) == "iCubGenova09"
     assert resolve_urdf("robots/x/model.urdf", root) == str(root / "robots/x/model.urdf")
     assert resolve_urdf("/abs/model.urdf", root) == "/abs/model.urdf"
+
+
+def test_topics_section(tmp_path: Path) -> None:
+    params = load_params()
+    assert params.topics.sensor_topic("ft_wrench", "l_leg_ft") == "/ft/l_leg_ft/wrench"
+    text = (REPO_PARAMS.read_text()).replace("ft_imu: /ft/{sensor}/imu", "ft_imu: /ft/imu")
+    with pytest.raises(ConfigError, match=r"topics.ft_imu must contain \{sensor\}"):
+        load_params(write(tmp_path / "params.yaml", text))
+
+
+def test_stage_section_names_the_key(tmp_path: Path) -> None:
+    from dataclasses import dataclass
+
+    from pipeline.config import stage_section
+
+    @dataclass(frozen=True)
+    class Demo:
+        rate_hz: float
+
+        def __post_init__(self) -> None:
+            if self.rate_hz <= 0:
+                raise ConfigError(f"demo.rate_hz must be > 0, got {self.rate_hz}")
+
+    base = REPO_PARAMS.read_text()
+    params = load_params(write(tmp_path / "params.yaml", base + "\ndemo: {rate_hz: 100}\n"))
+    assert stage_section(params, "demo", Demo).rate_hz == 100
+    for extra, message in (("demo: {rate_hz: -1}", "demo.rate_hz must be > 0"),
+                           ("demo: {rate: 1}", "unknown key demo.rate"),
+                           ("other: 1", "missing section demo")):
+        params = load_params(write(tmp_path / "params.yaml", base + "\n" + extra + "\n"))
+        with pytest.raises(ConfigError, match=rf"params.yaml: {message}"):
+            stage_section(params, "demo", Demo)
