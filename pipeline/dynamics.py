@@ -156,6 +156,35 @@ def far_side_wrenches(
     return tau.T
 
 
+def rooted_readings(
+    robot: RobotModel,
+    q: np.ndarray,
+    dq: np.ndarray,
+    ddq: np.ndarray,
+    case: ContactCase,
+    n_threads: int | None = None,
+) -> tuple[str, dict[str, np.ndarray]]:
+    """Every sensor's reading as if all contact forces acted on the root contact link.
+
+    Returns (root link, {sensor: (N, 6)} in sensor frame and measure direction). Exact wherever the
+    sensor's switch is 1; elsewhere a hypothetical load distribution (the simulator corrects it with
+    the true contact wrenches by superposition). Inputs as :func:`expected_wrenches`.
+    """
+    q, dq, ddq = (np.asarray(a, dtype=float) for a in (q, dq, ddq))
+    _check_batch(q, dq, ddq, len(robot.joint_names))
+    root = choose_root(robot, case)
+    root_R_fixed = robot.rigid_transform(root, case.fixed_link).rotation
+    gravity_root = root_R_fixed @ np.asarray(case.gravity)
+    tau = far_side_wrenches(robot, root, gravity_root, q, dq, ddq, n_threads)
+    rooted = robot.rooted(root)
+    maps = _sensor_maps(robot, root)
+    readings = {}
+    for name in robot.sensors:
+        i = rooted.sensor_v_index[name]
+        readings[name] = tau[:, i : i + 6] @ maps[name].T
+    return root, readings
+
+
 def expected_wrenches(
     robot: RobotModel,
     q: np.ndarray,
@@ -170,20 +199,10 @@ def expected_wrenches(
     q, dq, ddq: (N, n_joints) joint positions (rad), velocities (rad/s), accelerations (rad/s^2) in
     ``robot.joint_names`` order. See :class:`ExpectedWrenches` for the outputs.
     """
-    q, dq, ddq = (np.asarray(a, dtype=float) for a in (q, dq, ddq))
-    n = _check_batch(q, dq, ddq, len(robot.joint_names))
-    root = choose_root(robot, case)
-    root_R_fixed = robot.rigid_transform(root, case.fixed_link).rotation
-    gravity_root = root_R_fixed @ np.asarray(case.gravity)
-    tau = far_side_wrenches(robot, root, gravity_root, q, dq, ddq, n_threads)
-
-    rooted = robot.rooted(root)
-    maps = _sensor_maps(robot, root)
-    raw = {}  # every sensor's reading as if all contact forces acted on the root: exact where switched on
+    _, raw = rooted_readings(robot, q, dq, ddq, case, n_threads)
+    n = raw[next(iter(raw))].shape[0]
     wrench, switch = {}, {}
     for name in robot.sensors:
-        i = rooted.sensor_v_index[name]
-        raw[name] = tau[:, i : i + 6] @ maps[name].T
         on = sensor_switch(robot, name, case.contacts)
         switch[name] = np.full(n, on, dtype=np.uint8)
         wrench[name] = raw[name] if on else np.full((n, 6), np.nan)

@@ -368,6 +368,10 @@ class RobotModel:
                 self._append_link(model, other, link_joint[other], link_placement[other])
                 stack.append(other)
 
+        for sensor in self.sensors.values():  # the frame each reading is expressed in
+            child = sensor.child_link
+            model.addFrame(pin.Frame(sensor_frame_name(sensor.name), link_joint[child], 0,
+                                     link_placement[child] * sensor.child_T_sensor, pin.FrameType.OP_FRAME))
         q_index = np.array([model.idx_qs[joint_entry[n][0]] for n in self.joint_names], dtype=np.intp)
         v_index = np.array([model.idx_vs[joint_entry[n][0]] for n in self.joint_names], dtype=np.intp)
         sign = np.array([joint_entry[n][1] for n in self.joint_names])
@@ -400,6 +404,11 @@ class RobotModel:
         out = replace(self, links=links, _rooted={})
         out.__dict__.pop("pinocchio_model", None)
         return out
+
+
+def sensor_frame_name(sensor: str) -> str:
+    """Name of an FT sensor's measurement frame in the contact-rooted models (links may share the name)."""
+    return f"ftsensor:{sensor}"
 
 
 def _joint_model(joint: URDFJoint) -> tuple[pin.JointModel, float]:
