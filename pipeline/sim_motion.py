@@ -72,8 +72,9 @@ def smoothstep(s: np.ndarray) -> np.ndarray:
     return s**3 * (10 - 15 * s + 6 * s**2)
 
 
-def multisine(rng: np.random.Generator, t: np.ndarray, n: int, f_min: float, f_max: float,
-              n_terms: int = 3) -> np.ndarray:
+def multisine(
+    rng: np.random.Generator, t: np.ndarray, n: int, f_min: float, f_max: float, n_terms: int = 3
+) -> np.ndarray:
     """(len(t), n) sums of `n_terms` sines per column with random frequencies in [f_min, f_max] Hz and
     phases, normalised to peak 1 over `t`."""
     out = np.zeros((t.shape[0], n))
@@ -136,8 +137,16 @@ class Kinematics:
             moment += inertial.mass * pose.act(inertial.com)
         return moment / total
 
-    def ik(self, q: np.ndarray, frame: str, target: pin.SE3, joints: np.ndarray,
-           iters: int = 100, tol: float = 1e-9, position_only: bool = False) -> np.ndarray:
+    def ik(
+        self,
+        q: np.ndarray,
+        frame: str,
+        target: pin.SE3,
+        joints: np.ndarray,
+        iters: int = 100,
+        tol: float = 1e-9,
+        position_only: bool = False,
+    ) -> np.ndarray:
         """Joint positions (robot order) putting `frame` at `target` (root frame) by moving `joints` only.
 
         Damped Gauss-Newton on the SE(3) error (or on the position error only), clipped to the joint
@@ -145,7 +154,9 @@ class Kinematics:
         """
         q = q.copy()
         fid = self.model.getFrameId(frame)
-        pin_idx = np.array([self.model.idx_vs[self.model.getJointId(self.robot.joint_names[j])] for j in joints])
+        pin_idx = np.array(
+            [self.model.idx_vs[self.model.getJointId(self.robot.joint_names[j])] for j in joints]
+        )
         err = np.inf
         for _ in range(iters):
             pq = self._pin_q(q)
@@ -153,8 +164,9 @@ class Kinematics:
             current = self.data.oMf[fid]
             if position_only:
                 err_vec = target.translation - current.translation
-                jac = pin.computeFrameJacobian(self.model, self.data, pq, fid,
-                                               pin.LOCAL_WORLD_ALIGNED)[:3, pin_idx]
+                jac = pin.computeFrameJacobian(self.model, self.data, pq, fid, pin.LOCAL_WORLD_ALIGNED)[
+                    :3, pin_idx
+                ]
             else:
                 err_vec = pin.log6(current.actInv(target)).vector
                 jac = pin.computeFrameJacobian(self.model, self.data, pq, fid, pin.LOCAL)[:, pin_idx]
@@ -166,8 +178,10 @@ class Kinematics:
             step *= min(1.0, 0.3 / max(np.abs(step).max(), 1e-12))
             q[joints] = np.clip(q[joints] + step, self.lower[joints], self.upper[joints])
         if err > 1e-5:
-            raise RobotModelError(f"inverse kinematics of {frame} did not converge (error {err:.2e}): "
-                                  "target out of reach; reduce the motion amplitude in params")
+            raise RobotModelError(
+                f"inverse kinematics of {frame} did not converge (error {err:.2e}): "
+                "target out of reach; reduce the motion amplitude in params"
+            )
         return q
 
 
@@ -180,8 +194,16 @@ def _spline(t: np.ndarray, q: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.nd
     return spline(t), spline(t, 1), spline(t, 2)
 
 
-def _free_joint_motion(kin: Kinematics, rng: np.random.Generator, t: np.ndarray, joints: np.ndarray,
-                       amplitude: float, f_min: float, f_max: float, center: np.ndarray) -> np.ndarray:
+def _free_joint_motion(
+    kin: Kinematics,
+    rng: np.random.Generator,
+    t: np.ndarray,
+    joints: np.ndarray,
+    amplitude: float,
+    f_min: float,
+    f_max: float,
+    center: np.ndarray,
+) -> np.ndarray:
     """(N, len(joints)) multi-sine trajectories around `center`, `amplitude` x joint range, in limits."""
     lo, hi = kin.lower[joints], kin.upper[joints]
     amp = np.minimum(amplitude * (hi - lo), (hi - lo) / 2)
@@ -224,36 +246,63 @@ class MotionGenerator:
         self.standing_height = -self.kin.frame_pose(self.home, feet[0].sole).translation[2]
         # start every leg solve from slightly bent knees: a straight knee is a singular posture
         for chain in self.leg.values():
-            bent = self.kin.ik(self.home, self.robot.joints[self.robot.joint_names[chain[-1]]].child,
-                               self.kin.frame_pose(self.home, self.robot.joints[
-                                   self.robot.joint_names[chain[-1]]].child) * _pose([0, 0, 0.05]),
-                               chain, position_only=True)
+            bent = self.kin.ik(
+                self.home,
+                self.robot.joints[self.robot.joint_names[chain[-1]]].child,
+                self.kin.frame_pose(self.home, self.robot.joints[self.robot.joint_names[chain[-1]]].child)
+                * _pose([0, 0, 0.05]),
+                chain,
+                position_only=True,
+            )
             self.home[chain] = bent[chain]
 
     # ------------------------------------------------------------------ helpers
     def _time(self, duration: float, rate: float) -> np.ndarray:
         return np.arange(int(round(duration * rate))) / rate
 
-    def _finish(self, t: np.ndarray, q: np.ndarray, contacts: list[frozenset[str]], fixed: np.ndarray,
-                root_pose: np.ndarray, transfer: np.ndarray | None = None,
-                transfer_to: np.ndarray | None = None) -> Motion:
+    def _finish(
+        self,
+        t: np.ndarray,
+        q: np.ndarray,
+        contacts: list[frozenset[str]],
+        fixed: np.ndarray,
+        root_pose: np.ndarray,
+        transfer: np.ndarray | None = None,
+        transfer_to: np.ndarray | None = None,
+    ) -> Motion:
         q, dq, ddq = _spline(t, q)
         if np.any(q < self.kin.lower - 1e-9) or np.any(q > self.kin.upper + 1e-9):
             bad = np.flatnonzero(((q < self.kin.lower - 1e-9) | (q > self.kin.upper + 1e-9)).any(axis=0))
             # the spline overshoots between samples only if the motion is too fast for the rate
             q = np.clip(q, self.kin.lower, self.kin.upper)
             if len(bad):
-                raise RobotModelError("simulated joints leave their limits: "
-                                      + ", ".join(self.robot.joint_names[i] for i in bad))
+                raise RobotModelError(
+                    "simulated joints leave their limits: "
+                    + ", ".join(self.robot.joint_names[i] for i in bad)
+                )
         sets = sorted(set(contacts), key=lambda s: sorted(s))
         index = {s: i for i, s in enumerate(sets)}
         n = t.shape[0]
-        return Motion(t, q, dq, ddq, sets, np.array([index[c] for c in contacts]), fixed,
-                      transfer if transfer is not None else np.full(n, np.nan),
-                      transfer_to if transfer_to is not None else np.full(n, "", dtype=object), root_pose)
+        return Motion(
+            t,
+            q,
+            dq,
+            ddq,
+            sets,
+            np.array([index[c] for c in contacts]),
+            fixed,
+            transfer if transfer is not None else np.full(n, np.nan),
+            transfer_to if transfer_to is not None else np.full(n, "", dtype=object),
+            root_pose,
+        )
 
-    def _stance_posture(self, q: np.ndarray, world_T_root: pin.SE3, feet_world: dict[str, pin.SE3],
-                        free: frozenset[str] = frozenset()) -> np.ndarray:
+    def _stance_posture(
+        self,
+        q: np.ndarray,
+        world_T_root: pin.SE3,
+        feet_world: dict[str, pin.SE3],
+        free: frozenset[str] = frozenset(),
+    ) -> np.ndarray:
         """Solve every leg whose sole pose in the world is given, for a given root pose. Feet named in
         `free` are in the air: they keep the orientation of the pelvis (always within ankle range)."""
         for name, world_T_sole in feet_world.items():
@@ -263,9 +312,16 @@ class MotionGenerator:
             q = self.kin.ik(q, self.feet[name].sole, target, self.leg[name])
         return q
 
-    def _balance(self, q: np.ndarray, root_xy: np.ndarray, root_z: float, root_rpy: np.ndarray,
-                 feet_world: dict[str, pin.SE3], com_target: np.ndarray, iterations: int = 3
-                 ) -> tuple[np.ndarray, np.ndarray]:
+    def _balance(
+        self,
+        q: np.ndarray,
+        root_xy: np.ndarray,
+        root_z: float,
+        root_rpy: np.ndarray,
+        feet_world: dict[str, pin.SE3],
+        com_target: np.ndarray,
+        iterations: int = 3,
+    ) -> tuple[np.ndarray, np.ndarray]:
         """Move the root horizontally until the CoM is over `com_target` (x, y), legs re-solved."""
         xy = root_xy.copy()
         for _ in range(iterations):
@@ -281,14 +337,18 @@ class MotionGenerator:
         t = self._time(duration, rate)
         q = np.tile(self.home, (t.shape[0], 1))
         all_joints = np.arange(len(self.robot.joint_names))
-        q[:, all_joints] = _free_joint_motion(self.kin, rng, t, all_joints, self.p.pole_amplitude,
-                                              self.p.f_min_hz, self.p.f_max_hz, self.home)
+        q[:, all_joints] = _free_joint_motion(
+            self.kin, rng, t, all_joints, self.p.pole_amplitude, self.p.f_min_hz, self.p.f_max_hz, self.home
+        )
         root = self.robot.root_link
         fixed = np.full(t.shape[0], root, dtype=object)
-        return self._finish(t, q, [frozenset({root})] * t.shape[0], fixed, np.tile(np.eye(4), (t.shape[0], 1, 1)))
+        return self._finish(
+            t, q, [frozenset({root})] * t.shape[0], fixed, np.tile(np.eye(4), (t.shape[0], 1, 1))
+        )
 
-    def balancing(self, rng: np.random.Generator, duration: float, rate: float, stance: str,
-                  part: str | None = None) -> Motion:
+    def balancing(
+        self, rng: np.random.Generator, duration: float, rate: float, stance: str, part: str | None = None
+    ) -> Motion:
         """Balancing on the `stance` foot (whole sole, or only its 'front' / 'rear' part when `part` is
         given): the other leg, the arms and the torso move, the CoM is kept over the supporting area."""
         foot = self.feet[stance]
@@ -309,8 +369,16 @@ class MotionGenerator:
 
         # free joints: upper body multi-sines; free feet wander around a lifted pose
         q = np.tile(self.home, (n, 1))
-        q[:, self.upper_body] = _free_joint_motion(self.kin, rng, t, self.upper_body, self.p.upper_body_amplitude,
-                                                   self.p.f_min_hz, self.p.f_max_hz, self.home)
+        q[:, self.upper_body] = _free_joint_motion(
+            self.kin,
+            rng,
+            t,
+            self.upper_body,
+            self.p.upper_body_amplitude,
+            self.p.f_min_hz,
+            self.p.f_max_hz,
+            self.home,
+        )
         wander = self.p.swing_motion_m * multisine(rng, t, 3 * len(others), self.p.f_min_hz, self.p.f_max_hz)
         sway = 0.03 * multisine(rng, t, 3, self.p.f_min_hz, self.p.f_max_hz)
         side = np.sign(self.kin.frame_pose(self.home, foot.sole).translation[1])
@@ -327,15 +395,16 @@ class MotionGenerator:
             out = {}
             for i, other in enumerate(others):
                 rel = home_feet[foot.name].actInv(home_feet[other.name])  # other sole in stance sole frame
-                offset = wander[k, 3 * i: 3 * i + 3] + [self.p.swing_forward_m, 0.0, self.p.swing_lift_m]
+                offset = wander[k, 3 * i : 3 * i + 3] + [self.p.swing_forward_m, 0.0, self.p.swing_lift_m]
                 out[other.name] = _pose(rel.translation + offset)
             return out
 
         coarse_xy = []
         for k in coarse:
             q_k[self.upper_body] = q[k, self.upper_body]
-            q_k, xy = self._balance(q_k, xy, self.p.root_height_m, sway[k], {stance: world_T_stance_home},
-                                    com_xy)
+            q_k, xy = self._balance(
+                q_k, xy, self.p.root_height_m, sway[k], {stance: world_T_stance_home}, com_xy
+            )
             coarse_xy.append(xy)
         root_xy = CubicSpline(t[coarse], np.array(coarse_xy), axis=0)(t)
 
@@ -352,12 +421,48 @@ class MotionGenerator:
         fixed = np.full(n, foot.sole, dtype=object)
         return self._finish(t, q, [contacts] * n, fixed, root_pose)
 
+    def _walking_com(self, t: np.ndarray, phases: list, y: dict[str, float]) -> np.ndarray:
+        """(N, 2) CoM path of a dynamically feasible walk (linear inverted pendulum): a sideways sway
+        phase-locked to the steps, over the stance foot at mid single support, with an amplitude whose
+        ZMP (= c - z/g c'') stays on the feet; forward, a spline through the stance feet at mid stance."""
+        singles = [(0.5 * (a + b), foot) for a, b, kind, foot, *_ in phases if kind == "ss"]
+        step_period = phases[1][1] - phases[1][0] + phases[2][1] - phases[2][0]
+        omega2 = (np.pi / step_period) ** 2
+        zmp_gain = 1.0 + self.p.root_height_m * omega2 / 9.81  # ZMP amplitude / CoM amplitude
+        half_width = min(abs(v) for v in y.values())
+        amplitude = 0.6 * half_width / zmp_gain
+        t_first, first_foot = singles[0]
+        side = np.sign(y[first_foot])
+        lateral = side * amplitude * np.cos(np.pi * (t - t_first) / step_period)
+        lateral *= smoothstep(t / t_first)  # start from standing still
+        knots_t = np.r_[0.0, [m for m, _ in singles]]
+        knots_x = np.r_[0.0, [x for x in self._stance_x(phases)]]
+        forward = CubicSpline(knots_t, knots_x, bc_type="clamped")(np.clip(t, 0, knots_t[-1]))
+        return np.stack([forward, lateral], axis=1)
+
+    @staticmethod
+    def _stance_x(phases: list) -> list[float]:
+        """Stance-foot x at each single support, replaying the footsteps."""
+        x: dict[str, float] = {}
+        out = []
+        for _, _, kind, foot, swing, _x_from, x_to in phases:
+            if kind == "ss":
+                out.append(x.get(foot, 0.0))
+                x[swing] = x_to
+        return out
+
     def walking(self, rng: np.random.Generator, duration: float, rate: float) -> Motion:
         """Walking straight, forward then backward: double support (weight transfer) and single support
         (stance sole fixed, swing foot lifting and landing). Starts and ends in double support."""
         if len(self.feet) != 2:
             raise RobotModelError("walking needs exactly two foot pairs")
         p = self.p
+        # every walk its own gait: step length +-20 %, phase durations +-10 %
+        step_length = p.step_length_m * rng.uniform(0.8, 1.2)
+        single_s, double_s = (
+            p.single_support_s * rng.uniform(0.9, 1.1),
+            p.double_support_s * rng.uniform(0.9, 1.1),
+        )
         t = self._time(duration, rate)
         n = t.shape[0]
         names = list(self.feet)
@@ -374,14 +479,14 @@ class MotionGenerator:
         phases.append((0.0, t0, "ds", second, None, 0.0, 0.0))
         swing, stance, step, direction = first, second, 0, 1.0
         while t0 < duration:
-            target = x[stance] + direction * p.step_length_m
+            target = x[stance] + direction * step_length
             if step == 0 or step == p.steps_per_direction:
-                target = x[stance] + direction * p.step_length_m / 2  # half steps to start and stop
-            phases.append((t0, t0 + p.single_support_s, "ss", stance, swing, x[swing], target))
+                target = x[stance] + direction * step_length / 2  # half steps to start and stop
+            phases.append((t0, t0 + single_s, "ss", stance, swing, x[swing], target))
             x[swing] = target
-            t0 += p.single_support_s
-            phases.append((t0, t0 + p.double_support_s, "ds", swing, stance, 0.0, 0.0))
-            t0 += p.double_support_s
+            t0 += single_s
+            phases.append((t0, t0 + double_s, "ds", swing, stance, 0.0, 0.0))
+            t0 += double_s
             swing, stance = stance, swing
             step += 1
             if step == p.steps_per_direction + 1:
@@ -409,24 +514,23 @@ class MotionGenerator:
                     x_now[swing_foot] = x_from + (x_to - x_from) * smoothstep(np.array(s))
                     z = p.step_lift_m * 64 * (s * (1 - s)) ** 3  # zero velocity and acceleration at both ends
                     feet_z[k, names.index(swing_foot)] = z
-                    com_target[k] = (x_now[foot], y[foot] * 0.8)
                 else:
                     contacts.append(self.feet[names[0]].links | self.feet[names[1]].links)
                     other = next(f for f in names if f != foot)
                     fixed[k] = self.feet[other].sole if i > 0 else self.feet[foot].sole
                     alpha = float(smoothstep(np.array(s ** skews[i])))
                     transfer[k], transfer_to[k] = alpha, foot
-                    prev = np.array([x_now[other], y[other] * 0.8]) if i > 0 else np.array([0.0, 0.0])
-                    com_target[k] = prev + (np.array([x_now[foot], y[foot] * 0.8]) - prev) * smoothstep(np.array(s))
                 for j, f in enumerate(names):
                     feet_x[k, j] = x_now[f]
                 k += 1
             if k >= n:
                 break
 
+        com_target = self._walking_com(t, phases, y)
         q = np.tile(self.home, (n, 1))
-        q[:, self.upper_body] = _free_joint_motion(self.kin, rng, t, self.upper_body, p.upper_body_amplitude / 2,
-                                                   p.f_min_hz, p.f_max_hz, self.home)
+        q[:, self.upper_body] = _free_joint_motion(
+            self.kin, rng, t, self.upper_body, p.upper_body_amplitude / 2, p.f_min_hz, p.f_max_hz, self.home
+        )
         sway = 0.02 * multisine(rng, t, 3, p.f_min_hz, p.f_max_hz)
         sway[:, 0] -= p.stance_lean_rad * com_target[:, 1] / (0.8 * max(abs(v) for v in y.values()))
 

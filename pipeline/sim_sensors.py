@@ -416,7 +416,13 @@ def thermal_response(activity: np.ndarray, dt: float, tau_s: float, baseline: fl
 
 def temperature_profile(rng: np.random.Generator, activity: np.ndarray, dt: float, p: ThermalParams,
                         initial: float | None = None) -> np.ndarray:
-    """The FT sensor's published temperature over one log, (N,) deg C.
+    """The FT sensor's published temperature over one log, (N,) deg C (see `temperature_signals`)."""
+    return temperature_signals(rng, activity, dt, p, initial)[1]
+
+
+def temperature_signals(rng: np.random.Generator, activity: np.ndarray, dt: float, p: ThermalParams,
+                        initial: float | None = None) -> tuple[np.ndarray, np.ndarray]:
+    """The FT sensor's (true, published) temperature over one log, each (N,) deg C.
 
     activity: (N,) in [0, 1], how hard the sensor's limb works (e.g. normalised joint torque), given by
     the caller; dt: sample period, s; initial: temperature at the first sample, deg C (the last value of
@@ -440,8 +446,8 @@ def temperature_profile(rng: np.random.Generator, activity: np.ndarray, dt: floa
         lo = math.ceil(p.t_min / p.resolution - 1e-9)  # tolerance: 15 / 0.1 = 150.00000000000003
         hi = math.floor(p.t_max / p.resolution + 1e-9)
         steps = np.clip(np.round(measured / p.resolution), lo, hi)
-        return steps * p.resolution
-    return np.clip(measured, p.t_min, p.t_max)
+        return true, steps * p.resolution
+    return true, np.clip(measured, p.t_min, p.t_max)
 
 
 # --- FT-board IMU --------------------------------------------------------------------------------

@@ -27,6 +27,8 @@ from pipeline.dynamics import ContactCase, rooted_readings
 from pipeline.robot import FootPair, RobotModel, sensor_frame_name, wrench_transform
 from pipeline.sim_motion import Motion
 
+PROFILE_WEIGHT = 0.2  # share of the double-support split set by the motion's profile, not by statics
+
 
 @dataclass
 class Truth:
@@ -111,8 +113,9 @@ class TruthComputer:
             for link in pair.foot_links:
                 self.pair_of_link[link] = pair
 
-    def _kinematics(self, root: str, fixed: str, q: np.ndarray, dq: np.ndarray, ddq: np.ndarray,
-                    links: Sequence[str]) -> tuple[dict, dict, dict, dict]:
+    def _kinematics(
+        self, root: str, fixed: str, q: np.ndarray, dq: np.ndarray, ddq: np.ndarray, links: Sequence[str]
+    ) -> tuple[dict, dict, dict, dict]:
         """Per-sample frame kinematics on the model rooted at `root`: sensor poses, IMU signals, and
         poses of `links`, all in the world (= `fixed`) frame."""
         rooted = self.robot.rooted(root)
@@ -138,8 +141,10 @@ class TruthComputer:
                 placement = data.oMf[fid]
                 pose[s][k] = placement.homogeneous
                 gyro[s][k] = pin.getFrameVelocity(model, data, fid, local).angular
-                acc[s][k] = (pin.getFrameClassicalAcceleration(model, data, fid, local).linear
-                             - placement.rotation.T @ g_root)
+                acc[s][k] = (
+                    pin.getFrameClassicalAcceleration(model, data, fid, local).linear
+                    - placement.rotation.T @ g_root
+                )
             for link, fid in link_ids.items():
                 link_pose[link][k] = data.oMf[fid].homogeneous
         world = fixed_T_root.homogeneous
@@ -156,15 +161,18 @@ class TruthComputer:
         gyro = {s: np.zeros((n, 3)) for s in robot.sensors}
         world_T_sensor = {s: np.zeros((n, 4, 4)) for s in robot.sensors}
 
-        keys = sorted({(int(c), str(f)) for c, f in zip(motion.contact_index, motion.fixed_links, strict=True)})
+        keys = sorted(
+            {(int(c), str(f)) for c, f in zip(motion.contact_index, motion.fixed_links, strict=True)}
+        )
         for contact_id, fixed in keys:
             contacts = motion.contact_sets[contact_id]
             idx = np.flatnonzero((motion.contact_index == contact_id) & (motion.fixed_links == fixed))
             q, dq, ddq = motion.q[idx], motion.dq[idx], motion.ddq[idx]
             case = ContactCase.make(contacts, fixed, self.g)
             root, asif = rooted_readings(robot, q, dq, ddq, case)
-            pose, acc, gyr, link_pose = self._kinematics(root, fixed, q, dq, ddq,
-                                                         [p.sole for p in self.pairs] + list(contacts))
+            pose, acc, gyr, link_pose = self._kinematics(
+                root, fixed, q, dq, ddq, [p.sole for p in self.pairs] + list(contacts)
+            )
             for s in robot.sensors:
                 proper_acc[s][idx], gyro[s][idx], world_T_sensor[s][idx] = acc[s], gyr[s], pose[s]
 
@@ -181,8 +189,9 @@ class TruthComputer:
             for s, ft in robot.sensors.items():
                 parent_side, child_side = robot.sensor_sides(s)
                 far = child_side if rooted.sensor_forward[s] else parent_side
-                sign = (1.0 if ft.direction == "parent_to_child" else -1.0) * \
-                    (1.0 if rooted.sensor_forward[s] else -1.0)
+                sign = (1.0 if ft.direction == "parent_to_child" else -1.0) * (
+                    1.0 if rooted.sensor_forward[s] else -1.0
+                )
                 total = asif[s].copy()
                 inv = np.linalg.inv(pose[s])
                 for c, g_c in ground.items():
@@ -196,9 +205,15 @@ class TruthComputer:
                 wrench[s][idx] = total
         return Truth(wrench, contact_wrench, proper_acc, gyro, world_T_sensor)
 
-    def _ground_wrenches(self, case: ContactCase, root: str, asif: dict[str, np.ndarray],
-                         link_pose: dict[str, np.ndarray], motion: Motion, idx: np.ndarray
-                         ) -> dict[str, np.ndarray] | None:
+    def _ground_wrenches(
+        self,
+        case: ContactCase,
+        root: str,
+        asif: dict[str, np.ndarray],
+        link_pose: dict[str, np.ndarray],
+        motion: Motion,
+        idx: np.ndarray,
+    ) -> dict[str, np.ndarray] | None:
         """The environment's wrench on every contact link (world frame), or None for one contact."""
         if len(case.contacts) == 1:
             return None
@@ -208,7 +223,9 @@ class TruthComputer:
         robot = self.robot
         # total ground wrench, in the fixed sole frame: the root foot is static, so
         # ground = -(rest of the robot on the foot, i.e. the as-if pair sum) - (the foot's own weight)
-        pair_sum = asif[root_pair.front] @ root_pair.sole_X_front.T + asif[root_pair.rear] @ root_pair.sole_X_rear.T
+        pair_sum = (
+            asif[root_pair.front] @ root_pair.sole_X_front.T + asif[root_pair.rear] @ root_pair.sole_X_rear.T
+        )
         total = -pair_sum - weight_wrench(robot, root_pair.foot_links, root_pair.sole, self.g)
         fixed_X_sole = wrench_transform(robot.rigid_transform(case.fixed_link, root_pair.sole))
         total = total @ fixed_X_sole.T
@@ -225,6 +242,20 @@ class TruthComputer:
             for j, foot in enumerate(feet):
                 mine = np.array([t == foot.name for t in to])
                 fractions[:, j] = np.where(mine, share, (1 - share) / (len(feet) - 1))
+            if len(feet) == 2:
+                # statics: the load follows the centre of pressure between the feet (lever rule), and the
+                # motion's skewed weight-transfer profile perturbs it (the part no model can know)
+                c_a, c_b = link_pose[feet[0].sole][:, :3, 3], link_pose[feet[1].sole][:, :3, 3]
+                fz = np.where(np.abs(total[:, 2]) > 1e-9, total[:, 2], 1e-9)
+                cop = np.stack([-total[:, 4] / fz, total[:, 3] / fz], axis=1)
+                span = (c_b - c_a)[:, :2]
+                lever = np.clip(
+                    np.einsum("ni,ni->n", cop - c_a[:, :2], span) / np.einsum("ni,ni->n", span, span),
+                    0.0,
+                    1.0,
+                )
+                on_b = (1 - PROFILE_WEIGHT) * lever + PROFILE_WEIGHT * fractions[:, 1]
+                fractions = np.stack([1 - on_b, on_b], axis=1)
             centers = np.stack([link_pose[f.sole][:, :3, 3] for f in feet], axis=1)
             parts = split_between_points(total, centers, fractions)
             per_foot = {f.name: parts[:, j] for j, f in enumerate(feet)}
