@@ -380,6 +380,7 @@ class ThermalParams:
     t_max: float = 60.0
     noise: float = 0.05  # white measurement noise std, deg C
     resolution: float = 0.1  # quantisation step of the published temperature, deg C (0: none)
+    warmup_max: float = 0.0  # a log starts up to this much above its baseline (robot busy before), deg C
 
     SECTION = "simulate.thermal"  # dotted params key, for error messages (a class attribute, not a field)
 
@@ -393,6 +394,7 @@ class ThermalParams:
         _ordered(self, "t_min", "t_max")
         _number(self, "noise", 0.0, 10.0)
         _number(self, "resolution", 0.0, 10.0)
+        _number(self, "warmup_max", 0.0, 50.0)
 
 
 def thermal_response(activity: np.ndarray, dt: float, tau_s: float, baseline: float, heat_gain: float,
@@ -438,7 +440,8 @@ def temperature_signals(rng: np.random.Generator, activity: np.ndarray, dt: floa
     if not dt > 0:
         raise ValueError(f"dt must be positive, got {dt!r}")
     baseline = p.baseline + rng.uniform(-p.baseline_spread, p.baseline_spread)
-    start = baseline if initial is None else float(initial)
+    warm = rng.uniform(0.0, p.warmup_max) if p.warmup_max > 0 else 0.0
+    start = baseline + warm if initial is None else float(initial)
     true = np.clip(thermal_response(act, dt, p.tau_s, baseline, p.heat_gain, start), p.t_min, p.t_max)
     measured = true + rng.standard_normal(true.shape) * p.noise
     if p.resolution > 0:
