@@ -1,0 +1,140 @@
+"""Stage `smooth`: against scipy's savgol_filter, against analytic derivatives, gaps, the stage itself."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import pandas as pd
+import pytest
+import yaml
+from scipy.signal import savgol_filter
+
+from pipeline import schema as S
+from pipeline.cli import main
+from pipeline.errors import ConfigError
+from pipeline.ingest import read_table_metadata
+from pipeline.smooth import SmoothParams, segments, smooth_kinematics
+from tests.test_ingest import JOINTS, ROOT, SENSORS, T0, joint_position, run_one, write_log
+
+RATE = 100.0  # Hz
+
+
+def uniform_stamps(n: int, rate: float = RATE) -> np.ndarray:
+    return T0 + np.round(np.arange(n) * 1e9 / rate).astype(np.int64)
+
+
+@pytest.mark.parametrize(("window", "polyorder"), [(21, 3), (7, 2), (31, 5)])
+def test_equals_scipy_savgol_on_uniform_samples(window: int, polyorder: int) -> None:
+    rng = np.random.default_rng(window)
+    q = np.cumsum(rng.standard_normal((500, 4)), axis=0) * 0.01
+    stamps = uniform_stamps(500)
+    res = smooth_kinematics(stamps, q, window, polyorder, max_gap_s=0.05)
+    dt = 1 / RATE
+    for got, deriv in ((res.q, 0), (res.dq, 1), (res.ddq, 2)):
+        expected = savgol_filter(q, window, polyorder, deriv=deriv, delta=dt, axis=0)
+        np.testing.assert_allclose(got, expected, rtol=1e-9, atol=1e-9 * np.abs(expected).max())
+    assert res.ok.all() and res.segments == 1
+
+
+# Stated bounds for a sine of amplitude A and angular frequency w = 2 pi rad/s (1 Hz, faster than the joint
+# motions here) sampled at 100 Hz, window 21 (0.2 s), order 3, relative to A, A w, A w^2. SG attenuates a
+# sine (the fit is exact only for cubics): measured interior errors 6.5e-4 / 3.6e-4 / 3.0e-2; the edge
+# windows (mode "interp") extrapolate the fit: 6.5e-4 / 1.2e-2 / 8.3e-2 over the whole segment.
+SINE_A, SINE_W = 0.7, 2 * np.pi * 1.0  # rad, rad/s (1 Hz: faster than any humanoid joint motion here)
+
+
+def _sine(t: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    a, w = SINE_A, SINE_W
+    return a * np.sin(w * t), a * w * np.cos(w * t), -a * w * w * np.sin(w * t)
+
+
+def _errors(res: object, t: np.ndarray, sl: slice) -> tuple[float, float, float]:
+    q, dq, ddq = _sine(t)
+    a, w = SINE_A, SINE_W
+    return (
+        np.abs(res.q[sl, 0] - q[sl]).max() / a,
+        np.abs(res.dq[sl, 0] - dq[sl]).max() / (a * w),
+        np.abs(res.ddq[sl, 0] - ddq[sl]).max() / (a * w * w),
+    )
+
+
+def test_sine_derivatives_within_stated_bounds() -> None:
+    stamps = uniform_stamps(400)
+    t = (stamps - T0) / 1e9
+    res = smooth_kinematics(stamps, _sine(t)[0][:, None], 21, 3, max_gap_s=0.05)
+    e_in = _errors(res, t, slice(10, -10))
+    e_all = _errors(res, t, slice(None))
+    assert e_in[0] < 1e-3 and e_in[1] < 1e-3 and e_in[2] < 5e-2, e_in
+    assert e_all[0] < 1e-3 and e_all[1] < 2e-2 and e_all[2] < 0.15, e_all
+
+
+def test_jitter_and_lost_samples_are_resampled_not_ignored() -> None:
+    # 0.5 ms stamp jitter and 2 % lost messages: the time scaling must follow the real stamps.
+    rng = np.random.default_rng(7)
+    stamps = uniform_stamps(600) + rng.integers(-500_000, 500_000, 600)
+    stamps = stamps[rng.random(600) > 0.02]
+    t = (stamps - T0) / 1e9
+    res = smooth_kinematics(stamps, _sine(t)[0][:, None], 21, 3, max_gap_s=0.05)
+    e_in = _errors(res, t, slice(15, -15))
+    assert e_in[0] < 3e-3 and e_in[1] < 3e-3 and e_in[2] < 5e-2, e_in  # measured 1.8e-3 / 1.7e-3 / 3.2e-2
+    # Treating the samples as uniform (ignoring the stamps) is visibly worse on velocity.
+    naive = savgol_filter(_sine(t)[0], 21, 3, deriv=1, delta=float(np.median(np.diff(t))))
+    assert np.abs(naive - _sine(t)[1])[15:-15].max() / (SINE_A * SINE_W) > 3 * e_in[1]
+
+
+def test_no_smoothing_across_gaps_and_short_segments_flagged() -> None:
+    first = uniform_stamps(300)
+    second = first[-1] + 10**9 + uniform_stamps(200) - T0  # 1 s gap
+    short = second[-1] + 10**9 + uniform_stamps(10) - T0  # shorter than the window
+    stamps = np.concatenate([first, second, short])
+    t = (stamps - T0) / 1e9
+    q = np.column_stack([np.where(t < 4, np.sin(t), 5.0 + t), np.cos(3 * t)])  # a step inside the gap
+    assert segments(stamps, 50_000_000) == [(0, 300), (300, 500), (500, 510)]
+    res = smooth_kinematics(stamps, q, 21, 3, max_gap_s=0.05)
+    assert (res.segments, res.short_segments) == (3, 1)
+    for start, stop in ((0, 300), (300, 500)):
+        alone = smooth_kinematics(stamps[start:stop], q[start:stop], 21, 3, max_gap_s=0.05)
+        np.testing.assert_allclose(res.dq[start:stop], alone.dq, rtol=1e-12, atol=1e-12)
+    assert res.ok[:500].all() and not res.ok[500:].any()
+    assert np.isnan(res.q[500:]).all()
+
+
+def test_params_validation() -> None:
+    with pytest.raises(ConfigError, match="smooth.window must be an odd integer"):
+        SmoothParams(window=20, polyorder=3, max_gap_s=0.05)
+    with pytest.raises(ConfigError, match="smooth.polyorder"):
+        SmoothParams(window=5, polyorder=5, max_gap_s=0.05)
+    with pytest.raises(ConfigError, match="smooth.max_gap_s"):
+        SmoothParams(window=5, polyorder=3, max_gap_s=0)
+
+
+def test_stage_adds_kinematics_and_keeps_everything(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch, capsys: pytest.CaptureFixture[str]
+) -> None:
+    monkeypatch.setenv("MLFLOW_TRACKING_URI", f"sqlite:///{tmp_path / 'mlflow.db'}")
+    ingested = tmp_path / "ingested"
+    run_one(write_log(tmp_path / "log.mcap", duration=3.0), ingested)
+    params = tmp_path / "params.yaml"
+    params.write_text((ROOT / "params.yaml").read_text())
+    out = tmp_path / "smoothed"
+    assert main(["smooth", str(ingested), str(out), "--params", str(params)]) == 0
+    assert [p.name for p in out.iterdir()] == ["log.parquet"]  # truth tables stay in ingested/
+    before = pd.read_parquet(ingested / "log.parquet")
+    after = pd.read_parquet(out / "log.parquet")
+    assert list(after.columns) == [*before.columns, *S.smoothed_extra_columns(JOINTS)]
+    pd.testing.assert_frame_equal(after[before.columns], before)
+    t = (after[S.STAMP].to_numpy() - T0) / 1e9
+    w = 2 * np.pi * 0.5
+    for k, j in enumerate(JOINTS):
+        np.testing.assert_allclose(after[S.joint_col(S.QS, j)], joint_position(t, k), atol=1e-4)
+        np.testing.assert_allclose(
+            after[S.joint_col(S.DQS, j)][10:-10], 0.5 * w * np.cos(w * t[10:-10] + k), atol=1e-3
+        )
+    assert after[S.ok_col(S.KINEMATICS_STREAM)].all()
+    meta = read_table_metadata(out / "log.parquet")
+    cfg = yaml.safe_load(params.read_text())["smooth"]
+    assert meta["ftcal.smooth"]["window"] == cfg["window"] and meta["ftcal.smooth"]["segments"] == 1
+    assert meta["ftcal.experiment"]["type"] == "walking"
+    assert meta["ftcal.schema"]["kind"] == "smoothed"
+    assert set(SENSORS) == set(S.sensors_of(after.columns))
