@@ -30,6 +30,25 @@ Smoothed table ``data/smoothed/<log>.parquet``: every column of the ingested tab
 ``ok.kinematics`` [bool] (False where the sample lies in a segment too short to smooth, or its
 joint positions are not ok).
 
+Labelled table ``data/labelled/<log>.parquet`` (same rows as the smoothed table; training input):
+``stamp_ns``, ``time_s``; the model inputs ``ft.<sensor>.<axis>``, ``temp.<sensor>``,
+``acc.<sensor>.<x|y|z>``, ``gyr.<sensor>.<x|y|z>`` with their ``ok.<stream>.<sensor>`` flags; and the labels:
+
+- ``exp.<sensor>.<axis>`` [N, Nm]: expected wrench of the sensor, in its frame and measure direction
+  (iDynTree semantics); NaN where ``sw.<sensor>`` is 0.
+- ``sw.<sensor>`` [uint8]: exact-label switch (thesis eqs. 5.5, 5.11): 1 iff one side of the sensor's
+  cut touches nothing, the sample lies outside every guard band and its kinematics are ok.
+- ``exp.<pair>.<axis>`` [N, Nm]: a foot pair's summed wrench (front + rear mapped by ``sole_X_sensor``)
+  in its sole frame; NaN where ``sw.<pair>`` is 0.
+- ``sw.<pair>`` [uint8]: 1 iff the contacts lie all on that foot or all off it (the graph-cut rule;
+  the thesis's eq. 5.12 switch of the sum loss is ``sw.<pair> * (1 - sw.<front> * sw.<rear>)``).
+- ``contacts`` [string]: the contact set used (declared or detected); ``fixed_link`` [string]: the link
+  fixed in the world; ``guard`` [bool]: inside a guard band around a contact change.
+
+Its metadata ``ftcal.label`` (JSON) holds the foot pairs with their constant 6x6 wrench transforms
+(``pairs.<pair>.sole_X_front`` / ``sole_X_rear``, row-major, force first), the contact-detection
+settings and the per-log summary.
+
 Parquet key-value metadata: ``ftcal.experiment`` (JSON of the MCAP ``experiment`` record),
 ``ftcal.ingest`` (JSON: source file, topics found with types, message counts, rates, warnings),
 ``ftcal.smooth`` (JSON, smoothed tables), ``ftcal.schema`` (the table kind and schema version).
@@ -58,6 +77,8 @@ CONTACTS = "contacts"
 Q, DQ_ENC, TAU_ENC = "q", "dq_enc", "tau_enc"
 FT, ACC, GYR, TEMP = "ft", "acc", "gyr", "temp"
 TRUE, DISTORTED, ORACLE = "true", "distorted", "oracle"
+EXPECTED, SWITCH = "exp", "sw"  # labelled tables: expected wrench and its exact-label switch
+FIXED_LINK, GUARD = "fixed_link", "guard"
 QS, DQS, DDQS = "qs", "dqs", "ddqs"
 OK = "ok"
 
@@ -88,8 +109,9 @@ META_EXPERIMENT = b"ftcal.experiment"
 META_INGEST = b"ftcal.ingest"
 META_SMOOTH = b"ftcal.smooth"
 META_SCHEMA = b"ftcal.schema"
+META_LABEL = b"ftcal.label"
 
-KIND_INGESTED, KIND_TRUTH, KIND_SMOOTHED = "ingested", "truth", "smoothed"
+KIND_INGESTED, KIND_TRUTH, KIND_SMOOTHED, KIND_LABELLED = "ingested", "truth", "smoothed", "labelled"
 TRUTH_SUFFIX = ".truth"  # <log>.truth.parquet
 PARQUET_SUFFIX = ".parquet"
 
@@ -116,6 +138,11 @@ def vector_cols(quantity: str, sensor: str) -> list[str]:
     return [f"{quantity}.{sensor}.{axis}" for axis in VECTOR_AXES]
 
 
+def switch_col(name: str) -> str:
+    """``sw.<sensor or pair>``: exact-label switch (uint8) in labelled tables."""
+    return f"{SWITCH}.{name}"
+
+
 def temperature_col(sensor: str) -> str:
     return f"{TEMP}.{sensor}"
 
@@ -130,7 +157,7 @@ def unit(column: str) -> str:
     if column in _UNITS:
         return _UNITS[column]
     parts = column.split(".")
-    if parts[0] in (FT, TRUE, DISTORTED, ORACLE):
+    if parts[0] in (FT, TRUE, DISTORTED, ORACLE, EXPECTED):
         return _WRENCH_UNITS.get(parts[-1], "")
     return _UNITS.get(parts[0], "")
 
@@ -172,9 +199,11 @@ def smoothed_extra_columns(joints: Sequence[str]) -> list[str]:
 def arrow_type(column: str) -> pa.DataType:
     if column == STAMP:
         return pa.int64()
-    if column.startswith(OK + "."):
+    if column.startswith(OK + ".") or column == GUARD:
         return pa.bool_()
-    if column == CONTACTS:
+    if column.startswith(SWITCH + "."):
+        return pa.uint8()
+    if column in (CONTACTS, FIXED_LINK):
         return pa.string()
     return pa.float64()
 

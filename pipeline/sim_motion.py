@@ -1,8 +1,8 @@
 """True robot motion for the four simulated experiment types (thesis 4.1).
 
 Each generator returns a :class:`Motion`: smooth joint trajectories within the URDF position limits
-(cubic splines through the solved postures, so velocities and accelerations are exact derivatives of
-the positions), the contact set and fixed link of every sample, and, in double support, the fraction
+(quintic splines through the solved postures, so velocities and accelerations are exact derivatives
+of the positions), the contact set and fixed link of every sample, and, in double support, the fraction
 of the load carried by the foot that is taking over (a smooth weight-transfer profile the labeller
 cannot know).
 
@@ -18,7 +18,7 @@ from dataclasses import dataclass
 
 import numpy as np
 import pinocchio as pin
-from scipy.interpolate import CubicSpline
+from scipy.interpolate import make_interp_spline
 
 from pipeline.errors import RobotModelError
 from pipeline.robot import RobotModel
@@ -67,9 +67,10 @@ class Foot:
 
 
 def smoothstep(s: np.ndarray) -> np.ndarray:
-    """Quintic 0 -> 1 with zero first and second derivative at both ends (minimum jerk)."""
+    """0 -> 1 (degree 9) with zero derivatives up to the fourth at both ends: motions built from it are
+    as smooth as the quintic-spline truth, so a polynomial smoother sees no kink at phase changes."""
     s = np.clip(s, 0.0, 1.0)
-    return s**3 * (10 - 15 * s + 6 * s**2)
+    return s**5 * (126 - 420 * s + 540 * s**2 - 315 * s**3 + 70 * s**4)
 
 
 def multisine(
@@ -189,8 +190,17 @@ def _pose(xyz: Sequence[float], rpy: Sequence[float] = (0.0, 0.0, 0.0)) -> pin.S
     return pin.SE3(pin.rpy.rpyToMatrix(*[float(a) for a in rpy]), np.asarray(xyz, float))
 
 
+def _interp(t: np.ndarray, y: np.ndarray, k: int = 5):
+    """Interpolating spline of order k (lower, odd, when there are too few points for k)."""
+    while k > 1 and len(t) <= k:
+        k -= 2
+    return make_interp_spline(t, y, k=k, axis=0)
+
+
 def _spline(t: np.ndarray, q: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    spline = CubicSpline(t, q, axis=0, bc_type="natural")
+    """Positions, velocities, accelerations of the quintic spline through the postures (C4: smooth
+    accelerations, and no boundary condition forcing them at the ends)."""
+    spline = _interp(t, q)
     return spline(t), spline(t, 1), spline(t, 2)
 
 
@@ -406,7 +416,7 @@ class MotionGenerator:
                 q_k, xy, self.p.root_height_m, sway[k], {stance: world_T_stance_home}, com_xy
             )
             coarse_xy.append(xy)
-        root_xy = CubicSpline(t[coarse], np.array(coarse_xy), axis=0)(t)
+        root_xy = _interp(t[coarse], np.array(coarse_xy))(t)
 
         root_pose = np.zeros((n, 4, 4))
         q_prev = q_k
@@ -437,7 +447,7 @@ class MotionGenerator:
         lateral *= smoothstep(t / t_first)  # start from standing still
         knots_t = np.r_[0.0, [m for m, _ in singles]]
         knots_x = np.r_[0.0, [x for x in self._stance_x(phases)]]
-        forward = CubicSpline(knots_t, knots_x, bc_type="clamped")(np.clip(t, 0, knots_t[-1]))
+        forward = _interp(knots_t, knots_x)(np.clip(t, 0, knots_t[-1]))
         return np.stack([forward, lateral], axis=1)
 
     @staticmethod
@@ -512,7 +522,7 @@ class MotionGenerator:
                     contacts.append(self.feet[foot].links)
                     fixed[k] = self.feet[foot].sole
                     x_now[swing_foot] = x_from + (x_to - x_from) * smoothstep(np.array(s))
-                    z = p.step_lift_m * 64 * (s * (1 - s)) ** 3  # zero velocity and acceleration at both ends
+                    z = p.step_lift_m * 1024 * (s * (1 - s)) ** 5  # still at both ends up to the snap
                     feet_z[k, names.index(swing_foot)] = z
                 else:
                     contacts.append(self.feet[names[0]].links | self.feet[names[1]].links)
@@ -543,7 +553,7 @@ class MotionGenerator:
             q_k[self.upper_body] = q[k, self.upper_body]
             q_k, xy = self._balance(q_k, xy, p.root_height_m, sway[k], feet_world(k), com_target[k])
             coarse_xy.append(xy)
-        root_xy = CubicSpline(t[coarse], np.array(coarse_xy), axis=0)(t)
+        root_xy = _interp(t[coarse], np.array(coarse_xy))(t)
         root_pose = np.zeros((n, 4, 4))
         q_prev = self.home.copy()
         for k in range(n):

@@ -28,6 +28,10 @@ from pipeline.robot import FootPair, RobotModel, sensor_frame_name, wrench_trans
 from pipeline.sim_motion import Motion
 
 PROFILE_WEIGHT = 0.2  # share of the double-support split set by the motion's profile, not by statics
+# A foot carrying less than this share of the load in double support carries nothing: it touches the
+# floor without pressing on it, which for every label is the same as not touching. The true contact set
+# is the load-bearing one, so a contact starts and ends where a foot's load leaves or reaches zero.
+DEAD_ZONE = 0.05
 
 
 @dataclass
@@ -47,6 +51,7 @@ class Truth:
     proper_acc: dict[str, np.ndarray]
     gyro: dict[str, np.ndarray]
     world_T_sensor: dict[str, np.ndarray]
+    contacts: list[frozenset[str]] | None = None  # per sample: the load-bearing contact links
 
 
 def _cross(a: np.ndarray, b: np.ndarray) -> np.ndarray:
@@ -203,7 +208,19 @@ class TruthComputer:
                     t_s = np.einsum("nij,nj->ni", rot, g_c[:, 3:]) + _cross(pos, f_s)
                     total -= sign * np.concatenate([f_s, t_s], axis=1)
                 wrench[s][idx] = total
-        return Truth(wrench, contact_wrench, proper_acc, gyro, world_T_sensor)
+        # the load-bearing contact set: a foot whose ground wrench is exactly zero does not touch; a foot
+        # that bears load touches with every link it has on the floor (a part may carry little)
+        contacts = []
+        for k in range(n):
+            declared = motion.contact_sets[motion.contact_index[k]]
+            idle = set()
+            for pair in self.pairs:
+                links = [c for c in declared if c in pair.foot_links]
+                if links and all(np.all(contact_wrench[c][k] == 0.0) for c in links):
+                    idle.update(links)
+            bearing = frozenset(declared - idle)
+            contacts.append(bearing if bearing else declared)
+        return Truth(wrench, contact_wrench, proper_acc, gyro, world_T_sensor, contacts)
 
     def _ground_wrenches(
         self,
@@ -255,6 +272,7 @@ class TruthComputer:
                     1.0,
                 )
                 on_b = (1 - PROFILE_WEIGHT) * lever + PROFILE_WEIGHT * fractions[:, 1]
+                on_b = np.clip((on_b - DEAD_ZONE) / (1 - 2 * DEAD_ZONE), 0.0, 1.0)
                 fractions = np.stack([1 - on_b, on_b], axis=1)
             centers = np.stack([link_pose[f.sole][:, :3, 3] for f in feet], axis=1)
             parts = split_between_points(total, centers, fractions)

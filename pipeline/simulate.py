@@ -331,7 +331,7 @@ def simulate_log(world: World, index: int, spec: LogSpec, out_dir: Path, plot: b
     dq_meas = encoder_velocity(q_meas, dt)
     js_stamps = _stamps(rng, motion.t, 0.0, sim.timing.jitter_s)
     contact_names = [",".join(sorted(c)) for c in motion.contact_sets]
-    contacts_text = np.array(contact_names, dtype=object)[motion.contact_index]
+    contacts_text = np.array([",".join(sorted(c)) for c in truth.contacts], dtype=object)
 
     constant = len(motion.contact_sets) == 1
     metadata = {

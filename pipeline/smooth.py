@@ -9,7 +9,8 @@ segments at every stamp step above ``smooth.max_gap_s`` (nothing is ever smoothe
 each segment is resampled linearly on a uniform grid with its median step, filtered there (derivatives
 scaled by that step, so in rad/s and rad/s^2), and interpolated back to the original stamps. On
 uniformly sampled data this is exactly `scipy.signal.savgol_filter`. Segments shorter than the window
-get NaN and ``ok.kinematics`` False.
+get NaN and ``ok.kinematics`` False; so do, with their values kept, the first and last ``window // 2``
+samples of every segment, where the fitted polynomial is one-sided and its derivatives extrapolate.
 """
 
 from __future__ import annotations
@@ -139,7 +140,10 @@ def smooth_kinematics(
             res.short_segments += 1
             continue
         res.q[start:stop], res.dq[start:stop], res.ddq[start:stop] = smoothed
-        res.ok[start:stop] = True
+        # within half a window of a segment's ends the fit is one-sided (mode "interp"): its derivatives
+        # extrapolate, so those samples keep their values but are not ok for labelling
+        half = window // 2
+        res.ok[start + half : stop - half] = True
         res.periods_s.append(float(np.median(np.diff(t_s[start:stop]))))
     return res
 

@@ -1,0 +1,202 @@
+"""The label stage: contact detection, guard bands, expected wrenches against truth and iDynTree."""
+
+from __future__ import annotations
+
+import copy
+import os
+from pathlib import Path
+
+import numpy as np
+import pandas as pd
+import pytest
+import yaml
+
+from pipeline import schema as S
+from pipeline.config import load_params
+from pipeline.errors import ConfigError, DataError, RobotModelError
+from pipeline.label import guard_band, hysteresis, run
+from tests.idyntree_ref import IDynTreeFT
+
+REPO = Path(__file__).resolve().parents[1]
+LOGS = [
+    {"type": "pole", "duration_s": 6, "role": "train"},
+    {"type": "balancing", "duration_s": 6, "role": "train", "foot": "l_foot"},
+    {"type": "half_foot", "duration_s": 6, "role": "test", "foot": "r_foot", "part": "rear"},
+    {"type": "walking", "duration_s": 30, "role": "test"},
+]
+
+
+def write_params(tmp: Path, name: str, **simulate: object) -> Path:
+    data = yaml.safe_load((REPO / "params.yaml").read_text())
+    data["simulate"].update({"logs": copy.deepcopy(LOGS), "workers": 1, "plots": False, **simulate})
+    path = tmp / f"{name}.yaml"
+    path.write_text(yaml.safe_dump(data, sort_keys=False))
+    return path
+
+
+def pipeline_through_label(tmp: Path, params_path: Path) -> Path:
+    from pipeline import ingest, simulate, smooth
+
+    params = load_params(params_path)
+    simulate.run(params, tmp / "sim", progress=False)
+    ingest.run(params, tmp / "sim", tmp / "ingested", progress=False)
+    smooth.run(params, tmp / "ingested", tmp / "smoothed", progress=False)
+    run(params, tmp / "smoothed", tmp / "labelled", tmp / "ingested", progress=False)
+    return tmp
+
+
+@pytest.fixture(scope="module")
+def mlflow_store(tmp_path_factory: pytest.TempPathFactory):
+    old = os.environ.get("MLFLOW_TRACKING_URI")
+    os.environ["MLFLOW_TRACKING_URI"] = f"sqlite:///{tmp_path_factory.mktemp('mlflow')}/mlflow.db"
+    yield
+    if old is None:
+        os.environ.pop("MLFLOW_TRACKING_URI")
+    else:
+        os.environ["MLFLOW_TRACKING_URI"] = old
+
+
+@pytest.fixture(scope="module")
+def default_run(tmp_path_factory: pytest.TempPathFactory, mlflow_store: None) -> Path:
+    tmp = tmp_path_factory.mktemp("default")
+    return pipeline_through_label(tmp, write_params(tmp, "default"))
+
+
+@pytest.fixture(scope="module")
+def ideal_run(tmp_path_factory: pytest.TempPathFactory, mlflow_store: None) -> Path:
+    """No model error, no sensor or encoder noise, no timing jitter: labels must equal truth."""
+    tmp = tmp_path_factory.mktemp("ideal")
+    data = yaml.safe_load(write_params(tmp, "x").read_text())
+    sim = data["simulate"]
+    sim.update(
+        {"mass_error": 0.0, "com_error_m": 0.0, "encoder_resolution_rad": 0.0, "encoder_noise_rad": 0.0}
+    )
+    sim["sensors"].update({"noise_force": 0.0, "noise_torque": 0.0})
+    sim["timing"].update({"jitter_s": 0.0, "drop_rate": 0.0, "duplicate_rate": 0.0, "ft_offset_s": 0.0})
+    data["smooth"].update({"window": 7, "polyorder": 6})  # noise-free positions: a short, high-order fit
+    path = tmp / "ideal.yaml"
+    path.write_text(yaml.safe_dump(data, sort_keys=False))
+    return pipeline_through_label(tmp, path)
+
+
+def labelled(run_dir: Path, log: str) -> tuple[pd.DataFrame, pd.DataFrame]:
+    table = pd.read_parquet(run_dir / "labelled" / f"{log}.parquet")
+    truth = pd.read_parquet(run_dir / "ingested" / f"{log}.truth.parquet").set_index(S.STAMP)
+    return table, truth.reindex(table[S.STAMP].to_numpy())
+
+
+def test_hysteresis_and_guard_band() -> None:
+    force = np.array([0, 5, 12, 8, 3, 1, 9, 11, np.nan, 2])
+    np.testing.assert_array_equal(hysteresis(force, on=10, off=2), [0, 0, 1, 1, 1, 0, 0, 1, 1, 1])
+    t = np.arange(10) * 0.01
+    changed = np.zeros(10, dtype=bool)
+    changed[4] = True  # change halfway between t = 0.03 and 0.04
+    np.testing.assert_array_equal(np.flatnonzero(guard_band(t, changed, 0.01)), [3, 4])
+    np.testing.assert_array_equal(np.flatnonzero(guard_band(t, changed, 0.016)), [2, 3, 4, 5])
+
+
+def test_walking_contacts_detected(default_run: Path) -> None:
+    """>= 99% agreement with the true contact set outside the guard bands, guard bands < 5% of samples."""
+    table, truth = labelled(default_run, "03_walking_test")
+    outside = ~table[S.GUARD].to_numpy()
+    agree = table[S.CONTACTS].to_numpy()[outside] == truth[S.CONTACTS].fillna("").to_numpy()[outside]
+    assert agree.mean() >= 0.99
+    assert table[S.GUARD].mean() < 0.05
+    assert table[S.CONTACTS].nunique() == 3  # left, right, both
+    # every switch is 0 inside guard bands
+    for col in [c for c in table.columns if c.startswith(S.SWITCH + ".")]:
+        assert not table.loc[table[S.GUARD], col].any()
+
+
+def test_declared_contacts_and_switches(default_run: Path) -> None:
+    table, _ = labelled(default_run, "02_half_foot_r_foot_rear_test")
+    assert set(table[S.CONTACTS]) == {"r_foot_rear"} and set(table[S.FIXED_LINK]) == {"r_sole"}
+    ok = table[S.switch_col("r_leg_ft")] == 1
+    assert ok.mean() > 0.9  # all but the smoothing margins
+    for part in ("r_foot_front_ft", "r_foot_rear_ft", "r_foot"):
+        assert (table[S.switch_col(part)] == table[S.switch_col("r_leg_ft")]).all()
+    table, _ = labelled(default_run, "01_balancing_l_foot_train")
+    assert not table[S.switch_col("l_foot_front_ft")].any() and table[S.switch_col("l_foot")].mean() > 0.9
+    # NaN exactly where the switch is 0
+    for name in ("l_foot_front_ft", "l_foot", "l_leg_ft"):
+        nan = table[S.wrench_cols(S.EXPECTED, name)].isna().all(axis=1)
+        assert (nan == (table[S.switch_col(name)] == 0)).all()
+
+
+def test_ideal_labels_equal_truth(ideal_run: Path) -> None:
+    """No model error, no noise: wherever a switch is 1, expected == true wrench, every sensor and pair
+    (what remains is the Savitzky-Golay smoothing of exact positions)."""
+    from pipeline.robot import load_robot
+
+    robot = load_robot("iCubGenova09")
+    pairs = [
+        robot.foot_pair("l_foot", "l_foot_front_ft", "l_foot_rear_ft", "l_sole"),
+        robot.foot_pair("r_foot", "r_foot_front_ft", "r_foot_rear_ft", "r_sole"),
+    ]
+    worst, compared = {}, 0
+    for log in (
+        "00_pole_train",
+        "01_balancing_l_foot_train",
+        "02_half_foot_r_foot_rear_test",
+        "03_walking_test",
+    ):
+        table, truth = labelled(ideal_run, log)
+        true = {s: truth[S.wrench_cols(S.TRUE, s)].to_numpy() for s in robot.sensors}
+        for p in pairs:
+            true[p.name] = true[p.front] @ p.sole_X_front.T + true[p.rear] @ p.sole_X_rear.T
+        for name, value in true.items():
+            on = (table[S.switch_col(name)] == 1).to_numpy() & np.isfinite(value).all(axis=1)
+            err = table[S.wrench_cols(S.EXPECTED, name)].to_numpy()[on] - value[on]
+            worst[(log, name)] = float(np.abs(err).max()) if on.any() else 0.0
+            compared += int(on.sum())
+    assert compared > 10_000
+    assert max(worst.values()) < IDEAL_TOLERANCE, {k: v for k, v in worst.items() if v >= IDEAL_TOLERANCE}
+
+
+IDEAL_TOLERANCE = 1e-3  # N / Nm
+
+
+@pytest.mark.parametrize(
+    "log", ["00_pole_train", "01_balancing_l_foot_train", "02_half_foot_r_foot_rear_test", "03_walking_test"]
+)
+def test_relabel_with_idyntree(default_run: Path, log: str) -> None:
+    """500 labelled samples of each experiment type, recomputed with iDynTree from the same kinematics."""
+    from pipeline.robot import load_robot
+
+    robot = load_robot("iCubGenova09")
+    table = pd.read_parquet(default_run / "labelled" / f"{log}.parquet")
+    smoothed = pd.read_parquet(default_run / "smoothed" / f"{log}.parquet").set_index(S.STAMP)
+    smoothed = smoothed.reindex(table[S.STAMP].to_numpy())
+    oracle = IDynTreeFT(robot.urdf_path, robot.joint_names)
+    rows = np.flatnonzero((table[[S.switch_col(s) for s in robot.sensors]].to_numpy() == 1).any(axis=1))
+    rows = rows[np.linspace(0, len(rows) - 1, 500).astype(int)]
+    compared = 0
+    for (contacts, fixed), group in table.iloc[rows].groupby([S.CONTACTS, S.FIXED_LINK]):
+        idx = group.index.to_numpy()
+        kin = [smoothed[S.joint_cols(k, robot.joint_names)].to_numpy()[idx] for k in (S.QS, S.DQS, S.DDQS)]
+        ref = oracle.expected(*kin, contacts.split(","), fixed, np.array([0.0, 0.0, -9.80665]))
+        for s in robot.sensors:
+            on = group[S.switch_col(s)].to_numpy() == 1
+            np.testing.assert_allclose(
+                group[S.wrench_cols(S.EXPECTED, s)].to_numpy()[on], ref[s][on], atol=1e-6
+            )
+            compared += int(on.sum())
+    assert compared >= 500
+
+
+def test_bad_inputs(tmp_path: Path, default_run: Path, mlflow_store: None) -> None:
+    params = load_params(write_params(tmp_path, "p"))
+    with pytest.raises(DataError, match="input directory not found"):
+        run(params, tmp_path / "nope", tmp_path / "out")
+    data = yaml.safe_load(write_params(tmp_path, "p").read_text())
+    data["label"]["contact_on"] = 0.01
+    path = tmp_path / "bad.yaml"
+    path.write_text(yaml.safe_dump(data))
+    with pytest.raises(ConfigError, match="label.contact_off and label.contact_on must satisfy"):
+        run(load_params(path), default_run / "smoothed", tmp_path / "out")
+    data = yaml.safe_load(write_params(tmp_path, "p").read_text())
+    data["robot"]["foot_pairs"]["l_foot"]["front"] = "l_toe_ft"
+    path.write_text(yaml.safe_dump(data))
+    with pytest.raises(RobotModelError, match="no force_torque sensor named 'l_toe_ft'"):
+        run(load_params(path), default_run / "smoothed", tmp_path / "out")
+    assert not (tmp_path / "out").exists()
