@@ -1,0 +1,446 @@
+"""Calibration models of one sensor group: neural networks, the thesis's switched losses, linear baselines.
+
+A *sensor group* is what is trained together (thesis chapter 5): one FT sensor (a leg or an arm), or the
+front and rear sensors of one foot, coupled by the sum of their wrenches in the sole frame. Everything
+here works on arrays of shape (N, S, ...) with S = 1 or 2 sensors; nothing reads files or params.
+
+Inputs of one sensor, in this order (thesis 5.3): raw wrench f (6: fx, fy, fz N; tx, ty, tz Nm, the
+primary calibration's output), temperature T (degC) [7 inputs]; then FT-board accelerometer (3, m/s^2)
+and gyroscope (3, rad/s) [13 inputs]. Output: the calibrated wrench (6, N and Nm, sensor frame).
+
+Networks (`SensorNet`): the thesis's MLP, hidden layers of `hidden` neurons with one activation each
+(default LeakyReLU then ReLU), xavier_uniform weights, a linear output layer. Two choices of ours:
+
+- Inputs are normalised with constants from the training samples (``max``: divided by the largest
+  absolute value; ``standard``: minus the mean, divided by the standard deviation), stored as buffers so
+  that the saved model takes raw inputs.
+- The network learns a correction on top of the raw wrench, ``f_cal = f_raw + s * mlp(x_norm)``, with ``s``
+  the per-axis standard deviation of the raw wrench in the training samples (a buffer too). The primary
+  calibration is already within a few percent, so the identity is the right prior: a plain MLP would
+  have to rebuild it from ReLU pieces to 0.1 % precision over a +-1000 N range before learning anything,
+  and ``s`` makes the last layer's output O(1) in every axis (N and Nm differ by two orders of magnitude).
+  The loss stays the thesis's: MSE of the wrench in N and Nm (``switched_loss``).
+
+Losses (`switched_loss`), per sample i, averaged over the batch (thesis eqs. 5.4-5.12):
+
+    L_i = sum_s alpha_si lambda_s mse(f_si^exp - f_si^NN)
+          + alpha_sum,i lambda_sum mse(sum_s X_s f_si^exp - sum_s X_s f_si^NN)
+
+where mse is the mean over the 6 components, alpha_si the exact-label switch of sensor s (eq. 5.5, 5.11),
+X_s the 6x6 wrench transform ``sole_X_s`` and alpha_sum = sw_pair (1 - prod_s sw_s) (eq. 5.12). With one
+sensor and no sum this is eq. 5.4; for a foot it is L_front + L_rear of eqs. 5.6-5.7 with the sum term
+counted once, whose gradient with respect to each network is exactly that of its own eq. 5.6 or 5.7.
+
+Baselines (`LinearBaseline`): the same switched least-squares objective with a model linear in its
+parameters, ``f = f_raw + W phi(x)``, fitted in closed form: ``affine`` (phi = [f, T, 1], least squares,
+the in-situ affine calibration with temperature) and ``poly<n>`` (phi = every monomial up to order n of
+the 7 standardised inputs, ridge; Mohamed et al. 2023 with na = nb = 0).
+"""
+
+from __future__ import annotations
+
+import itertools
+import json
+import math
+import os
+import pickle
+from collections.abc import Mapping, Sequence
+from dataclasses import asdict, dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import torch
+from torch import nn
+
+from pipeline.errors import DataError
+
+WRENCH = 6  # fx, fy, fz [N], tx, ty, tz [Nm]
+N_FORCE = 3
+INPUT_SIZES = (7, 13)  # raw wrench + temperature (+ accelerometer + gyroscope)
+NORMALISATIONS = ("max", "standard")
+ACTIVATIONS: dict[str, type[nn.Module]] = {
+    "relu": nn.ReLU,
+    "leaky_relu": nn.LeakyReLU,
+    "tanh": nn.Tanh,
+    "elu": nn.ELU,
+}
+MODEL_SUFFIX_CONFIG = ".json"
+MODEL_SUFFIX_WEIGHTS = ".pt"
+_TINY = 1e-9  # a normalisation scale below this (a constant input) is replaced by 1
+
+
+# --- normalisation -------------------------------------------------------------------------------
+
+
+def normalisation_constants(x: np.ndarray, kind: str) -> tuple[np.ndarray, np.ndarray]:
+    """(offset, scale), each (F,), such that (x - offset) / scale is normalised; x (N, F) training inputs.
+
+    ``max``: offset 0, scale max |x| per column (thesis 5.5.1). ``standard``: mean and standard deviation.
+    A column that is constant (scale 0) gets scale 1, so that it passes through without dividing by 0.
+    """
+    x = np.asarray(x, dtype=np.float64)
+    if kind == "max":
+        offset = np.zeros(x.shape[1])
+        scale = np.abs(x).max(axis=0) if len(x) else np.ones(x.shape[1])
+    elif kind == "standard":
+        offset = x.mean(axis=0) if len(x) else np.zeros(x.shape[1])
+        scale = x.std(axis=0) if len(x) else np.ones(x.shape[1])
+    else:
+        raise ValueError(f"normalisation must be one of {NORMALISATIONS}, got {kind!r}")
+    scale = np.where(scale > _TINY, scale, 1.0)
+    return offset, scale
+
+
+# --- networks ------------------------------------------------------------------------------------
+
+
+@dataclass(frozen=True)
+class NetConfig:
+    """Architecture of the network of one sensor (thesis 5.5.1: 2 hidden layers of 100, LeakyReLU, ReLU)."""
+
+    n_inputs: int  # 7 (wrench + temperature) or 13 (+ accelerometer + gyroscope)
+    hidden: int = 100  # neurons per hidden layer; 64-128 is plenty for a 7 -> 6 map
+    activations: tuple[str, ...] = ("leaky_relu", "relu")  # one per hidden layer, so len = number of layers
+
+    def __post_init__(self) -> None:
+        if self.n_inputs not in INPUT_SIZES:
+            raise ValueError(f"n_inputs must be one of {INPUT_SIZES}, got {self.n_inputs!r}")
+        if self.hidden < 1:
+            raise ValueError(f"hidden must be >= 1, got {self.hidden!r}")
+        object.__setattr__(self, "activations", tuple(self.activations))
+        for name in self.activations:
+            if name not in ACTIVATIONS:
+                raise ValueError(f"activation must be one of {sorted(ACTIVATIONS)}, got {name!r}")
+
+
+class SensorNet(nn.Module):
+    """Calibration network of one sensor: (B, n_inputs) raw inputs -> (B, 6) calibrated wrench (N, Nm).
+
+    ``f = x[:, :6] + out_scale * mlp((x - in_offset) / in_scale)``; the three constants are buffers
+    (saved in the state dict), set from the training samples with `set_constants`.
+    """
+
+    def __init__(self, config: NetConfig) -> None:
+        super().__init__()
+        self.config = config
+        layers: list[nn.Module] = []
+        width = config.n_inputs
+        for name in config.activations:
+            layers += [nn.Linear(width, config.hidden), ACTIVATIONS[name]()]
+            width = config.hidden
+        layers.append(nn.Linear(width, WRENCH))
+        self.mlp = nn.Sequential(*layers)
+        self.register_buffer("in_offset", torch.zeros(config.n_inputs))
+        self.register_buffer("in_scale", torch.ones(config.n_inputs))
+        self.register_buffer("out_scale", torch.ones(WRENCH))
+
+    def reset_parameters(self) -> None:
+        """xavier_uniform weights, zero biases (thesis 5.5.1), from the current torch RNG state."""
+        for module in self.mlp:
+            if isinstance(module, nn.Linear):
+                nn.init.xavier_uniform_(module.weight)
+                nn.init.zeros_(module.bias)
+
+    def set_constants(self, in_offset: np.ndarray, in_scale: np.ndarray, out_scale: np.ndarray) -> None:
+        for name, value in (("in_offset", in_offset), ("in_scale", in_scale), ("out_scale", out_scale)):
+            buffer = getattr(self, name)
+            buffer.copy_(torch.as_tensor(np.asarray(value), dtype=buffer.dtype))
+
+    def forward(self, x: torch.Tensor) -> torch.Tensor:
+        return x[:, :WRENCH] + self.out_scale * self.mlp((x - self.in_offset) / self.in_scale)
+
+
+class GroupNet(nn.Module):
+    """The networks of a sensor group side by side: (B, S * n_inputs) -> (B, S * 6).
+
+    Input columns are sensor 0's inputs then sensor 1's (each in the order of the module docstring);
+    output columns are sensor 0's calibrated wrench then sensor 1's.
+    """
+
+    def __init__(self, config: NetConfig, n_sensors: int) -> None:
+        super().__init__()
+        self.config = config
+        self.nets = nn.ModuleList(SensorNet(config) for _ in range(n_sensors))
+
+    @property
+    def n_sensors(self) -> int:
+        return len(self.nets)
+
+    def reset_parameters(self) -> None:
+        for net in self.nets:
+            net.reset_parameters()
+
+    def forward(self, x: torch.Tensor) -> torch.Tensor:
+        n = self.config.n_inputs
+        return torch.cat([net(x[:, s * n : (s + 1) * n]) for s, net in enumerate(self.nets)], dim=1)
+
+
+def save_model(path: str | Path, model: GroupNet, info: Mapping[str, Any] | None = None) -> None:
+    """Write `model` as ``<path>.json`` (architecture + `info`) and ``<path>.pt`` (tensors only).
+
+    The weights file is a ``torch.save`` of the state dict (a dict of tensors), readable with
+    ``torch.load(weights_only=True)``: loading never executes code from the file. Written atomically.
+    """
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    config = {"net": asdict(model.config), "n_sensors": model.n_sensors, **dict(info or {})}
+    for suffix, write in (
+        (MODEL_SUFFIX_WEIGHTS, lambda p: torch.save(model.state_dict(), p)),
+        (MODEL_SUFFIX_CONFIG, lambda p: p.write_text(json.dumps(config, indent=1, sort_keys=True) + "\n")),
+    ):
+        final = path.with_name(path.name + suffix)
+        tmp = final.with_name(f".{final.name}.{os.getpid()}.tmp")
+        try:
+            write(tmp)
+            os.replace(tmp, final)
+        except BaseException:
+            tmp.unlink(missing_ok=True)
+            raise
+
+
+def load_model(path: str | Path) -> tuple[GroupNet, dict[str, Any]]:
+    """Rebuild a model written by `save_model` from ``<path>.json`` and ``<path>.pt`` (weights only).
+
+    Returns the module in eval mode and its JSON config (with the `info` given at saving: input and
+    output column names, sensors, ...). Raises DataError naming the file if either file is unusable.
+    """
+    path = Path(path)
+    config_file = path.with_name(path.name + MODEL_SUFFIX_CONFIG)
+    weights_file = path.with_name(path.name + MODEL_SUFFIX_WEIGHTS)
+    try:
+        config = json.loads(config_file.read_text(encoding="utf-8"))
+        net = config["net"]
+        model = GroupNet(
+            NetConfig(n_inputs=net["n_inputs"], hidden=net["hidden"], activations=tuple(net["activations"])),
+            n_sensors=int(config["n_sensors"]),
+        )
+    except (OSError, ValueError, KeyError, TypeError) as exc:
+        raise DataError(f"{config_file}: not a model config: {exc}") from None
+    try:
+        state = torch.load(weights_file, map_location="cpu", weights_only=True)
+        model.load_state_dict(state)
+    except pickle.UnpicklingError:
+        raise DataError(
+            f"{weights_file}: holds objects other than tensors; refusing to unpickle it (weights only)"
+        ) from None
+    except (OSError, RuntimeError, KeyError, ValueError) as exc:
+        first_line = str(exc).strip().splitlines()[0] if str(exc).strip() else type(exc).__name__
+        raise DataError(f"{weights_file}: cannot load weights: {first_line}") from None
+    return model.eval(), config
+
+
+# --- losses --------------------------------------------------------------------------------------
+
+
+def _switched_mse(error: torch.Tensor, switch: torch.Tensor) -> torch.Tensor:
+    """Per-sample mse over the last axis (6) where `switch` (bool) is set, 0 elsewhere.
+
+    Labels are NaN where their switch is 0: the error is masked with `torch.where` (NaN * 0 is NaN).
+    """
+    masked = torch.where(switch.unsqueeze(-1), error, torch.zeros((), dtype=error.dtype))
+    return masked.square().mean(dim=-1)
+
+
+def sum_in_sole(wrenches: torch.Tensor, transforms: torch.Tensor) -> torch.Tensor:
+    """sum_s X_s f_s of eqs. 5.9-5.10, in the sole frame: (B, 6).
+
+    wrenches (B, S, 6) in their sensor frames; transforms (S, 6, 6) ``sole_X_s``.
+    """
+    return torch.einsum("sij,bsj->bi", transforms.to(wrenches.dtype), wrenches)
+
+
+def switched_loss(
+    pred: torch.Tensor,
+    labels: torch.Tensor,
+    switches: torch.Tensor,
+    lambdas: torch.Tensor,
+    sum_label: torch.Tensor | None = None,
+    alpha_sum: torch.Tensor | None = None,
+    transforms: torch.Tensor | None = None,
+    lambda_sum: float = 1.0,
+) -> tuple[torch.Tensor, dict[str, torch.Tensor]]:
+    """The thesis's switched loss, averaged over the batch (module docstring; eqs. 5.4-5.12).
+
+    Args:
+        pred: (B, S, 6) network outputs, N and Nm, each in its sensor frame.
+        labels: (B, S, 6) expected wrenches (NaN allowed where the switch is 0).
+        switches: (B, S) bool, alpha_s (eq. 5.5, 5.11).
+        lambdas: (S,) weights lambda_s.
+        sum_label: (B, 6) expected sum in the sole frame (NaN allowed where alpha_sum is 0), or None.
+        alpha_sum: (B,) bool, the sum switch of eq. 5.12 (already sw_pair * (1 - prod sw_s)), or None.
+        transforms: (S, 6, 6) ``sole_X_s``; required with sum_label.
+        lambda_sum: weight of the sum term.
+
+    Returns:
+        (total loss, {"s0": term, "s1": term, "sum": term}): each term is the batch mean of
+        alpha lambda mse, so that total = sum of the terms.
+    """
+    per_sensor = _switched_mse(pred - labels, switches) * lambdas  # (B, S)
+    terms = {f"s{s}": per_sensor[:, s].mean() for s in range(pred.shape[1])}
+    total = per_sensor.sum(dim=1)
+    if sum_label is not None:
+        if alpha_sum is None or transforms is None:
+            raise ValueError("sum_label needs alpha_sum and transforms")
+        sum_term = _switched_mse(sum_in_sole(pred, transforms) - sum_label, alpha_sum) * lambda_sum
+        terms["sum"] = sum_term.mean()
+        total = total + sum_term
+    return total.mean(), terms
+
+
+# --- linear baselines ----------------------------------------------------------------------------
+
+
+def monomial_powers(n_vars: int, order: int) -> np.ndarray:
+    """(P, n_vars) exponents of every monomial of total degree <= order, constant first, by degree."""
+    rows = [np.zeros(n_vars, dtype=np.int64)]
+    for degree in range(1, order + 1):
+        for combo in itertools.combinations_with_replacement(range(n_vars), degree):
+            row = np.zeros(n_vars, dtype=np.int64)
+            np.add.at(row, list(combo), 1)
+            rows.append(row)
+    return np.array(rows)
+
+
+def _monomials(z: np.ndarray, powers: np.ndarray) -> np.ndarray:
+    """(N, P) products z^powers for z (N, V) and powers (P, V), by repeated multiplication (exact)."""
+    out = np.ones((len(z), len(powers)))
+    for v in range(z.shape[1]):
+        for k in range(1, int(powers[:, v].max(initial=0)) + 1):
+            out[:, powers[:, v] >= k] *= z[:, v : v + 1]
+    return out
+
+
+@dataclass
+class LinearBaseline:
+    """``f_s = f_raw,s + W_s phi(x_s)`` per sensor s, phi = monomials of the standardised 7 inputs.
+
+    `offset`/`scale` (S, 7) standardise each sensor's inputs; `powers` (P, 7) are the monomial
+    exponents (order 1: [1, f, T], the affine model); `weights` (S, 6, P) the fitted W_s.
+    """
+
+    name: str
+    offset: np.ndarray
+    scale: np.ndarray
+    powers: np.ndarray
+    weights: np.ndarray
+
+    def features(self, x: np.ndarray, s: int) -> np.ndarray:
+        """(N, P) features of sensor s from its raw inputs x (N, >= 7)."""
+        return _monomials((x[:, :7] - self.offset[s]) / self.scale[s], self.powers)
+
+    def predict(self, x: np.ndarray) -> np.ndarray:
+        """(N, S, 6) calibrated wrenches from raw inputs x (N, S, >= 7)."""
+        return np.stack(
+            [x[:, s, :WRENCH] + self.features(x[:, s], s) @ self.weights[s].T for s in range(x.shape[1])],
+            axis=1,
+        )
+
+    def to_dict(self) -> dict[str, Any]:
+        return {
+            "name": self.name,
+            "model": "f = f_raw + W phi((x[:7] - offset) / scale), phi = monomials with these powers",
+            "offset": self.offset.tolist(),
+            "scale": self.scale.tolist(),
+            "powers": self.powers.tolist(),
+            "weights": self.weights.tolist(),
+        }
+
+
+def fit_linear_baseline(
+    name: str,
+    x: np.ndarray,
+    labels: np.ndarray,
+    switches: np.ndarray,
+    order: int,
+    ridge: float,
+    lambdas: Sequence[float],
+    sum_label: np.ndarray | None = None,
+    alpha_sum: np.ndarray | None = None,
+    transforms: np.ndarray | None = None,
+    lambda_sum: float = 1.0,
+) -> LinearBaseline:
+    """Minimise the switched loss of `switched_loss` over W in closed form (normal equations).
+
+        J(W) = sum_i [sum_s alpha_si lambda_s |r_si - W_s phi_si|^2 + alpha_sum,i lambda_sum
+               |r_sum,i - sum_s X_s W_s phi_si|^2] + ridge N sum_s |W_s without its constant column|^2
+
+    with r = label - raw (residuals, so ridge shrinks towards the primary calibration). Sum samples
+    couple the sensors of a foot through X_s; the normal equations are then solved jointly.
+
+    Args:
+        x: (N, S, >= 7) raw inputs; labels (N, S, 6); switches (N, S) bool; other arrays as in
+            `switched_loss` (numpy). `ridge` is per sample, on standardised features.
+
+    Raises:
+        DataError: no sample has a switch set.
+    """
+    x = np.asarray(x, dtype=np.float64)
+    n, n_sensors = x.shape[:2]
+    use_sum = sum_label is not None and alpha_sum is not None and transforms is not None and alpha_sum.any()
+    if not switches.any() and not use_sum:
+        raise DataError(f"{name}: no training sample with an exact label")
+    inputs = x[:, :, :7]
+    offset = inputs.mean(axis=0)
+    scale = np.where(inputs.std(axis=0) > _TINY, inputs.std(axis=0), 1.0)
+    powers = monomial_powers(7, order)
+    model = LinearBaseline(name, offset, scale, powers, np.zeros((n_sensors, WRENCH, len(powers))))
+    phis = [model.features(x[:, s], s) for s in range(n_sensors)]
+    p = len(powers)
+    k = WRENCH * p  # unknowns per sensor: W_s flattened row-major (output axis, feature)
+    normal = np.zeros((n_sensors * k, n_sensors * k))
+    rhs = np.zeros(n_sensors * k)
+    eye = np.eye(WRENCH)
+    for s in range(n_sensors):
+        rows = switches[:, s]
+        if rows.any():
+            phi, r = phis[s][rows], (labels[rows, s] - x[rows, s, :WRENCH])
+            # row-major vec: W phi = (I6 kron phi^T) vec(W)
+            normal[s * k : (s + 1) * k, s * k : (s + 1) * k] += lambdas[s] * np.kron(eye, phi.T @ phi)
+            rhs[s * k : (s + 1) * k] += lambdas[s] * (r.T @ phi).reshape(-1)
+    if use_sum:
+        rows = alpha_sum.astype(bool)
+        raw_sum = np.einsum("sij,nsj->ni", transforms, x[rows, :, :WRENCH])
+        r = sum_label[rows] - raw_sum
+        for s in range(n_sensors):
+            # X_s W_s phi = (X_s kron phi^T) vec(W_s)
+            rhs[s * k : (s + 1) * k] += lambda_sum * (transforms[s].T @ r.T @ phis[s][rows]).reshape(-1)
+            for t in range(n_sensors):
+                block = np.kron(transforms[s].T @ transforms[t], phis[s][rows].T @ phis[t][rows])
+                normal[s * k : (s + 1) * k, t * k : (t + 1) * k] += lambda_sum * block
+    penalty = np.tile(np.r_[0.0, np.ones(p - 1)], WRENCH * n_sensors) * ridge * n
+    normal[np.diag_indices_from(normal)] += penalty
+    # Unknowns that no sample informs (e.g. a foot sensor with neither part nor sum labels) stay 0.
+    informed = np.abs(normal).sum(axis=1) > 0
+    solution = np.zeros(n_sensors * k)
+    sub = normal[np.ix_(informed, informed)]
+    try:
+        solution[informed] = np.linalg.solve(sub, rhs[informed])
+    except np.linalg.LinAlgError:
+        solution[informed] = np.linalg.lstsq(sub, rhs[informed], rcond=None)[0]
+    model.weights = solution.reshape(n_sensors, WRENCH, p)
+    return model
+
+
+# --- errors --------------------------------------------------------------------------------------
+
+AXES = ("fx", "fy", "fz", "tx", "ty", "tz")
+
+
+def wrench_errors(pred: np.ndarray, label: np.ndarray) -> dict[str, float]:
+    """MSE, MAE and RMSE of predictions (N, 6) against labels (N, 6), N and Nm (thesis tables 5.1-5.3).
+
+    Keys: ``<mse|mae|rmse>`` (global: all 6 components pooled, mixed units as in the thesis),
+    ``<...>_force``, ``<...>_torque`` and ``<...>_<axis>``, plus ``samples``. NaN if N = 0.
+    """
+    err = np.asarray(pred, dtype=np.float64) - np.asarray(label, dtype=np.float64)
+    out: dict[str, float] = {"samples": float(len(err))}
+    parts = {"": slice(None), "_force": slice(0, N_FORCE), "_torque": slice(N_FORCE, WRENCH)}
+    parts.update({f"_{axis}": slice(a, a + 1) for a, axis in enumerate(AXES)})
+    for suffix, sl in parts.items():
+        e = err[:, sl]
+        mse = float(np.mean(e**2)) if e.size else math.nan
+        out[f"mse{suffix}"] = mse
+        out[f"mae{suffix}"] = float(np.mean(np.abs(e))) if e.size else math.nan
+        out[f"rmse{suffix}"] = math.sqrt(mse) if e.size else math.nan
+    return out

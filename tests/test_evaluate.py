@@ -1,0 +1,509 @@
+"""Stage `evaluate`: metrics against hand computation, the noise-amplification ratio on synthetic signals,
+quasi-static segments, and end to end on a tiny synthetic models dir with labelled and truth tables (real
+files, real MLflow sqlite store): metrics.json, plot data, report page, MLflow run; bad input."""
+
+from __future__ import annotations
+
+import copy
+import json
+import math
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import pandas as pd
+import pyarrow as pa
+import pyarrow.parquet as pq
+import pytest
+import yaml
+
+from pipeline import evaluate as E
+from pipeline import schema as S
+from pipeline.cli import main
+from pipeline.config import load_params, stage_section
+from pipeline.errors import ConfigError, DataError
+from pipeline.train import prediction_cols
+from tests.test_models import TRANSFORMS
+
+ROOT = Path(__file__).resolve().parents[1]
+LEG, FRONT, REAR, PAIR = "r_leg_ft", "r_foot_front_ft", "r_foot_rear_ft", "r_foot"
+FS = 100.0  # Hz
+NOISE = np.array([0.5, 0.5, 0.5, 0.03, 0.03, 0.03])  # raw white noise std per axis, N and Nm
+
+
+def flat(d: Any, prefix: str = "") -> dict[str, Any]:
+    """Dotted keys of nested mappings, as `dvc metrics show` flattens a metrics file."""
+    if not isinstance(d, dict):
+        return {prefix: d}
+    out: dict[str, Any] = {}
+    for k, v in d.items():
+        out.update(flat(v, f"{prefix}.{k}" if prefix else str(k)))
+    return out
+
+
+# --- errors --------------------------------------------------------------------------------------
+
+
+def test_score_matches_hand_computation() -> None:
+    pred = np.array([[1.0, 2, 3, 0.1, 0.2, 0.3], [0, 0, 0, 0, 0, 0], [5, 5, 5, 5, 5, 5]])
+    ref = np.array([[0.0, 0, 0, 0, 0, 0], [1, -1, 2, 0.5, 0, 0], [np.nan] * 6])  # row 2: no label
+    s = E.score(pred, ref)
+    err = (pred - ref)[:2]
+    assert s["samples"] == 2
+    assert s["mse"] == pytest.approx(np.mean(err**2))
+    assert s["mae"] == pytest.approx(np.mean(np.abs(err)))
+    assert s["rmse"] == pytest.approx(math.sqrt(np.mean(err**2)))
+    assert s["rmse_force"] == pytest.approx(math.sqrt((1 + 4 + 9 + 1 + 1 + 4) / 6))
+    assert s["mae_torque"] == pytest.approx((0.1 + 0.2 + 0.3 + 0.5) / 6)
+    assert s["mse_fz"] == pytest.approx((9 + 4) / 2)
+    assert s["rmse_tx"] == pytest.approx(math.sqrt((0.01 + 0.25) / 2))
+    masked = E.score(pred, ref, np.array([True, False, True]))
+    assert masked["samples"] == 1 and masked["mse_fy"] == pytest.approx(4.0)
+    assert math.isnan(E.score(pred, ref, np.zeros(3, bool))["rmse"])
+
+
+def test_ratio_is_none_when_undefined() -> None:
+    assert E.ratio(10.0, 2.0) == 5.0
+    assert E.ratio(None, 2.0) is None
+    assert E.ratio(1.0, 0.0) is None
+    assert E.ratio(math.nan, 1.0) is None
+
+
+# --- noise ---------------------------------------------------------------------------------------
+
+
+def _signal(n: int, seed: int = 0) -> tuple[np.ndarray, np.ndarray]:
+    """A slow wrench (N, 6) and raw = wrench + white noise."""
+    rng = np.random.default_rng(seed)
+    t = np.arange(n) / FS
+    w = np.column_stack([20 * np.sin(2 * np.pi * 0.3 * t + k) for k in range(6)])
+    return w, w + rng.normal(size=(n, 6)) * NOISE
+
+
+def test_noise_ratio_copy_noisier_smoother() -> None:
+    n = 3000
+    w, raw = _signal(n)
+    seg = np.zeros(n, dtype=np.int64)
+    mask = np.ones(n, dtype=bool)
+    mask[:50] = mask[-50:] = False  # away from the ends, where the moving average below is biased
+    hf = lambda x: E.highpass(x, seg, FS, 5.0, 4)  # noqa: E731
+    raw_hf = hf(raw)
+    # a model that copies raw (plus an offset) passes its noise unchanged
+    np.testing.assert_allclose(E.noise_ratio(hf(raw + 30.0), raw_hf, mask), 1.0, rtol=1e-9)
+    # one adding white noise of the raw's std: sqrt(2) in expectation
+    noisy = raw + np.random.default_rng(1).normal(size=(n, 6)) * NOISE
+    r = E.noise_ratio(hf(noisy), raw_hf, mask)
+    assert (r > 1.25).all() and (r < 1.6).all()
+    # a smoother (centred 9-sample moving average) removes most of it
+    kernel = np.ones(9) / 9
+    smooth = np.column_stack([np.convolve(raw[:, k], kernel, mode="same") for k in range(6)])
+    r = E.noise_ratio(hf(smooth), raw_hf, mask)
+    assert (r < 0.5).all()
+    # the slow signal itself is not "noise": the high-pass of the clean wrench is tiny
+    assert (np.std(hf(w)[100:-100], axis=0) < 0.01 * np.std(raw_hf, axis=0) + 1e-3).all()
+
+
+def test_segment_ids_split_at_logs_and_lost_samples() -> None:
+    stamp = (np.r_[0, 1, 2, 3, 5, 6, 0, 1, 2] * 10_000_000).astype(np.int64)  # sample 4 of log a lost
+    log = np.array(["a"] * 6 + ["b"] * 3)
+    seg, fs = E.segment_ids(log, stamp)
+    assert fs == pytest.approx(100.0)
+    np.testing.assert_array_equal(seg, [0, 0, 0, 0, 1, 1, 2, 2, 2])
+
+
+def test_highpass_keeps_stretches_apart_and_marks_short_ones() -> None:
+    x = np.r_[np.zeros(200), np.full(10, 50.0), np.zeros(300)][:, None]
+    seg = np.r_[np.zeros(200), np.ones(10), np.full(300, 2)].astype(np.int64)
+    out = E.highpass(x, seg, FS, 5.0, 4)
+    assert np.isnan(out[200:210]).all()  # too short for the filter
+    np.testing.assert_allclose(out[:200], 0.0, atol=1e-12)  # the step in between does not leak
+    np.testing.assert_allclose(out[210:], 0.0, atol=1e-12)
+
+
+def test_quasi_static_mask_runs_contacts_guard_edges() -> None:
+    n = 1000
+    speed = np.full(n, 0.01)
+    speed[400:450] = 1.0  # moving: splits the log
+    contacts = np.array(["a"] * 700 + ["b"] * 300, dtype=object)  # contact change at 700
+    guard = np.zeros(n, dtype=bool)
+    guard[880:900] = True
+    seg = np.zeros(n, dtype=np.int64)
+    mask = E.quasi_static_mask(speed, contacts, guard, seg, FS, max_speed=0.3, min_s=1.0, edge_s=0.2)
+    # 20 edge samples out at both ends; runs [20, 400), [450, 700) and [700, 880) are >= 1 s (100 samples);
+    # [900, 980) is 80 samples: dropped
+    expected = np.zeros(n, dtype=bool)
+    expected[20:400] = expected[450:700] = expected[700:880] = True
+    np.testing.assert_array_equal(mask, expected)
+    assert not E.quasi_static_mask(speed, contacts, guard, seg, FS, 0.3, 5.0, 0.2).any()
+
+
+def test_recommend_skips_flagged_models() -> None:
+    assert E.recommend(["nn13", "nn7", "raw"], ["nn13"], ["raw", "nn7", "nn13"]) == "nn7"
+    assert E.recommend(["nn13"], ["nn13"], ["nn13"]) is None
+
+
+def test_bad_params_name_the_key(tmp_path: Path) -> None:
+    data = yaml.safe_load((ROOT / "params.yaml").read_text())
+    data["evaluate"]["noise_threshold"] = -1
+    path = tmp_path / "params.yaml"
+    path.write_text(yaml.safe_dump(data))
+    with pytest.raises(ConfigError, match=r"evaluate\.noise_threshold must be a positive number, got -1"):
+        stage_section(load_params(path), "evaluate", E.EvaluateParams)
+
+
+def test_repo_params_are_valid() -> None:
+    cfg = stage_section(load_params(ROOT / "params.yaml"), "evaluate", E.EvaluateParams)
+    assert cfg.highpass_hz > 0 and cfg.noise_threshold > 1
+
+
+# --- end to end ----------------------------------------------------------------------------------
+
+# Test logs: (name, experiment type, FT boards' angular speed rad/s, contacts alternate every n samples)
+LOGS = [("08_pole_test", "pole", 0.01, None), ("11_walking_test", "walking", 0.8, 80)]
+N = 600
+
+
+def _write(path: Path, cols: dict[str, Any], kind: str, meta: dict[bytes, Any]) -> None:
+    schema = S.arrow_schema(list(cols), kind, meta)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    pq.write_table(pa.Table.from_pydict(cols, schema=schema), path)
+
+
+def build_fixture(root: Path, with_history: bool = True) -> dict[str, Path]:
+    """labelled/, ingested/ (truth) and models/<group>/ for a leg sensor and a foot pair.
+
+    Per sensor: true wrench w (slow sines), raw = w + offset + white noise, labels = w (NaN where the
+    switch is 0), oracle = w + the same noise. Models: raw; affine = raw - offset (ratio 1); nn7 = affine
+    + 0.1 N bias; nn13 = nn7 + white noise 3x raw's (ratio ~3.2: flagged). nn13 is best on validation,
+    so the recommendation must fall back to nn7.
+    """
+    rng = np.random.default_rng(7)
+    dirs = {k: root / k for k in ("labelled", "ingested", "models")}
+    sensors = (LEG, FRONT, REAR)
+    offsets = {s: rng.uniform(-30, 30, 6) * np.r_[1, 1, 1, 0.1, 0.1, 0.1] for s in sensors}
+    preds: dict[str, list[dict[str, Any]]] = {LEG: [], PAIR: []}
+    for li, (log, kind, speed, period) in enumerate(LOGS):
+        keep = np.ones(N, dtype=bool)
+        keep[N // 2] = False  # a sample without ok inputs: not in the predictions
+        t = np.arange(N) / FS
+        stamp = (1_700_000_000_000_000_000 + li * 10**12 + np.arange(N) * 10_000_000).astype(np.int64)
+        lab: dict[str, Any] = {S.STAMP: stamp, S.TIME: t}
+        tru: dict[str, Any] = {S.STAMP: stamp, S.TIME: t}
+        true, raw, oracle = {}, {}, {}
+        for k, s in enumerate(sensors):
+            w = np.column_stack(
+                [(40 if a < 3 else 3) * np.sin(2 * np.pi * (0.2 + 0.05 * a) * t + k + a) for a in range(6)]
+            )
+            noise = rng.normal(size=(N, 6)) * NOISE
+            true[s], raw[s], oracle[s] = w, w + offsets[s] + noise, w + noise
+            g = rng.normal(size=(N, 3)) * 0.005 + speed / math.sqrt(3)
+            for c, v in zip(S.vector_cols(S.GYR, s), g.T, strict=True):
+                lab[c] = v
+            for quantity, value in ((S.TRUE, w), (S.DISTORTED, w + offsets[s]), (S.ORACLE, oracle[s])):
+                for c, v in zip(S.wrench_cols(quantity, s), value.T, strict=True):
+                    tru[c] = v
+                tru[S.ok_col(quantity, s)] = np.ones(N, dtype=bool)
+        if period is None:
+            contacts = np.full(N, "l_sole", dtype=object)
+        else:
+            contacts = np.where((np.arange(N) // period) % 2 == 0, "l_sole", "l_sole,r_sole").astype(object)
+        lab[S.CONTACTS] = contacts
+        lab[S.GUARD] = np.zeros(N, dtype=bool)
+        tru[S.CONTACTS] = contacts
+        meta = {
+            S.META_EXPERIMENT: {"type": kind, "role": "test", "log": log},
+            S.META_LABEL: {
+                "pairs": {
+                    PAIR: {
+                        "front": FRONT,
+                        "rear": REAR,
+                        "sole": "r_sole",
+                        "sole_X_front": TRANSFORMS[0].ravel().tolist(),
+                        "sole_X_rear": TRANSFORMS[1].ravel().tolist(),
+                    }
+                }
+            },
+        }
+        _write(dirs["labelled"] / f"{log}.parquet", lab, S.KIND_LABELLED, meta)
+        _write(dirs["ingested"] / f"{log}{S.TRUTH_SUFFIX}.parquet", tru, S.KIND_TRUTH, {})
+        extra = rng.normal(size=(N, 6)) * 3 * NOISE
+        switch = np.ones(N, dtype=np.uint8) if period is None else (contacts == "l_sole").astype(np.uint8)
+        for group, names in ((LEG, (LEG,)), (PAIR, (PAIR, FRONT, REAR))):
+            cols: dict[str, Any] = {
+                "log": np.full(keep.sum(), log, dtype=object),
+                S.STAMP: stamp[keep],
+                S.TIME: t[keep],
+            }
+            per = {}
+            for s in sensors:
+                affine = raw[s] - offsets[s]
+                per[s] = {"raw": raw[s], "affine": affine, "nn7": affine + 0.1, "nn13": affine + 0.1 + extra}
+            per[PAIR] = {
+                m: per[FRONT][m] @ TRANSFORMS[0].T + per[REAR][m] @ TRANSFORMS[1].T for m in per[LEG]
+            }
+            label_of = {
+                LEG: true[LEG],
+                FRONT: true[FRONT],
+                REAR: true[REAR],
+                PAIR: true[FRONT] @ TRANSFORMS[0].T + true[REAR] @ TRANSFORMS[1].T,
+            }
+            for name in names:
+                sw = switch if name != PAIR else np.ones(N, dtype=np.uint8)
+                for c, v in zip(
+                    S.wrench_cols(S.EXPECTED, name),
+                    np.where(sw[:, None] == 1, label_of[name], np.nan).T,
+                    strict=True,
+                ):
+                    cols[c] = v[keep]
+                cols[S.switch_col(name)] = sw[keep]
+                for m, value in per[name].items():
+                    for c, v in zip(prediction_cols(m, name), value.T, strict=True):
+                        cols[c] = v[keep]
+            preds[group].append(cols)
+    for group, sensors_of, pair in ((LEG, [LEG], None), (PAIR, [FRONT, REAR], PAIR)):
+        out = dirs["models"] / group
+        out.mkdir(parents=True)
+        frame = pd.concat([pd.DataFrame(c) for c in preds[group]], ignore_index=True)
+        table = pa.Table.from_pandas(frame, preserve_index=False).replace_schema_metadata(
+            {
+                b"ftcal.train": json.dumps(
+                    {"group": group, "models": ["raw", "affine", "nn7", "nn13"]}
+                ).encode()
+            }
+        )
+        pq.write_table(table, out / "predictions.parquet")
+        networks: dict[str, Any] = {
+            "nn7": {"trial": 1, "val_rmse_labelled": 0.5},
+            "nn13": {"trial": 2, "val_rmse_labelled": 0.4},
+        }
+        if with_history:
+            networks["nn7"]["history"] = [
+                {"epoch": e, "loss": 10.0 / (e + 1), "val_rmse": 2.0 / (e + 1)} for e in range(5)
+            ]
+        metrics = {
+            "group": group,
+            "sensors": sensors_of,
+            "pair": pair,
+            "headline": pair or group,
+            "best_on_validation": "nn13",
+            "validation_ranking": ["nn13", "nn7", "affine", "raw"],
+            "networks": networks,
+        }
+        (out / "metrics.json").write_text(json.dumps(metrics))
+    return dirs
+
+
+def write_params(tmp_path: Path, **evaluate: Any) -> Path:
+    data = yaml.safe_load((ROOT / "params.yaml").read_text())
+    data["train"] = copy.deepcopy(data["train"])
+    data["train"]["groups"] = {LEG: {"sensor": LEG}, PAIR: {"pair": PAIR}}
+    data["evaluate"].update(evaluate, zoom_s=2.0)
+    path = tmp_path / "params.yaml"
+    path.write_text(yaml.safe_dump(data, sort_keys=False))
+    return path
+
+
+@pytest.fixture(scope="module")
+def evaluated(tmp_path_factory: pytest.TempPathFactory) -> dict[str, Any]:
+    """One evaluate run on the synthetic fixture, into a real MLflow sqlite store."""
+    root = tmp_path_factory.mktemp("evaluate")
+    dirs = build_fixture(root)
+    mp = pytest.MonkeyPatch()
+    mp.setenv("MLFLOW_TRACKING_URI", f"sqlite:///{root / 'mlflow.db'}")
+    try:
+        params = load_params(write_params(root))
+        out = root / "reports"
+        result = E.run(params, dirs["models"], dirs["labelled"], out, dirs["ingested"], progress=False)
+    finally:
+        mp.undo()
+    return {"result": result, "out": out, "dirs": dirs, "root": root}
+
+
+def test_metrics_json_has_the_tables_as_flat_numbers(evaluated: dict[str, Any]) -> None:
+    doc = json.loads((evaluated["out"] / "metrics.json").read_text())
+    keys = flat(doc)
+    for name, group in ((LEG, LEG), (PAIR, PAIR), (FRONT, PAIR), (REAR, PAIR)):
+        for ref in ("labels", "truth"):
+            for model in ("raw", "affine", "nn7", "nn13", "oracle"):
+                for metric in ("mse", "mae", "rmse"):
+                    for suffix in ("", "_force", "_torque", *(f"_{a}" for a in S.WRENCH_AXES)):
+                        value = keys[f"tables.{group}.{name}.{ref}.{model}.{metric}{suffix}"]
+                        assert isinstance(value, float) and math.isfinite(value)
+    for group in (LEG, PAIR):
+        for key in ("raw_over_nn7", "nn7_over_oracle"):
+            for ref in ("labels", "truth"):
+                assert isinstance(keys[f"summary.{group}.{key}.{ref}"], float)
+        assert isinstance(keys[f"noise.{group}.ratio.nn13"], float)
+        assert isinstance(keys[f"by_experiment.{group}.{group}.labels.pole.nn7"], float)
+    # nothing that dvc could not parse: no NaN/inf tokens
+    assert "NaN" not in (evaluated["out"] / "metrics.json").read_text()
+
+
+def test_errors_match_an_independent_computation(evaluated: dict[str, Any]) -> None:
+    doc = evaluated["result"].metrics
+    dirs = evaluated["dirs"]
+    frames = [
+        pq.read_table(dirs["ingested"] / f"{log}{S.TRUTH_SUFFIX}.parquet").to_pandas() for log, *_ in LOGS
+    ]
+    pred = pd.read_parquet(dirs["models"] / PAIR / "predictions.parquet")
+    truth = pd.concat(frames, ignore_index=True).set_index(S.STAMP).loc[pred[S.STAMP]]
+    true_sum = (
+        truth[S.wrench_cols(S.TRUE, FRONT)].to_numpy() @ TRANSFORMS[0].T
+        + truth[S.wrench_cols(S.TRUE, REAR)].to_numpy() @ TRANSFORMS[1].T
+    )
+    oracle_sum = (
+        truth[S.wrench_cols(S.ORACLE, FRONT)].to_numpy() @ TRANSFORMS[0].T
+        + truth[S.wrench_cols(S.ORACLE, REAR)].to_numpy() @ TRANSFORMS[1].T
+    )
+    err = oracle_sum - true_sum
+    assert doc["tables"][PAIR][PAIR]["truth"]["oracle"]["rmse"] == pytest.approx(math.sqrt(np.mean(err**2)))
+    nn7 = pred[prediction_cols("nn7", PAIR)].to_numpy()
+    assert doc["tables"][PAIR][PAIR]["truth"]["nn7"]["mae_torque"] == pytest.approx(
+        np.mean(np.abs(nn7 - true_sum)[:, 3:])
+    )
+    # labels: only where the switch is 1 (the walking log has half of them at 0)
+    leg = pd.read_parquet(dirs["models"] / LEG / "predictions.parquet")
+    m = leg[S.switch_col(LEG)].to_numpy() == 1
+    e = leg[prediction_cols("raw", LEG)].to_numpy()[m] - leg[S.wrench_cols(S.EXPECTED, LEG)].to_numpy()[m]
+    assert doc["tables"][LEG][LEG]["labels"]["raw"]["samples"] == m.sum() < len(leg)
+    assert doc["tables"][LEG][LEG]["labels"]["raw"]["mse_fy"] == pytest.approx(np.mean(e[:, 1] ** 2))
+    s = doc["summary"][LEG]
+    assert s["raw_over_nn7"]["labels"] == pytest.approx(
+        s["rmse"]["labels"]["raw"] / s["rmse"]["labels"]["nn7"]
+    )
+    assert s["nn7_over_oracle"]["truth"] == pytest.approx(
+        s["rmse"]["truth"]["nn7"] / s["rmse"]["truth"]["oracle"]
+    )
+
+
+def test_noise_check_flags_the_noisy_network_and_recommends_the_next(evaluated: dict[str, Any]) -> None:
+    doc = evaluated["result"].metrics
+    assert doc["flagged"] == [f"{LEG}/nn13", f"{PAIR}/nn13"]
+    for group in (LEG, PAIR):
+        noise = doc["noise"][group]
+        # only the still pole log is quasi-static (the walking log turns and changes contacts)
+        assert 3.0 < noise["quasi_static_s"] < N / FS
+        assert noise["ratio"]["raw"] == pytest.approx(1.0)
+        assert noise["ratio"]["affine"] == pytest.approx(1.0)
+        assert noise["ratio"]["nn13"] > 2.5
+        assert noise["signal_fraction"] < 0.1
+        s = doc["summary"][group]
+        assert s["best_on_validation"] == "nn13" and s["recommended"] == "nn7"
+        assert s["noise_flagged"] == ["nn13"]
+
+
+def test_report_page_and_plots(evaluated: dict[str, Any]) -> None:
+    out = evaluated["out"]
+    page = (out / "index.html").read_text()
+    pngs = sorted(p.name for p in (out / "plots").glob("*.png"))
+    for name in (LEG, PAIR, FRONT, REAR):
+        for kind in ("timeseries", "zoom", "residuals", "rmse"):
+            assert f"{name}_{kind}.png" in pngs
+    for group in (LEG, PAIR):
+        assert f"{group}_loss.png" in pngs and f"{group}_noise.png" in pngs
+    for png in pngs:
+        assert f'src="plots/{png}"' in page
+        assert (out / "plots" / png).stat().st_size > 5000
+    assert "Noise flags" in page and f"{LEG}/nn13" in page
+    assert page.count("<table") >= 2 + 4 * (
+        2 * 3 + 2
+    )  # summary, noise; per name: 2 refs x 3 metrics + per type
+    loss = (out / "plots_data" / "loss" / f"{LEG}_nn7.csv").read_text().splitlines()
+    assert loss[0] == "epoch,train_loss,val_rmse" and len(loss) == 6
+    for sub in ("rmse_labels", "rmse_truth"):
+        rmse = pd.read_csv(out / "plots_data" / sub / f"{PAIR}.csv")
+        assert list(rmse["model"]) == ["raw", "affine", "nn7", "nn13", "oracle"]
+        assert (rmse["rmse"] > 0).all()
+    noise = pd.read_csv(out / "plots_data" / "noise" / f"{LEG}.csv").set_index("model")
+    assert noise.loc["raw", "ratio"] == pytest.approx(1.0) and noise.loc["nn13", "ratio"] > 2.5
+
+
+def test_mlflow_run_has_metrics_tags_and_artifacts(evaluated: dict[str, Any]) -> None:
+    from mlflow import MlflowClient
+
+    client = MlflowClient(f"sqlite:///{evaluated['root'] / 'mlflow.db'}")
+    run = client.get_run(evaluated["result"].run_id)
+    assert run.info.status == "FINISHED" and run.data.tags["dvc.stage"] == "evaluate"
+    assert run.data.tags["recommended.r_foot"] == "nn7"
+    assert run.data.tags["flagged"] == f"{LEG}/nn13,{PAIR}/nn13"
+    assert run.data.metrics[f"{PAIR}.{PAIR}.truth.oracle.rmse"] > 0
+    assert run.data.metrics[f"{LEG}.noise_ratio.nn13"] > 2.5
+    artifacts = {a.path for a in client.list_artifacts(run.info.run_id)}
+    assert {"index.html", "metrics.json", "plots"} <= artifacts
+    assert len(client.list_artifacts(run.info.run_id, "plots")) >= 18
+
+
+def test_loss_history_and_training_run_are_found_in_mlflow(evaluated: dict[str, Any]) -> None:
+    """Without ``history`` in metrics.json: the best trial's nested run (matched by its best_val_rmse, not
+    only its tags) gives the curves; the training run is the one whose logged test RMSEs match."""
+    from mlflow import MlflowClient
+    from mlflow.entities import Metric
+
+    client = MlflowClient(f"sqlite:///{evaluated['root'] / 'mlflow.db'}")
+    experiment = client.get_experiment_by_name("ftcal").experiment_id
+    tags = {"group": PAIR, "network": "nn13", "trial": "2"}
+    for best in (0.9, 0.4):  # a stale study's run with the same tags, then the right one
+        run = client.create_run(experiment, tags=tags).info.run_id
+        history = [
+            Metric(k, v, 0, e)
+            for e, (loss, val) in enumerate([(3.0, 1.0), (2.0, best)])
+            for k, v in (("loss", loss), ("val_rmse", val))
+        ]
+        client.log_batch(run, metrics=[*history, Metric("best_val_rmse", best, 0, 0)])
+    train = {"networks": {"nn13": {"trial": 2, "val_rmse_labelled": 0.4}}, "test": {"nn7": {"rmse": 1.25}}}
+    found = E.find_histories(client, [experiment], PAIR, train)
+    assert found == {
+        "nn13": [{"epoch": 0.0, "loss": 3.0, "val_rmse": 1.0}, {"epoch": 1.0, "loss": 2.0, "val_rmse": 0.4}]
+    }
+    assert E.find_train_run(client, [experiment], PAIR, train) is None
+    run = client.create_run(experiment, tags={"dvc.stage": f"train@{PAIR}"}).info.run_id
+    client.log_metric(run, "test.nn7.rmse", 1.25)
+    assert E.find_train_run(client, [experiment], PAIR, train) == run
+    assert E.find_train_run(client, [experiment], PAIR, {**train, "mlflow_run": "abc"}) == "abc"
+
+
+# --- bad input -----------------------------------------------------------------------------------
+
+
+def test_cli_missing_models_dir_is_one_line(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    params = write_params(tmp_path)
+    code = main(
+        ["evaluate", str(tmp_path / "nope"), str(tmp_path), str(tmp_path / "out"), "--params", str(params)]
+    )
+    err = capsys.readouterr().err.strip()
+    assert code == 2 and err.count("\n") == 0
+    assert err == f"ftcal: error: {tmp_path / 'nope'}: models directory not found (run `dvc repro train`)"
+
+
+def test_group_without_predictions_is_a_data_error(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    dirs = build_fixture(tmp_path, with_history=False)
+    (dirs["models"] / PAIR / "predictions.parquet").unlink()
+    params = write_params(tmp_path)
+    cfg = stage_section(load_params(params), "evaluate", E.EvaluateParams)
+    with pytest.raises(DataError, match=r"r_foot/predictions\.parquet: group r_foot has no test predictions"):
+        E.load_group(PAIR, dirs["models"], dirs["labelled"], dirs["ingested"], cfg)
+    code = main(
+        [
+            "evaluate",
+            str(dirs["models"]),
+            str(dirs["labelled"]),
+            str(tmp_path / "out"),
+            "--params",
+            str(params),
+        ]
+    )
+    err = capsys.readouterr().err.strip()
+    assert code == 2 and err.startswith("ftcal: error: ") and err.count("\n") == 0
+    assert "predictions.parquet" in err
+
+
+def test_missing_labelled_test_log_is_a_data_error(tmp_path: Path) -> None:
+    dirs = build_fixture(tmp_path, with_history=False)
+    (dirs["labelled"] / "11_walking_test.parquet").unlink()
+    cfg = stage_section(load_params(write_params(tmp_path)), "evaluate", E.EvaluateParams)
+    with pytest.raises(
+        DataError, match=r"11_walking_test\.parquet: labelled table of test log 11_walking_test not found"
+    ):
+        E.load_group(LEG, dirs["models"], dirs["labelled"], dirs["ingested"], cfg)

@@ -1,0 +1,486 @@
+"""Stage `train@<group>`: params, whole-log split, bad input, and end to end on synthetic labelled tables
+(real Optuna journal, real MLflow sqlite store): resume, registration, identical metrics twice."""
+
+from __future__ import annotations
+
+import copy
+import json
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import pandas as pd
+import pyarrow as pa
+import pyarrow.parquet as pq
+import pytest
+import torch
+import yaml
+
+from pipeline import schema as S
+from pipeline import train as T
+from pipeline.cli import main
+from pipeline.config import load_params, stage_section
+from pipeline.errors import ConfigError, DataError
+from pipeline.models import load_model
+from tests.test_models import TRANSFORMS
+
+ROOT = Path(__file__).resolve().parents[1]
+LEG, FRONT, REAR, PAIR = "r_leg_ft", "r_foot_front_ft", "r_foot_rear_ft", "r_foot"
+SENSORS = (LEG, FRONT, REAR)
+SCALE = np.array([60.0, 60.0, 200.0, 4.0, 4.0, 1.5])  # N, N, N, Nm, Nm, Nm: amplitude of the true wrenches
+# Which labels each synthetic experiment type has: (leg, parts, pair) as functions of the phase u in [0, 1).
+SWITCHES = {
+    "pole": lambda u: (np.ones_like(u), np.ones_like(u), np.ones_like(u)),  # the foot touches nothing
+    "balancing": lambda u: (np.ones_like(u), np.zeros_like(u), np.ones_like(u)),  # whole foot on the floor
+    # swing (parts exact), single support (sum exact), double support (nothing exact)
+    "walking": lambda u: ((u % 0.5) < 0.4, (u % 0.5) < 0.2, (u % 0.5) < 0.4),
+}
+
+
+def _distortion(sensor: str) -> dict[str, np.ndarray]:
+    """The hidden distortion of a sensor, the same in every log: raw = M w + b + d (T - 25) + q w_z^2."""
+    rng = np.random.default_rng(list(SENSORS).index(sensor) + 100)
+    return {
+        "gain": np.eye(6) + 0.03 * rng.normal(size=(6, 6)),
+        "offset": rng.uniform(20, 40, 6) * np.r_[1, 1, 1, 0.1, 0.1, 0.1] * rng.choice([-1, 1], 6),
+        "drift": rng.normal(size=6) * np.r_[0.5, 0.5, 0.5, 0.02, 0.02, 0.02],
+        "quadratic": rng.normal(size=6) * 1e-4,
+    }
+
+
+def write_labelled_log(path: Path, kind: str, role: str, n: int, seed: int, bad_rows: int = 3) -> None:
+    """A labelled table (schema "Labelled table"): the three sensors, the r_foot pair and its transforms."""
+    rng = np.random.default_rng(seed)
+    t = np.arange(n) / 100.0
+    u = np.arange(n) / n
+    cols: dict[str, Any] = {
+        S.STAMP: (1_700_000_000_000_000_000 + np.arange(n) * 10_000_000).astype(np.int64),
+        S.TIME: t,
+    }
+    truth = {}
+    for s, sensor in enumerate(SENSORS):
+        phase = rng.uniform(0, 2 * np.pi, (3, 6))
+        freq = rng.uniform(0.05, 0.8, (3, 6))
+        w = sum(np.sin(2 * np.pi * freq[k] * t[:, None] + phase[k]) for k in range(3)) * SCALE / 2
+        temp = 30 + 4 * np.sin(2 * np.pi * 0.01 * t + seed + s) + rng.uniform(-2, 2)
+        d = _distortion(sensor)
+        raw = (
+            w @ d["gain"].T + d["offset"] + np.outer(temp - 25, d["drift"]) + d["quadratic"] * w[:, [2]] ** 2
+        )
+        raw += rng.normal(size=raw.shape) * 0.05
+        ok = np.ones(n, dtype=bool)
+        ok[rng.choice(n, bad_rows, replace=False)] = False  # lost messages: NaN values, flag False
+        raw[~ok] = np.nan
+        for c, v in zip(S.wrench_cols(S.FT, sensor), raw.T, strict=True):
+            cols[c] = v
+        cols[S.temperature_col(sensor)] = temp
+        for c, v in zip(
+            S.vector_cols(S.ACC, sensor) + S.vector_cols(S.GYR, sensor), rng.normal(size=(6, n)), strict=True
+        ):
+            cols[c] = v
+        cols[S.ok_col(S.WRENCH_STREAM, sensor)] = ok
+        cols[S.ok_col(S.IMU_STREAM, sensor)] = np.ones(n, dtype=bool)
+        cols[S.ok_col(S.TEMPERATURE_STREAM, sensor)] = np.ones(n, dtype=bool)
+        truth[sensor] = w
+    sw_leg, sw_parts, sw_pair = (np.asarray(a, dtype=bool) for a in SWITCHES[kind](u))
+    total = truth[FRONT] @ TRANSFORMS[0].T + truth[REAR] @ TRANSFORMS[1].T
+    for name, w, sw in (
+        (LEG, truth[LEG], sw_leg),
+        (FRONT, truth[FRONT], sw_parts),
+        (REAR, truth[REAR], sw_parts),
+        (PAIR, total, sw_pair),
+    ):
+        for c, v in zip(S.wrench_cols(S.EXPECTED, name), np.where(sw[:, None], w, np.nan).T, strict=True):
+            cols[c] = v
+        cols[S.switch_col(name)] = sw.astype(np.uint8)
+    cols[S.CONTACTS] = np.full(n, "r_foot_front,r_foot_rear", dtype=object)
+    cols[S.FIXED_LINK] = np.full(n, "r_sole", dtype=object)
+    cols[S.GUARD] = np.zeros(n, dtype=bool)
+    meta = {
+        S.META_EXPERIMENT: {"type": kind, "role": role, "log": path.stem},
+        S.META_LABEL: {
+            "pairs": {
+                PAIR: {
+                    "front": FRONT,
+                    "rear": REAR,
+                    "sole": "r_sole",
+                    "sole_X_front": TRANSFORMS[0].tolist(),
+                    "sole_X_rear": TRANSFORMS[1].tolist(),
+                }
+            }
+        },
+    }
+    schema = S.arrow_schema(list(cols), S.KIND_LABELLED, meta)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    pq.write_table(pa.Table.from_pydict(cols, schema=schema), path)
+
+
+LOGS = [
+    ("00_pole", "pole", "train"),
+    ("01_pole", "pole", "train"),
+    ("02_balancing", "balancing", "train"),
+    ("03_walking", "walking", "train"),
+    ("04_walking", "walking", "train"),
+    ("05_pole", "pole", "test"),
+    ("06_walking", "walking", "test"),
+]
+
+
+@pytest.fixture(scope="module")
+def labelled(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    out = tmp_path_factory.mktemp("labelled")
+    for i, (name, kind, role) in enumerate(LOGS):
+        write_labelled_log(out / f"{name}_{role}.parquet", kind, role, n=500, seed=i)
+    return out
+
+
+TRAIN_PARAMS = {
+    "val_logs": 1,
+    "threads": 1,
+    "defaults": {
+        "inputs": [7, 13],
+        "hidden": 16,
+        "activations": ["leaky_relu", "relu"],
+        "normalisation": "max",
+        "batch_size": 128,
+        "epochs": 3,
+        "lr": 0.01,
+        "weight_decay": 0.0,
+        "lambda_expected": 1.0,
+        "lambda_front": 1.0,
+        "lambda_rear": 1.0,
+        "lambda_sum": 1.0,
+        "n_trials": 3,
+        "search": {"lr": {"low": 0.001, "high": 0.03, "log": True}, "hidden": [16, 32]},
+        "tpe_startup_trials": 1,
+        "prune_startup_trials": 1,
+        "prune_warmup_epochs": 1,
+        "poly_orders": [1, 2],
+        "ridge": 1.0e-6,
+    },
+    "groups": {LEG: {"sensor": LEG}, PAIR: {"pair": PAIR, "normalisation": "standard"}},
+}
+
+
+def write_params(tmp_path: Path, train: dict[str, Any] | None = None, **defaults: Any) -> Path:
+    """The repo's params.yaml with a small `train` section (and `defaults` overrides)."""
+    data = yaml.safe_load((ROOT / "params.yaml").read_text())
+    data["train"] = copy.deepcopy(train or TRAIN_PARAMS)
+    data["train"]["defaults"].update(defaults)
+    path = tmp_path / "params.yaml"
+    path.write_text(yaml.safe_dump(data, sort_keys=False))
+    return path
+
+
+@pytest.fixture
+def mlflow_uri(tmp_path_factory: pytest.TempPathFactory, monkeypatch: pytest.MonkeyPatch) -> str:
+    uri = f"sqlite:///{tmp_path_factory.getbasetemp() / 'train_mlflow.db'}"
+    monkeypatch.setenv("MLFLOW_TRACKING_URI", uri)
+    return uri
+
+
+def _comparable(metrics: dict[str, Any]) -> dict[str, Any]:
+    """Metrics without what legitimately differs between runs (timings, run ids, trial bookkeeping)."""
+    m = {k: v for k, v in metrics.items() if k != "seconds"}
+    m["networks"] = {
+        name: {k: v for k, v in net.items() if k not in ("trials_run", "trials_reused")}
+        for name, net in metrics["networks"].items()
+    }
+    return m
+
+
+# --- params --------------------------------------------------------------------------------------
+
+
+def test_repo_params_resolve_every_group() -> None:
+    cfg = stage_section(load_params(ROOT / "params.yaml"), "train", T.TrainParams)
+    for name in cfg.groups:
+        gp = cfg.group(name)
+        assert (gp.sensor is None) != (gp.pair is None)
+        assert gp.inputs == (7, 13) and gp.activations == ("leaky_relu", "relu") and gp.hidden == 100
+
+
+@pytest.mark.parametrize(
+    ("change", "message"),
+    [
+        ({"groups": {"x": {"sensor": "a", "pair": "b"}}}, "train.groups.x must have exactly one of"),
+        ({"groups": {"x": {"sensor": "a", "lr": 1, "foo": 2}}}, "unknown key train.groups.x.foo"),
+        ({"defaults": {"epochs": 0}}, "train.groups.r_leg_ft.epochs must be an integer >= 1, got 0"),
+        ({"defaults": {"normalisation": "batch"}}, "normalisation must be one of"),
+        (
+            {"defaults": {"search": {"hidden": [64, 128]}}},
+            "search.hidden must include the group's own value 16",
+        ),
+        ({"defaults": {"search": {"dropout": [0.1]}}}, "unknown key train.groups.r_leg_ft.search.dropout"),
+        ({"defaults": {"search": {"lr": {"low": 0.1, "high": 0.01}}}}, "search.lr needs low < high"),
+        ({"defaults": {"inputs": [6]}}, "inputs must be a non-empty list of (7, 13)"),
+        ({"val_logs": 0}, "train.val_logs must be an integer >= 1"),
+    ],
+)
+def test_bad_params_name_the_key(tmp_path: Path, change: dict[str, Any], message: str) -> None:
+    train = copy.deepcopy(TRAIN_PARAMS)
+    for key, value in change.items():
+        if key == "defaults":
+            train["defaults"].update(value)
+        else:
+            train[key] = value
+    params = load_params(write_params(tmp_path, train))
+    with pytest.raises(ConfigError, match=message.replace("(", r"\(").replace(")", r"\)")):
+        stage_section(params, "train", T.TrainParams)
+
+
+# --- split and data ------------------------------------------------------------------------------
+
+
+def _logs(*specs: tuple[str, str, str]) -> list[T.LogInfo]:
+    return [T.LogInfo(name, Path(name), role, kind) for name, kind, role in specs]
+
+
+def test_split_is_by_whole_logs_one_per_kind_never_a_kinds_last() -> None:
+    # balancing on the left and on the right foot are different kinds: neither may leave the training set
+    logs = _logs(
+        ("p1", "pole", "train"),
+        ("p2", "pole", "train"),
+        ("b1", "balancing/l_foot", "train"),
+        ("b2", "balancing/r_foot", "train"),
+        ("w1", "walking", "train"),
+        ("w2", "walking", "train"),
+        ("t1", "pole", "test"),
+    )
+    for seed in range(20):
+        split = T.split_logs(logs, val_logs=5, seed=seed)
+        assert split["test"] == ["t1"]
+        assert len(split["val"]) == 2 and {v[0] for v in split["val"]} == {"p", "w"}  # one pole, one walking
+        assert sorted(split["train"] + split["val"]) == ["b1", "b2", "p1", "p2", "w1", "w2"]
+        assert split == T.split_logs(logs, val_logs=5, seed=seed)  # seeded
+    picks = {tuple(T.split_logs(logs, val_logs=1, seed=s)["val"]) for s in range(20)}
+    assert len(picks) > 1  # the seed does choose
+
+
+@pytest.mark.parametrize(
+    ("specs", "message"),
+    [
+        ([("a", "pole", "test")], "no training logs"),
+        ([("a", "pole", "train"), ("b", "pole", "train")], "no test logs"),
+        (
+            [("a", "pole", "train"), ("b", "walking", "train"), ("c", "pole", "test")],
+            "cannot hold out a validation",
+        ),
+    ],
+)
+def test_split_errors(specs: list[tuple[str, str, str]], message: str) -> None:
+    with pytest.raises(DataError, match=message):
+        T.split_logs(_logs(*specs), val_logs=1, seed=0)
+
+
+def test_group_data_drops_samples_with_bad_inputs_and_keeps_nan_labels(labelled: Path) -> None:
+    logs = T.find_logs(labelled)
+    params = load_params(write_params(labelled.parent))
+    gp = stage_section(params, "train", T.TrainParams).group(PAIR)
+    group = T.resolve_group(gp, params, logs)
+    assert group.sensors == (FRONT, REAR)
+    np.testing.assert_allclose(group.transforms, TRANSFORMS)
+    data = T.load_group_data(group, logs[:1])
+    assert len(data) == 500 - 6  # 3 bad wrench rows per sensor, both sensors of the pair
+    assert np.isfinite(data.x).all()
+    walking = T.load_group_data(group, [log for log in logs if log.kind == "walking"][:1])
+    assert np.isnan(walking.labels[~walking.switches]).all()
+    np.testing.assert_array_equal(walking.alpha_sum, walking.sum_switch & ~walking.switches.all(axis=1))
+
+
+# --- bad input through the CLI -------------------------------------------------------------------
+
+
+def _run_cli(args: list[str], capsys: pytest.CaptureFixture[str]) -> tuple[int, str]:
+    code = main(["train", *args])
+    err = capsys.readouterr().err
+    return code, err
+
+
+@pytest.mark.parametrize(
+    ("group", "groups", "message"),
+    [
+        ("nope", None, "train.groups has no group 'nope'"),
+        ("x", {"x": {"sensor": "l_knee_ft"}}, "train.groups.x.sensor: 'l_knee_ft' is not an FT sensor"),
+        ("x", {"x": {"pair": "l_hand"}}, "train.groups.x.pair: 'l_hand' is not in robot.foot_pairs"),
+    ],
+)
+def test_cli_bad_group_is_one_line(
+    tmp_path: Path,
+    labelled: Path,
+    capsys: pytest.CaptureFixture[str],
+    group: str,
+    groups: dict[str, Any] | None,
+    message: str,
+) -> None:
+    train = copy.deepcopy(TRAIN_PARAMS)
+    if groups:
+        train["groups"] = groups
+    params = write_params(tmp_path, train)
+    code, err = _run_cli([group, str(labelled), str(tmp_path / "out"), "--params", str(params)], capsys)
+    assert code == 2
+    lines = err.strip().splitlines()
+    assert len(lines) == 1 and lines[0].startswith("ftcal: error:") and message in lines[0], err
+
+
+def _copy_logs(src: Path, dst: Path, keep: callable) -> Path:
+    dst.mkdir()
+    for path in src.glob("*.parquet"):
+        if keep(path.name):
+            (dst / path.name).write_bytes(path.read_bytes())
+    return dst
+
+
+def test_cli_bad_data_is_one_line(tmp_path: Path, labelled: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    params = str(write_params(tmp_path))
+    cases = [
+        (tmp_path / "missing", "labelled directory not found"),
+        (_copy_logs(labelled, tmp_path / "no_test", lambda n: "train" in n), "no test logs"),
+        (_copy_logs(labelled, tmp_path / "no_train", lambda n: "test" in n), "no training logs"),
+    ]
+    # a leg that never has an exact label
+    no_labels = _copy_logs(labelled, tmp_path / "no_labels", lambda n: True)
+    for path in no_labels.glob("*train.parquet"):
+        table = pq.read_table(path)
+        i = table.schema.get_field_index(S.switch_col(LEG))
+        table = table.set_column(i, table.schema.field(i), pa.array(np.zeros(table.num_rows, np.uint8)))
+        pq.write_table(table, path)
+    cases.append((no_labels, "r_leg_ft: no training sample with an exact label (sw.r_leg_ft = 1)"))
+    for in_dir, message in cases:
+        code, err = _run_cli([LEG, str(in_dir), str(tmp_path / "out"), "--params", params], capsys)
+        lines = err.strip().splitlines()
+        assert code == 2 and len(lines) == 1 and message in lines[0], err
+
+
+def test_log_kind_refines_the_type_with_foot_and_part(tmp_path: Path) -> None:
+    write_labelled_log(tmp_path / "a_train.parquet", "pole", "train", n=50, seed=0)
+    table = pq.read_table(tmp_path / "a_train.parquet")
+    meta = dict(table.schema.metadata)
+    meta[S.META_EXPERIMENT] = json.dumps(
+        {"type": "half_foot", "foot": "l_foot", "part": "front", "role": "train"}
+    )
+    pq.write_table(table.replace_schema_metadata(meta), tmp_path / "a_train.parquet")
+    assert [log.kind for log in T.find_logs(tmp_path)] == ["half_foot/l_foot/front"]
+
+
+def test_log_without_role_is_a_data_error(tmp_path: Path) -> None:
+    write_labelled_log(tmp_path / "a.parquet", "pole", "", n=50, seed=0)
+    with pytest.raises(DataError, match="a.parquet: experiment metadata role must be 'train' or 'test'"):
+        T.find_logs(tmp_path)
+
+
+# --- end to end ----------------------------------------------------------------------------------
+
+
+def test_end_to_end_resumes_registers_and_repeats(
+    tmp_path: Path, labelled: Path, mlflow_uri: str, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    from mlflow import MlflowClient
+
+    params = load_params(write_params(tmp_path))
+    out_a, out_b = tmp_path / "a", tmp_path / "b"
+
+    # A: a fresh study.
+    a = T.train_group(params, PAIR, labelled, out_a, tmp_path / "studies_a", progress=False)
+
+    # B: another fresh study, interrupted in the nn7 search's second trial, then resumed.
+    real = T.train_network
+    calls = {"n": 0}
+
+    def interrupted(*args: Any, **kwargs: Any) -> Any:
+        calls["n"] += 1
+        if calls["n"] == 2:
+            raise KeyboardInterrupt
+        return real(*args, **kwargs)
+
+    monkeypatch.setattr(T, "train_network", interrupted)
+    with pytest.raises(KeyboardInterrupt):
+        T.train_group(params, PAIR, labelled, out_b, tmp_path / "studies_b", progress=False)
+    monkeypatch.setattr(T, "train_network", real)
+    b = T.train_group(params, PAIR, labelled, out_b, tmp_path / "studies_b", progress=False)
+    assert b.metrics["networks"]["nn7"]["trials_reused"] == 1
+    assert b.metrics["networks"]["nn7"]["trials_run"] == 2
+    # Same params, same data: the same metrics, whether or not the search was interrupted.
+    assert _comparable(b.metrics) == _comparable(a.metrics)
+    assert (
+        json.loads((out_a / "metrics.json").read_text())["test"]
+        == json.loads((out_b / "metrics.json").read_text())["test"]
+    )
+
+    # A again: the finished study is reused, nothing retrained.
+    again = T.train_group(params, PAIR, labelled, out_a, tmp_path / "studies_a", progress=False)
+    assert all(n["trials_run"] == 0 and n["trials_reused"] == 3 for n in again.metrics["networks"].values())
+    assert _comparable(again.metrics) == _comparable(a.metrics)
+
+    m = a.metrics
+    for split in ("val", "test"):
+        assert set(m[split]) == {"raw", "affine", "poly1", "poly2", "nn7", "nn13"}
+        for errors in m[split].values():
+            assert {FRONT, REAR, PAIR, "rmse", "rmse_labelled"} <= set(errors)
+            assert errors["rmse"] == errors[PAIR]["rmse"]
+    assert m["best_on_validation"] == min(m["val"], key=lambda k: m["val"][k]["rmse_labelled"])
+    # The synthetic distortion is nearly affine: every calibration beats the raw wrench by far.
+    raw = m["test"]["raw"]["rmse"]
+    for name in ("affine", "poly1", "poly2", "nn7", "nn13"):
+        assert m["test"][name]["rmse"] < raw / 3, (name, m["test"][name]["rmse"], raw)
+
+    # Model files: weights-only, and the same predictions as in predictions.parquet.
+    pred = pd.read_parquet(out_a / "predictions.parquet")
+    assert set(pred[T.LOG]) == {"05_pole_test", "06_walking_test"}
+    for name, n_inputs in (("nn7", 7), ("nn13", 13)):
+        model, info = load_model(out_a / name)
+        cols = [c for sensor in (FRONT, REAR) for c in T.input_cols(sensor, n_inputs)]
+        assert info["input_columns"] == cols
+        test = pd.concat(
+            [pd.read_parquet(p).assign(**{T.LOG: p.stem}) for p in labelled.glob("*test.parquet")]
+        )
+        test = pred[[T.LOG, S.STAMP]].merge(test, on=[T.LOG, S.STAMP], how="left")
+        with torch.no_grad():
+            y = model(torch.tensor(test[cols].to_numpy(), dtype=torch.float32)).numpy()
+        expected = pred[T.prediction_cols(name, FRONT) + T.prediction_cols(name, REAR)].to_numpy()
+        np.testing.assert_allclose(y, expected, rtol=1e-5, atol=1e-4)
+
+    # MLflow: the stage's run tagged with the group, nested trial runs, registered pt2 models.
+    client = MlflowClient(mlflow_uri)
+    exp = client.get_experiment_by_name("ftcal")
+    runs = client.search_runs([exp.experiment_id], filter_string=f"tags.`dvc.stage` = 'train@{PAIR}'")
+    assert runs and all(r.data.tags["group"] == PAIR for r in runs)
+    parent = runs[-1]  # the first run (A)
+    children = client.search_runs(
+        [exp.experiment_id], filter_string=f"tags.`mlflow.parentRunId` = '{parent.info.run_id}'"
+    )
+    assert len(children) == 6  # 3 trials x 2 networks
+    for n_inputs in (7, 13):  # registered by A, B resumed (B interrupted registered nothing) and A again
+        versions = client.search_model_versions(f"name = 'ftcal-{PAIR}-{n_inputs}'")
+        assert len(versions) == 3
+    # The registered pt2 model loads without allowing pickle and computes what load_model's module does.
+    import mlflow.pytorch
+
+    monkeypatch.delenv("MLFLOW_ALLOW_PICKLE_DESERIALIZATION", raising=False)
+    exported = mlflow.pytorch.load_model(f"models:/ftcal-{PAIR}-7/1")
+    model, _ = load_model(out_a / "nn7")
+    x = torch.randn(16, 14) * 50
+    np.testing.assert_allclose(exported(x).detach().numpy(), model(x).detach().numpy(), rtol=1e-5, atol=1e-4)
+
+
+def test_cli_single_sensor_group(
+    tmp_path: Path, labelled: Path, mlflow_uri: str, capsys: pytest.CaptureFixture[str]
+) -> None:
+    params = write_params(tmp_path, inputs=[7], n_trials=2, epochs=2)
+    out = tmp_path / "out"
+    code = main(
+        ["train", LEG, str(labelled), str(out), "--params", str(params), "--studies", str(tmp_path / "st")]
+    )
+    captured = capsys.readouterr()
+    assert code == 0, captured.err
+    assert captured.out.startswith(f"{LEG}: test RMSE of {LEG}")
+    metrics = json.loads((out / "metrics.json").read_text())
+    assert set(metrics["test"]) == {"raw", "affine", "poly1", "poly2", "nn7"}
+    assert metrics["kind"] == "sensor" and metrics["headline"] == LEG
+    assert sorted(p.name for p in out.iterdir()) == [
+        "baselines.json",
+        "metrics.json",
+        "nn7.json",
+        "nn7.pt",
+        "predictions.parquet",
+    ]
