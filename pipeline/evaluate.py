@@ -62,7 +62,8 @@ from pipeline import schema as S
 from pipeline.config import Params, load_params, stage_section
 from pipeline.errors import ConfigError, DataError
 from pipeline.models import wrench_errors
-from pipeline.train import LOG, PRED, RAW, nn_name, prediction_cols
+from pipeline.schema import LOG, PRED, prediction_cols
+from pipeline.train import RAW, nn_name
 
 STAGE = "evaluate"
 ORACLE = "oracle"  # the simulator's oracle calibration, an extra model in the tables (truth tables only)

@@ -132,11 +132,11 @@ def _shown_models(r: GroupResult) -> list[str]:
 
 def plot_timeseries(r: GroupResult, name: str, path: Path) -> None:
     """Prediction vs expected vs raw (and true) of one sensor or sum over the whole test set, 6 axes."""
-    from pipeline.evaluate import PRED
+    PRED = S.PRED
 
     plt = _plt()
     f = r.inputs.frame
-    x, spans = concatenated_time(f["log"].to_numpy(), f[S.TIME].to_numpy())
+    x, spans = concatenated_time(f[S.LOG].to_numpy(), f[S.TIME].to_numpy())
     seg = r.inputs.segments
     fig, axes = plt.subplots(6, 1, figsize=(16, 14), sharex=True)
     series = [("raw", f"{PRED}.raw", 0.8, "-")]
@@ -168,8 +168,8 @@ def _zoom_window(f: Any, kind: str, zoom_s: float) -> np.ndarray:
     from pipeline.evaluate import EXPERIMENT
 
     rows = np.flatnonzero(f[EXPERIMENT].to_numpy() == kind)
-    log = f["log"].to_numpy()[rows[0]]
-    rows = rows[f["log"].to_numpy()[rows] == log]
+    log = f[S.LOG].to_numpy()[rows[0]]
+    rows = rows[f[S.LOG].to_numpy()[rows] == log]
     t = f[S.TIME].to_numpy()[rows]
     mid = 0.5 * (t[0] + t[-1])
     return rows[(t >= mid - zoom_s / 2) & (t <= mid + zoom_s / 2)]
@@ -177,7 +177,7 @@ def _zoom_window(f: Any, kind: str, zoom_s: float) -> np.ndarray:
 
 def plot_zoom(r: GroupResult, name: str, zoom_s: float, path: Path) -> None:
     """A `zoom_s` window per experiment type (thesis figs 5.3b-c): 6 axes x experiment types."""
-    from pipeline.evaluate import PRED
+    PRED = S.PRED
 
     plt = _plt()
     f = r.inputs.frame
@@ -214,7 +214,7 @@ def plot_residuals(r: GroupResult, name: str, path: Path) -> None:
 
     plt = _plt()
     f = r.inputs.frame
-    x, spans = concatenated_time(f["log"].to_numpy(), f[S.TIME].to_numpy())
+    x, spans = concatenated_time(f[S.LOG].to_numpy(), f[S.TIME].to_numpy())
     seg = r.inputs.segments
     # the oracle first, so that it lies behind the models it is the floor of
     models = ([ORACLE] if ORACLE in r.inputs.models else []) + _shown_models(r)

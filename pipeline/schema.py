@@ -79,6 +79,8 @@ FT, ACC, GYR, TEMP = "ft", "acc", "gyr", "temp"
 TRUE, DISTORTED, ORACLE = "true", "distorted", "oracle"
 EXPECTED, SWITCH = "exp", "sw"  # labelled tables: expected wrench and its exact-label switch
 FIXED_LINK, GUARD = "fixed_link", "guard"
+PRED = "pred"  # predictions tables: pred.<model>.<sensor or pair>.<axis> [N, Nm]
+LOG = "log"  # predictions tables: the log (labelled table stem) of the sample
 QS, DQS, DDQS = "qs", "dqs", "ddqs"
 OK = "ok"
 
@@ -138,6 +140,11 @@ def vector_cols(quantity: str, sensor: str) -> list[str]:
     return [f"{quantity}.{sensor}.{axis}" for axis in VECTOR_AXES]
 
 
+def prediction_cols(model: str, name: str) -> list[str]:
+    """The 6 columns ``pred.<model>.<sensor or pair>.<axis>`` of a model's predicted wrench [N, Nm]."""
+    return wrench_cols(f"{PRED}.{model}", name)
+
+
 def switch_col(name: str) -> str:
     """``sw.<sensor or pair>``: exact-label switch (uint8) in labelled tables."""
     return f"{SWITCH}.{name}"
@@ -157,7 +164,7 @@ def unit(column: str) -> str:
     if column in _UNITS:
         return _UNITS[column]
     parts = column.split(".")
-    if parts[0] in (FT, TRUE, DISTORTED, ORACLE, EXPECTED):
+    if parts[0] in (FT, TRUE, DISTORTED, ORACLE, EXPECTED, PRED):
         return _WRENCH_UNITS.get(parts[-1], "")
     return _UNITS.get(parts[0], "")
 

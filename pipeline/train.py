@@ -78,8 +78,7 @@ from pipeline.models import (
 
 STAGE = "train"
 STUDIES_DIR = ".optuna"  # default --studies parent, at the repo root (git-ignored)
-PRED = "pred"  # prediction columns: pred.<model>.<sensor or pair>.<axis>
-LOG = "log"  # prediction column: the log (labelled table stem) of the sample
+PRED, LOG, prediction_cols = S.PRED, S.LOG, S.prediction_cols  # the predictions table's columns
 RAW, AFFINE = "raw", "affine"
 ROLE_TRAIN, ROLE_TEST = "train", "test"
 SPLITS = ("train", "val", "test")
@@ -93,10 +92,6 @@ def nn_name(n_inputs: int) -> str:
 def poly_name(order: int) -> str:
     return f"poly{order}"
 
-
-def prediction_cols(model: str, name: str) -> list[str]:
-    """``pred.<model>.<name>.<fx..tz>``: a model's calibrated wrench of sensor (or foot sum) `name`."""
-    return S.wrench_cols(f"{PRED}.{model}", name)
 
 
 # --- params --------------------------------------------------------------------------------------
