@@ -68,7 +68,15 @@ from pipeline.train import RAW, nn_name
 STAGE = "evaluate"
 ORACLE = "oracle"  # the simulator's oracle calibration, an extra model in the tables (truth tables only)
 LABELS, TRUTH = "labels", "truth"  # references the errors are computed against
-REFERENCES = (LABELS, TRUTH)
+# truth scored on the labelled samples only: like for like with LABELS (TRUTH also covers the samples
+# without labels, e.g. double support, where a model interpolates without supervision)
+TRUTH_LABELLED = "truth_labelled"
+REFERENCES = (LABELS, TRUTH_LABELLED, TRUTH)
+REFERENCE_TITLES = {
+    LABELS: "labels",
+    TRUTH_LABELLED: "truth (labelled samples)",
+    TRUTH: "truth (all samples)",
+}
 NN7, NN13 = nn_name(7), nn_name(13)
 METRICS_FILE = "metrics.json"
 REPORT_FILE = "index.html"
@@ -540,6 +548,7 @@ def _masks(g: GroupInputs, name: str) -> dict[str, np.ndarray]:
     out = {LABELS: f[S.switch_col(name)].to_numpy() == 1}
     if g.has_truth:
         out[TRUTH] = np.isfinite(_wrench(f, S.TRUE, name)).all(axis=1)
+        out[TRUTH_LABELLED] = out[TRUTH] & out[LABELS]
     return out
 
 
@@ -552,7 +561,7 @@ def error_tables(g: GroupInputs) -> tuple[dict, dict]:
     for name in g.names:
         refs = {LABELS: _wrench(f, S.EXPECTED, name)}
         if g.has_truth:
-            refs[TRUTH] = _wrench(f, S.TRUE, name)
+            refs[TRUTH_LABELLED] = refs[TRUTH] = _wrench(f, S.TRUE, name)
         masks = _masks(g, name)
         tables[name], by_exp[name] = {}, {}
         for ref, target in refs.items():

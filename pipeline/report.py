@@ -385,7 +385,7 @@ def plot_noise_summary(results: Sequence[GroupResult], cfg: EvaluateParams, path
 
 def plot_overview(results: Sequence[GroupResult], path: Path) -> None:
     """Headline RMSE (global) of every model per group, against labels and truth (log scale)."""
-    from pipeline.evaluate import REFERENCES
+    from pipeline.evaluate import REFERENCE_TITLES, REFERENCES
 
     plt = _plt()
     refs = [ref for ref in REFERENCES if any(ref in r.tables[r.inputs.headline] for r in results)]
@@ -407,7 +407,7 @@ def plot_overview(results: Sequence[GroupResult], path: Path) -> None:
         ax.set_xticks(np.arange(len(results)), [r.inputs.headline for r in results], rotation=20)
         ax.set_yscale("log")
         ax.set_ylabel("RMSE, 6 axes pooled [N, Nm]")
-        ax.set_title(f"test RMSE against {ref}")
+        ax.set_title(f"test RMSE against {REFERENCE_TITLES[ref]}")
         ax.grid(alpha=0.3, axis="y", which="both")
     axes[0, -1].legend(loc="upper left", bbox_to_anchor=(1.01, 1.0), fontsize=9)
     fig.tight_layout()
@@ -566,16 +566,16 @@ def _cell(value: Any, good: bool | None = None, bold: bool = False) -> str:
 def summary_table(results: Sequence[GroupResult], cfg: EvaluateParams) -> str:
     """One row per group: headline RMSE of raw, the best-on-validation model, NN7 and the oracle against
     labels and truth; the acceptance ratios; the networks' noise ratios; the model to deploy."""
-    from pipeline.evaluate import LABELS, NN7, NN13, ORACLE, TRUTH
+    from pipeline.evaluate import LABELS, NN7, NN13, ORACLE, REFERENCE_TITLES, REFERENCES
 
-    refs = [ref for ref in (LABELS, TRUTH) if any(ref in r.tables[r.inputs.headline] for r in results)]
+    refs = [ref for ref in REFERENCES if any(ref in r.tables[r.inputs.headline] for r in results)]
     head1 = "<tr><th rowspan=2>group</th><th rowspan=2>sensor / sum</th>"
     head2 = "<tr>"
     for ref in refs:
-        head1 += f"<th colspan=4>RMSE against {ref}</th>"
+        head1 += f"<th colspan=4>RMSE against {REFERENCE_TITLES[ref]}</th>"
         head2 += "<th>raw</th><th>best on val.</th><th>NN7</th><th>oracle</th>"
     for ref in refs:
-        head1 += f"<th colspan=2>ratios, {ref}</th>"
+        head1 += f"<th colspan=2>ratios, {REFERENCE_TITLES[ref]}</th>"
         head2 += "<th>raw / NN7</th><th>NN7 / oracle</th>"
     head1 += (
         "<th colspan=2>noise ratio</th><th rowspan=2>best on validation</th><th rowspan=2>deploy</th></tr>"
@@ -630,8 +630,10 @@ _SUMMARY_NOTE = (
     "against the labels and against the truth (green: met, red: not). The oracle inverts each simulated "
     "sensor's static distortion exactly: its error is the noise floor. <i>deploy</i>: the model with the "
     "lowest validation error unless noise-flagged, else the next of the validation ranking. Labels exist "
-    "only where a sensor's switch is 1 (a foot sum: where the contacts are all on the foot or all off it); "
-    "the truth (simulated logs) covers every test sample, double support included.</p>"
+    "only where a sensor's switch is 1 (a foot sum: where the contacts are all on the foot or all off it). "
+    "Against the truth (simulated logs) every model is scored twice: on the labelled samples (like for "
+    "like with the labels) and on all test samples, double support included, where no label exists and "
+    "a model interpolates without supervision.</p>"
 )
 
 _NOISE_NOTE = (
@@ -645,7 +647,7 @@ _NOISE_NOTE = (
 
 
 def _group_section(r: GroupResult, figures: Mapping[str, Any]) -> list[str]:
-    from pipeline.evaluate import LABELS, TRUTH
+    from pipeline.evaluate import REFERENCE_TITLES, REFERENCES
 
     g = r.inputs
     links = [f"training run {_e(r.train_run)}"] if r.train_run else ["no MLflow training run found"]
@@ -668,10 +670,11 @@ def _group_section(r: GroupResult, figures: Mapping[str, Any]) -> list[str]:
             what = "part of the foot" if g.pair else "sensor"
         # ids: the group's heading may already be called like its sensor or pair
         parts.append(f"<h3 id='sensor-{_e(name)}'>{_e(name)} <small>({what})</small></h3>")
-        for ref in (LABELS, TRUTH):
+        for ref in REFERENCES:
             if ref in r.tables[name]:
                 tables = [thesis_table(r.tables[name][ref], g.models, m) for m in ("rmse", "mae", "mse")]
-                parts.append(f"<h4>against {ref}</h4><div class='tables'>{''.join(tables)}</div>")
+                title = REFERENCE_TITLES[ref]
+                parts.append(f"<h4>against {title}</h4><div class='tables'>{''.join(tables)}</div>")
         parts.append("<h4>RMSE (global) per experiment type</h4><div class='tables'>")
         for ref, by_kind in r.by_experiment[name].items():
             rows = [[f"{kind} ({ref})"] + [fmt(by_kind[kind].get(m)) for m in g.models] for kind in by_kind]
