@@ -28,6 +28,15 @@ def robot_source(name: str) -> str:
 _CACHE: dict[str, RobotModel] = {}
 
 
+@pytest.fixture(scope="module")
+def mlflow_store(tmp_path_factory: pytest.TempPathFactory):
+    """A throwaway MLflow sqlite store for one test module's stage runs (monkeypatch is per function)."""
+    patch = pytest.MonkeyPatch()
+    patch.setenv("MLFLOW_TRACKING_URI", f"sqlite:///{tmp_path_factory.mktemp('mlflow')}/mlflow.db")
+    yield
+    patch.undo()
+
+
 @pytest.fixture(params=ROBOTS, scope="session")
 def robot(request: pytest.FixtureRequest) -> RobotModel:
     """Each test robot, loaded once per session."""
