@@ -945,16 +945,20 @@ def run(
     from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn
 
     console = Console(stderr=True)
+
+    def progress_bar() -> Progress:
+        return Progress(
+            TextColumn("{task.description}"),
+            BarColumn(),
+            MofNCompleteColumn(),
+            TimeElapsedColumn(),
+            console=console,
+            transient=True,
+            disable=not show,
+        )
+
     results: list[GroupResult] = []
-    with Progress(
-        TextColumn("{task.description}"),
-        BarColumn(),
-        MofNCompleteColumn(),
-        TimeElapsedColumn(),
-        console=console,
-        transient=True,
-        disable=not show,
-    ) as bar:
+    with progress_bar() as bar:
         task = bar.add_task("evaluate: scoring groups", total=len(groups))
         for group in groups:
             bar.update(task, description=f"evaluate: scoring {group}")
@@ -966,15 +970,7 @@ def run(
         link_mlflow(results)
         doc = metrics_document(results, cfg)
         out.mkdir(parents=True, exist_ok=True)
-        with Progress(
-            TextColumn("{task.description}"),
-            BarColumn(),
-            MofNCompleteColumn(),
-            TimeElapsedColumn(),
-            console=console,
-            transient=True,
-            disable=not show,
-        ) as bar:
+        with progress_bar() as bar:
             files = report.write_all(out, results, doc, cfg, bar)
         _write_json(out / METRICS_FILE, doc)
         files.append(METRICS_FILE)
