@@ -140,7 +140,7 @@ def far_side_wrenches(
     """
     rooted = robot.rooted(root)
     n = q.shape[0]
-    nq, nv = rooted.model.nq, rooted.model.nv
+    nv = rooted.model.nv
     # Fortran-ordered (nq, N) buffers are what Eigen reads without a copy.
     qs = np.asfortranarray(rooted.neutral_batch(n).T)
     vs = np.zeros((nv, n), order="F")
@@ -152,7 +152,6 @@ def far_side_wrenches(
     tau = np.zeros((nv, n), order="F")
     if n:
         pin.rneaInParallel(threads, rooted.pool(gravity_root, threads), qs, vs, accs, tau)
-    assert qs.shape[0] == nq
     return tau.T
 
 

@@ -299,33 +299,21 @@ def _truth_checks(
         )
         valid = outside & (true_sets != "")
         agreement = float(np.mean(ours[valid] == true_sets[valid])) if valid.any() else None
-    rmse: dict[str, dict[str, float]] = {}
+    # true wrench per label name: every sensor in the truth table, and each pair's sum in its sole frame
+    true: dict[str, np.ndarray] = {}
     for s in robot.sensors:
-        true_cols = S.wrench_cols(S.TRUE, s)
-        if not set(true_cols) <= set(truth.columns):
-            continue
-        on = labels[S.switch_col(s)] == 1
-        err = (
-            np.column_stack([labels[c] for c in S.wrench_cols(S.EXPECTED, s)])[on]
-            - truth[true_cols].to_numpy()[on]
-        )
-        err = err[np.isfinite(err).all(axis=1)]
-        if err.size:
-            rmse[s] = {
-                "force": float(np.sqrt(np.mean(err[:, :3] ** 2))),
-                "torque": float(np.sqrt(np.mean(err[:, 3:] ** 2))),
-                "samples": int(err.shape[0]),
-            }
+        if set(S.wrench_cols(S.TRUE, s)) <= set(truth.columns):
+            true[s] = truth[S.wrench_cols(S.TRUE, s)].to_numpy()
     for p in pairs:
-        on = labels[S.switch_col(p.name)] == 1
-        true_sum = (
-            truth[S.wrench_cols(S.TRUE, p.front)].to_numpy() @ p.sole_X_front.T
-            + truth[S.wrench_cols(S.TRUE, p.rear)].to_numpy() @ p.sole_X_rear.T
-        )
-        err = np.column_stack([labels[c] for c in S.wrench_cols(S.EXPECTED, p.name)])[on] - true_sum[on]
+        if p.front in true and p.rear in true:
+            true[p.name] = true[p.front] @ p.sole_X_front.T + true[p.rear] @ p.sole_X_rear.T
+    rmse: dict[str, dict[str, float]] = {}
+    for name, value in true.items():
+        on = labels[S.switch_col(name)] == 1
+        err = np.column_stack([labels[c] for c in S.wrench_cols(S.EXPECTED, name)])[on] - value[on]
         err = err[np.isfinite(err).all(axis=1)]
         if err.size:
-            rmse[p.name] = {
+            rmse[name] = {
                 "force": float(np.sqrt(np.mean(err[:, :3] ** 2))),
                 "torque": float(np.sqrt(np.mean(err[:, 3:] ** 2))),
                 "samples": int(err.shape[0]),
