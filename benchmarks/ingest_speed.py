@@ -1,6 +1,6 @@
 """Messages/s of our MCAP decoding and of the whole `ingest` of one log vs mcap_ros2's generic decoder.
 
-Writes (with `pipeline.rosmsg.LogWriter`) a simulated-log-shaped MCAP of iCubGenova09: joint states,
+Writes (with `pipeline.logs.rosmsg.LogWriter`) a simulated-log-shaped MCAP of iCubGenova09: joint states,
 and per FT sensor wrench, IMU, temperature (10 Hz) and the three /sim/ wrenches, plus /sim/contacts,
 with jitter, delays, lost and duplicated messages; >= 1M messages by default. Then, on that file:
 
@@ -31,10 +31,10 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from pipeline.config import load_params, stage_section  # noqa: E402
-from pipeline.ingest import IngestParams, ingest_log  # noqa: E402
-from pipeline.robot import load_robot  # noqa: E402
-from pipeline.rosmsg import LogReader, LogWriter  # noqa: E402
+from pipeline.core.config import load_params, stage_section  # noqa: E402
+from pipeline.logs.rosmsg import LogReader, LogWriter  # noqa: E402
+from pipeline.physics.robot import load_robot  # noqa: E402
+from pipeline.stages.ingest import IngestParams, ingest_log  # noqa: E402
 
 ROOT = Path(__file__).resolve().parents[1]
 T0 = 1_700_000_000 * 10**9

@@ -22,8 +22,8 @@ import pinocchio as pin
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from pipeline.dynamics import ContactCase, expected_wrenches  # noqa: E402
-from pipeline.robot import load_robot  # noqa: E402
+from pipeline.physics.dynamics import ContactCase, expected_wrenches  # noqa: E402
+from pipeline.physics.robot import load_robot  # noqa: E402
 from tests.idyntree_ref import IDynTreeFT, random_in_limits  # noqa: E402
 
 CONTACTS, FIXED, GRAVITY = ["l_foot_front", "l_foot_rear"], "l_sole", np.array([0.0, 0.0, -9.80665])
@@ -54,8 +54,10 @@ def main() -> None:
     ours = expected_wrenches(robot, q, dq, ddq, case)
     ref = oracle.expected(q, dq, ddq, CONTACTS, FIXED, GRAVITY)
     worst = max(np.abs(ours.wrench[s] - ref[s]).max() for s in robot.sensors if ours.switch[s][0])
-    print(f"samples: {args.samples}, robot {robot.name}, {len(robot.sensors)} FT sensors, "
-          f"max |ours - iDynTree| over exact labels: {worst:.2e}")
+    print(
+        f"samples: {args.samples}, robot {robot.name}, {len(robot.sensors)} FT sensors, "
+        f"max |ours - iDynTree| over exact labels: {worst:.2e}"
+    )
 
     cores = os.cpu_count() or 1
     t_ours = best_of(args.repeats, lambda: expected_wrenches(robot, q, dq, ddq, case))

@@ -1,6 +1,6 @@
 """Simulated seconds per wall second of the `simulate` stage, and the share of each of its parts.
 
-Runs the default params' logs (or a fraction of their durations) through `pipeline.simulate.run` into a
+Runs the default params' logs (or a fraction of their durations) through `pipeline.stages.simulate.run` into a
 temporary directory, with a throwaway MLflow store, and prints robot seconds per wall second last.
 
     python benchmarks/sim_speed.py [--scale 1.0] [--workers 0]
@@ -20,8 +20,8 @@ import yaml
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from pipeline.config import load_params  # noqa: E402
-from pipeline.simulate import run  # noqa: E402
+from pipeline.core.config import load_params  # noqa: E402
+from pipeline.stages.simulate import run  # noqa: E402
 
 REPO = Path(__file__).resolve().parents[1]
 

@@ -13,7 +13,7 @@ from collections.abc import Sequence
 from pathlib import Path
 
 from pipeline import __version__
-from pipeline.errors import FtcalError
+from pipeline.core.errors import FtcalError
 
 EXIT_OK = 0
 EXIT_USAGE = 2  # as argparse: bad arguments or bad input the user can fix
@@ -21,8 +21,14 @@ EXIT_INTERRUPTED = 130  # 128 + SIGINT, as shells report Ctrl-C
 
 # Stage modules, in pipeline order. Each defines ``add_cli(subparsers)``, which adds its subcommand
 # (same name as its DVC stage) with ``set_defaults(func=...)``; a module not written yet is skipped.
-STAGE_MODULES = ("pipeline.simulate", "pipeline.ingest", "pipeline.smooth", "pipeline.label",
-                 "pipeline.train", "pipeline.evaluate")
+STAGE_MODULES = (
+    "pipeline.stages.simulate",
+    "pipeline.stages.ingest",
+    "pipeline.stages.smooth",
+    "pipeline.stages.label",
+    "pipeline.stages.train",
+    "pipeline.stages.evaluate",
+)
 
 
 def _cmd_robot(args: argparse.Namespace) -> int:
@@ -30,8 +36,8 @@ def _cmd_robot(args: argparse.Namespace) -> int:
     from rich.console import Console
     from rich.table import Table
 
-    from pipeline.config import load_params, repo_root, resolve_urdf
-    from pipeline.robot import load_robot  # deferred: imports pinocchio
+    from pipeline.core.config import load_params, repo_root, resolve_urdf
+    from pipeline.physics.robot import load_robot  # deferred: imports pinocchio
 
     params = load_params(args.params)
     # --urdf is typed by the user: relative to the working directory; params' urdf: to the repo root.

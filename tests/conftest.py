@@ -6,14 +6,16 @@ from pathlib import Path
 
 import pytest
 
-from pipeline.robot import RobotModel, load_robot
+from pipeline.physics.robot import RobotModel, load_robot
 
 REPO = Path(__file__).resolve().parents[1]
 ERGOCUB_URDF = REPO.parent / "shared" / "robots" / "ergoCubSN001" / "model.urdf"
 ROBOTS = ["iCubGenova09", "ergoCubSN001"]
 GRAVITY = 9.80665
-FOOT_PAIRS = {"l_foot": ("l_foot_front_ft", "l_foot_rear_ft", "l_sole"),
-              "r_foot": ("r_foot_front_ft", "r_foot_rear_ft", "r_sole")}
+FOOT_PAIRS = {
+    "l_foot": ("l_foot_front_ft", "l_foot_rear_ft", "l_sole"),
+    "r_foot": ("r_foot_front_ft", "r_foot_rear_ft", "r_sole"),
+}
 
 
 def robot_source(name: str) -> str:

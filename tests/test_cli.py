@@ -66,7 +66,7 @@ def test_no_command_is_a_usage_error(capsys: pytest.CaptureFixture[str]) -> None
 
 
 def test_robot_prints_ft_sensors(capsys: pytest.CaptureFixture[str]) -> None:
-    pytest.importorskip("pipeline.robot")
+    pytest.importorskip("pipeline.physics.robot")
     assert main(["robot"]) == 0
     out = capsys.readouterr().out
     for sensor in ("l_leg_ft", "r_leg_ft", "l_arm_ft", "r_arm_ft", "l_foot_front_ft", "r_foot_rear_ft"):
@@ -76,7 +76,7 @@ def test_robot_prints_ft_sensors(capsys: pytest.CaptureFixture[str]) -> None:
 
 
 def test_robot_bad_urdf_is_a_one_line_error(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
-    pytest.importorskip("pipeline.robot")
+    pytest.importorskip("pipeline.physics.robot")
     missing = tmp_path / "nope.urdf"
     assert main(["robot", "--urdf", str(missing)]) == 2
     err = capsys.readouterr().err

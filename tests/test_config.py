@@ -10,7 +10,7 @@ from typing import Any
 import pytest
 import yaml
 
-from pipeline.config import (
+from pipeline.core.config import (
     FootPairParams,
     Params,
     RobotParams,
@@ -18,7 +18,7 @@ from pipeline.config import (
     repo_root,
     resolve_urdf,
 )
-from pipeline.errors import ConfigError
+from pipeline.core.errors import ConfigError
 
 ROOT = Path(__file__).resolve().parent.parent
 REPO_PARAMS = ROOT / "params.yaml"
@@ -184,7 +184,7 @@ def test_topics_section(tmp_path: Path) -> None:
 def test_stage_section_names_the_key(tmp_path: Path) -> None:
     from dataclasses import dataclass
 
-    from pipeline.config import stage_section
+    from pipeline.core.config import stage_section
 
     @dataclass(frozen=True)
     class Demo:
@@ -197,9 +197,11 @@ def test_stage_section_names_the_key(tmp_path: Path) -> None:
     base = REPO_PARAMS.read_text()
     params = load_params(write(tmp_path / "params.yaml", base + "\ndemo: {rate_hz: 100}\n"))
     assert stage_section(params, "demo", Demo).rate_hz == 100
-    for extra, message in (("demo: {rate_hz: -1}", "demo.rate_hz must be > 0"),
-                           ("demo: {rate: 1}", "unknown key demo.rate"),
-                           ("other: 1", "missing section demo")):
+    for extra, message in (
+        ("demo: {rate_hz: -1}", "demo.rate_hz must be > 0"),
+        ("demo: {rate: 1}", "unknown key demo.rate"),
+        ("other: 1", "missing section demo"),
+    ):
         params = load_params(write(tmp_path / "params.yaml", base + "\n" + extra + "\n"))
         with pytest.raises(ConfigError, match=rf"params.yaml: {message}"):
             stage_section(params, "demo", Demo)

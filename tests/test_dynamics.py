@@ -11,9 +11,9 @@ import numpy as np
 import pinocchio as pin
 import pytest
 
-from pipeline.dynamics import ContactCase, expected_wrenches, pair_switch, sensor_switch
-from pipeline.errors import RobotModelError
-from pipeline.robot import RobotModel, wrench_transform
+from pipeline.core.errors import RobotModelError
+from pipeline.physics.dynamics import ContactCase, expected_wrenches, pair_switch, sensor_switch
+from pipeline.physics.robot import RobotModel, wrench_transform
 from tests.conftest import GRAVITY, foot_pairs
 
 G = (0.0, 0.0, -GRAVITY)
@@ -75,8 +75,11 @@ def reference_reading(ne: LinkNewtonEuler, sensor: str, contacts: set[str]) -> n
     """The sensor's reading from the free side of its cut: F(P on Q) = w(Q) if Q is free, else -w(P)."""
     parent_side, child_side = ne.robot.sensor_sides(sensor)
     frame = ne.sensor_frame(sensor)
-    p_on_q = ne.required_wrench(child_side, frame) if not contacts & child_side \
+    p_on_q = (
+        ne.required_wrench(child_side, frame)
+        if not contacts & child_side
         else -ne.required_wrench(parent_side, frame)
+    )
     return p_on_q if ne.robot.sensors[sensor].direction == "parent_to_child" else -p_on_q
 
 
@@ -101,8 +104,12 @@ def test_moving_robot_matches_link_newton_euler(robot: RobotModel, name: str) ->
         ne.set_state(q[k], dq[k], ddq[k])
         for sensor in robot.sensors:
             if out.switch[sensor][k]:
-                np.testing.assert_allclose(out.wrench[sensor][k], reference_reading(ne, sensor, contacts),
-                                           atol=1e-8, err_msg=f"{name} {sensor}")
+                np.testing.assert_allclose(
+                    out.wrench[sensor][k],
+                    reference_reading(ne, sensor, contacts),
+                    atol=1e-8,
+                    err_msg=f"{name} {sensor}",
+                )
             else:
                 assert np.isnan(out.wrench[sensor][k]).all()
         for pair in foot_pairs(robot):
@@ -112,10 +119,14 @@ def test_moving_robot_matches_link_newton_euler(robot: RobotModel, name: str) ->
             # the whole-foot cut: wrench the rest of the robot exerts on the foot parts, in the sole frame
             sole = ne.pose(pair.sole)
             rest = frozenset(robot.links) - pair.foot_links
-            cut = ne.required_wrench(pair.foot_links, sole) if not contacts & pair.foot_links \
+            cut = (
+                ne.required_wrench(pair.foot_links, sole)
+                if not contacts & pair.foot_links
                 else -ne.required_wrench(rest, sole)
-            np.testing.assert_allclose(out.pair_sum[pair.name][k], cut, atol=1e-8,
-                                       err_msg=f"{name} {pair.name}")
+            )
+            np.testing.assert_allclose(
+                out.pair_sum[pair.name][k], cut, atol=1e-8, err_msg=f"{name} {pair.name}"
+            )
 
 
 def test_static_stance_leg_carries_weight_above(robot: RobotModel) -> None:
@@ -135,8 +146,14 @@ def test_static_stance_leg_carries_weight_above(robot: RobotModel) -> None:
         f_world = world_T_s.rotation @ out.wrench["l_leg_ft"][k, :3]
         np.testing.assert_allclose(f_world, [0, 0, m_above * GRAVITY], atol=1e-8)
         # its moment about the sensor origin is that of the weight acting at the centre of mass above
-        com = sum(robot.links[n].mass * ne.pose(n).act(robot.links[n].com) for n in above
-                  if robot.links[n] is not None) / m_above
+        com = (
+            sum(
+                robot.links[n].mass * ne.pose(n).act(robot.links[n].com)
+                for n in above
+                if robot.links[n] is not None
+            )
+            / m_above
+        )
         tau_world = world_T_s.rotation @ out.wrench["l_leg_ft"][k, 3:]
         np.testing.assert_allclose(tau_world, np.cross(com - world_T_s.translation, f_world), atol=1e-8)
         # the swing leg pulls the body down with its weight
@@ -169,8 +186,16 @@ SWITCH_TABLE = {
     "r_half_foot_rear": ((1, 1, 1, 1, 1, 1, 1, 1), (1, 1)),
     "pole": ((1, 1, 1, 1, 1, 1, 1, 1), (1, 1)),
 }
-SENSOR_ORDER = ("l_leg_ft", "r_leg_ft", "l_foot_front_ft", "l_foot_rear_ft", "r_foot_front_ft",
-                "r_foot_rear_ft", "l_arm_ft", "r_arm_ft")
+SENSOR_ORDER = (
+    "l_leg_ft",
+    "r_leg_ft",
+    "l_foot_front_ft",
+    "l_foot_rear_ft",
+    "r_foot_front_ft",
+    "r_foot_rear_ft",
+    "l_arm_ft",
+    "r_arm_ft",
+)
 
 
 @pytest.mark.parametrize("name", list(SWITCH_TABLE))
@@ -179,8 +204,9 @@ def test_switches_follow_thesis(robot: RobotModel, name: str) -> None:
     sensors, pairs = SWITCH_TABLE[name]
     assert tuple(int(sensor_switch(robot, s, contacts)) for s in SENSOR_ORDER) == sensors
     assert tuple(int(pair_switch(p, contacts)) for p in foot_pairs(robot)) == pairs
-    out = expected_wrenches(robot, *random_states(robot, 3, seed=5), ContactCase.make(contacts, fixed, G),
-                            foot_pairs(robot))
+    out = expected_wrenches(
+        robot, *random_states(robot, 3, seed=5), ContactCase.make(contacts, fixed, G), foot_pairs(robot)
+    )
     assert tuple(int(out.switch[s][0]) for s in SENSOR_ORDER) == sensors
 
 
@@ -206,5 +232,8 @@ def test_gravity_direction_of_fixed_frame_is_used(icub: RobotModel) -> None:
     for s in icub.sensors:
         assert not np.allclose(upright.wrench[s], tilted.wrench[s])
         # static forces have the same magnitude whatever the tilt
-        np.testing.assert_allclose(np.linalg.norm(upright.wrench[s][:, :3], axis=1),
-                                   np.linalg.norm(tilted.wrench[s][:, :3], axis=1), rtol=1e-10)
+        np.testing.assert_allclose(
+            np.linalg.norm(upright.wrench[s][:, :3], axis=1),
+            np.linalg.norm(tilted.wrench[s][:, :3], axis=1),
+            rtol=1e-10,
+        )

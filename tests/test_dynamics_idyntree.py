@@ -2,7 +2,7 @@
 
 For every contact case, >= 200 random in-limit (q, dq, ddq): every sensor agrees within 1e-6 N / Nm
 wherever our switch is 1, and our switch is 0 exactly where the contact set leaves both sides of the
-sensor's cut touching (sides computed here from the URDF, independently of pipeline.robot).
+sensor's cut touching (sides computed here from the URDF, independently of pipeline.physics.robot).
 """
 
 from __future__ import annotations
@@ -12,8 +12,8 @@ import xml.etree.ElementTree as ET
 import numpy as np
 import pytest
 
-from pipeline.dynamics import ContactCase, expected_wrenches
-from pipeline.robot import RobotModel
+from pipeline.physics.dynamics import ContactCase, expected_wrenches
+from pipeline.physics.robot import RobotModel
 from tests.conftest import GRAVITY, foot_pairs
 from tests.idyntree_ref import IDynTreeFT, random_in_limits
 
@@ -41,8 +41,11 @@ def both_sides_touch(urdf: str, sensor: str, contacts: list[str]) -> bool:
     """Cut the URDF graph at the sensor's joint; do contacts lie in both connected components?"""
     root = ET.parse(urdf).getroot()
     joint = next(s.find("parent").get("joint") for s in root.findall("sensor") if s.get("name") == sensor)
-    edges = [(j.find("parent").get("link"), j.find("child").get("link"))
-             for j in root.findall("joint") if j.get("name") != joint]
+    edges = [
+        (j.find("parent").get("link"), j.find("child").get("link"))
+        for j in root.findall("joint")
+        if j.get("name") != joint
+    ]
     start = next(j.find("child").get("link") for j in root.findall("joint") if j.get("name") == joint)
     side, grew = {start}, True
     while grew:
@@ -67,11 +70,15 @@ def test_expected_wrenches_match_idyntree(robot: RobotModel, name: str) -> None:
     compared = 0
     for sensor in robot.sensors:
         touching = both_sides_touch(str(robot.urdf_path), sensor, contacts)
-        np.testing.assert_array_equal(ours.switch[sensor], np.full(N_SAMPLES, 0 if touching else 1),
-                                      err_msg=f"switch of {sensor} in {name}")
+        np.testing.assert_array_equal(
+            ours.switch[sensor],
+            np.full(N_SAMPLES, 0 if touching else 1),
+            err_msg=f"switch of {sensor} in {name}",
+        )
         if not touching:
-            np.testing.assert_allclose(ours.wrench[sensor], ref[sensor], rtol=0, atol=1e-6,
-                                       err_msg=f"{sensor} in {name}")
+            np.testing.assert_allclose(
+                ours.wrench[sensor], ref[sensor], rtol=0, atol=1e-6, err_msg=f"{sensor} in {name}"
+            )
             compared += 1
     assert compared == sum(not both_sides_touch(str(robot.urdf_path), s, contacts) for s in robot.sensors)
     if name == "double_support":

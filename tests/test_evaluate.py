@@ -17,12 +17,12 @@ import pyarrow.parquet as pq
 import pytest
 import yaml
 
-from pipeline import evaluate as E
-from pipeline import schema as S
 from pipeline.cli import main
-from pipeline.config import load_params, stage_section
-from pipeline.errors import ConfigError, DataError
-from pipeline.train import prediction_cols
+from pipeline.core.config import load_params, stage_section
+from pipeline.core.errors import ConfigError, DataError
+from pipeline.logs import schema as S
+from pipeline.stages import evaluate as E
+from pipeline.stages.train import prediction_cols
 from tests.test_models import TRANSFORMS
 
 ROOT = Path(__file__).resolve().parents[1]

@@ -11,12 +11,13 @@ import pyarrow.parquet as pq
 import pytest
 import yaml
 
-from pipeline import ingest
-from pipeline import schema as S
 from pipeline.cli import main
-from pipeline.config import TopicParams, load_params, stage_section
-from pipeline.errors import ConfigError, DataError
-from pipeline.ingest import (
+from pipeline.core.config import TopicParams, load_params, stage_section
+from pipeline.core.errors import ConfigError, DataError
+from pipeline.logs import schema as S
+from pipeline.logs.rosmsg import LogWriter
+from pipeline.stages import ingest
+from pipeline.stages.ingest import (
     IngestParams,
     align_continuous,
     align_latest,
@@ -25,7 +26,6 @@ from pipeline.ingest import (
     sort_unique,
     stamp_steps_back,
 )
-from pipeline.rosmsg import LogWriter
 
 ROOT = Path(__file__).resolve().parent.parent
 T0 = 1_700_000_000 * 10**9  # ns
@@ -435,7 +435,7 @@ def _params(tmp_path: Path, **ingest_values: object) -> Path:
 @pytest.fixture(scope="module")
 def icub_logs(tmp_path_factory: pytest.TempPathFactory) -> tuple[Path, list[str], list[str]]:
     """Two short good logs of iCub (its URDF's joints and FT sensors) and one truncated one."""
-    from pipeline.robot import load_robot
+    from pipeline.physics.robot import load_robot
 
     robot = load_robot("iCubGenova09")
     joints, sensors = robot.joint_names, list(robot.sensors)

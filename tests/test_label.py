@@ -10,10 +10,10 @@ import pandas as pd
 import pytest
 import yaml
 
-from pipeline import schema as S
-from pipeline.config import load_params
-from pipeline.errors import ConfigError, DataError, RobotModelError
-from pipeline.label import guard_band, hysteresis, run
+from pipeline.core.config import load_params
+from pipeline.core.errors import ConfigError, DataError, RobotModelError
+from pipeline.logs import schema as S
+from pipeline.stages.label import guard_band, hysteresis, run
 from tests.idyntree_ref import IDynTreeFT
 
 REPO = Path(__file__).resolve().parents[1]
@@ -34,7 +34,7 @@ def write_params(tmp: Path, name: str, **simulate: object) -> Path:
 
 
 def pipeline_through_label(tmp: Path, params_path: Path) -> Path:
-    from pipeline import ingest, simulate, smooth
+    from pipeline.stages import ingest, simulate, smooth
 
     params = load_params(params_path)
     simulate.run(params, tmp / "sim", progress=False)
@@ -42,7 +42,6 @@ def pipeline_through_label(tmp: Path, params_path: Path) -> Path:
     smooth.run(params, tmp / "ingested", tmp / "smoothed", progress=False)
     run(params, tmp / "smoothed", tmp / "labelled", tmp / "ingested", progress=False)
     return tmp
-
 
 
 @pytest.fixture(scope="module")
@@ -115,7 +114,7 @@ def test_declared_contacts_and_switches(default_run: Path) -> None:
 def test_ideal_labels_equal_truth(ideal_run: Path) -> None:
     """No model error, no noise: wherever a switch is 1, expected == true wrench, every sensor and pair
     (what remains is the Savitzky-Golay smoothing of exact positions)."""
-    from pipeline.robot import load_robot
+    from pipeline.physics.robot import load_robot
 
     robot = load_robot("iCubGenova09")
     pairs = [
@@ -150,7 +149,7 @@ IDEAL_TOLERANCE = 1e-3  # N / Nm
 )
 def test_relabel_with_idyntree(default_run: Path, log: str) -> None:
     """500 labelled samples of each experiment type, recomputed with iDynTree from the same kinematics."""
-    from pipeline.robot import load_robot
+    from pipeline.physics.robot import load_robot
 
     robot = load_robot("iCubGenova09")
     table = pd.read_parquet(default_run / "labelled" / f"{log}.parquet")

@@ -1,4 +1,4 @@
-"""pipeline.models: switched losses against hand computation, baselines recovering known maps, model files."""
+"""calib.models: switched losses against hand computation, baselines recovering known maps, model files."""
 
 from __future__ import annotations
 
@@ -9,8 +9,7 @@ import numpy as np
 import pytest
 import torch
 
-from pipeline.errors import DataError
-from pipeline.models import (
+from pipeline.calib.models import (
     GroupNet,
     NetConfig,
     fit_linear_baseline,
@@ -22,6 +21,7 @@ from pipeline.models import (
     switched_loss,
     wrench_errors,
 )
+from pipeline.core.errors import DataError
 
 NAN = float("nan")
 

@@ -6,14 +6,18 @@ import numpy as np
 import pinocchio as pin
 import pytest
 
-from pipeline.errors import RobotModelError
-from pipeline.robot import RobotModel, load_robot, wrench_transform
+from pipeline.core.errors import RobotModelError
+from pipeline.physics.robot import RobotModel, load_robot, wrench_transform
 
 EXPECTED_SENSORS = {
-    "l_arm_ft": "child_to_parent", "r_arm_ft": "child_to_parent",
-    "l_leg_ft": "child_to_parent", "r_leg_ft": "child_to_parent",
-    "l_foot_front_ft": "parent_to_child", "l_foot_rear_ft": "parent_to_child",
-    "r_foot_front_ft": "parent_to_child", "r_foot_rear_ft": "parent_to_child",
+    "l_arm_ft": "child_to_parent",
+    "r_arm_ft": "child_to_parent",
+    "l_leg_ft": "child_to_parent",
+    "r_leg_ft": "child_to_parent",
+    "l_foot_front_ft": "parent_to_child",
+    "l_foot_rear_ft": "parent_to_child",
+    "r_foot_front_ft": "parent_to_child",
+    "r_foot_rear_ft": "parent_to_child",
 }
 
 
@@ -58,11 +62,15 @@ def test_rooted_at_root_link_has_pinocchio_joint_torques(robot: RobotModel) -> N
         tau_ref = pin.rnea(ref_model, ref_data, _to_pin(robot, q), _to_pin(robot, dq), _to_pin(robot, ddq))
         qs = pin.neutral(rooted.model)
         vs, accs = np.zeros(rooted.model.nv), np.zeros(rooted.model.nv)
-        qs[rooted.q_index], vs[rooted.v_index], accs[rooted.v_index] = q * rooted.sign, dq * rooted.sign, \
-            ddq * rooted.sign
+        qs[rooted.q_index], vs[rooted.v_index], accs[rooted.v_index] = (
+            q * rooted.sign,
+            dq * rooted.sign,
+            ddq * rooted.sign,
+        )
         tau = pin.rnea(rooted.model, data, qs, vs, accs)[rooted.v_index] * rooted.sign
-        np.testing.assert_allclose(tau, [tau_ref[ref_model.idx_vs[ref_model.getJointId(n)]]
-                                         for n in robot.joint_names], atol=1e-9)
+        np.testing.assert_allclose(
+            tau, [tau_ref[ref_model.idx_vs[ref_model.getJointId(n)]] for n in robot.joint_names], atol=1e-9
+        )
 
 
 @pytest.mark.parametrize("root", ["l_sole", "r_foot_front", "l_forearm"])

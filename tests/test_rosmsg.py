@@ -1,4 +1,4 @@
-"""pipeline.rosmsg: our MCAP writer and fast decoder against the standard mcap / mcap_ros2 libraries."""
+"""pipeline.logs.rosmsg: our MCAP writer and fast decoder against the standard mcap / mcap_ros2 libraries."""
 
 from __future__ import annotations
 
@@ -14,8 +14,8 @@ from mcap.writer import Writer as McapWriter
 from mcap_ros2.decoder import DecoderFactory
 from mcap_ros2.writer import Writer as Ros2Writer
 
-from pipeline.errors import DataError
-from pipeline.rosmsg import (
+from pipeline.core.errors import DataError
+from pipeline.logs.rosmsg import (
     IMU,
     JOINT_STATE,
     SCHEMAS,
@@ -399,7 +399,7 @@ def test_reader_errors_name_file_and_problem(tmp_path: Path) -> None:
 
 
 def test_split_stamps_round_trip() -> None:
-    from pipeline.rosmsg import join_stamps, split_stamps
+    from pipeline.logs.rosmsg import join_stamps, split_stamps
 
     stamps = np.array([0, 1, 999_999_999, 1_000_000_000, -1, T0, (2**31 - 1) * 10**9])
     sec, nsec = split_stamps(stamps)

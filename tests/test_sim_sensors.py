@@ -10,8 +10,8 @@ from dataclasses import replace
 import numpy as np
 import pytest
 
-from pipeline.errors import ConfigError
-from pipeline.sim_sensors import (
+from pipeline.core.errors import ConfigError
+from pipeline.sim.sensors import (
     DistortionRanges,
     ImuNoiseParams,
     SensorDistortion,
@@ -33,8 +33,16 @@ from pipeline.sim_sensors import (
 def leg_like_wrench(n: int, dt: float = 0.01) -> np.ndarray:
     """(n, 6) a leg sensor's load during slow motion: ~-300 N vertical, tens of N and Nm elsewhere."""
     t = np.arange(n) * dt
-    return np.column_stack([50 * np.sin(0.3 * t), 40 * np.sin(0.5 * t + 1), -300 + 100 * np.sin(0.2 * t),
-                            15 * np.sin(0.4 * t), 20 * np.sin(0.25 * t + 2), 3 * np.sin(0.7 * t)])
+    return np.column_stack(
+        [
+            50 * np.sin(0.3 * t),
+            40 * np.sin(0.5 * t + 1),
+            -300 + 100 * np.sin(0.2 * t),
+            15 * np.sin(0.4 * t),
+            20 * np.sin(0.25 * t + 2),
+            3 * np.sin(0.7 * t),
+        ]
+    )
 
 
 def play_reference(x: np.ndarray, width: np.ndarray, z0: float = 0.0) -> np.ndarray:
@@ -56,8 +64,9 @@ def test_oracle_inverts_static_distortion(seed: int) -> None:
     d = draw_distortion(rng, DistortionRanges(nonlinearity=0.1, coupling=0.05, gain=0.1))
     w = rng.uniform(-1.0, 1.0, size=(2000, 6)) * d.full_scale
     temperature = rng.uniform(15.0, 60.0, size=2000)
-    np.testing.assert_allclose(oracle_inverse(d, static_distortion(d, w, temperature), temperature), w,
-                               rtol=0, atol=1e-9)
+    np.testing.assert_allclose(
+        oracle_inverse(d, static_distortion(d, w, temperature), temperature), w, rtol=0, atol=1e-9
+    )
 
 
 def test_oracle_accepts_scalar_temperature() -> None:
@@ -71,8 +80,12 @@ def test_static_distortion_matches_formula_per_axis() -> None:
     w, temperature = leg_like_wrench(50), np.linspace(28.0, 41.0, 50)
     v = np.einsum("ij,nj->ni", d.coupling, w)
     dt = (temperature - d.temperature_ref)[:, None]
-    expected = ((1 + d.temperature_gain * dt) * v + d.nonlinearity * v * np.abs(v) / d.full_scale
-                + d.offset + d.offset_drift * dt)
+    expected = (
+        (1 + d.temperature_gain * dt) * v
+        + d.nonlinearity * v * np.abs(v) / d.full_scale
+        + d.offset
+        + d.offset_drift * dt
+    )
     np.testing.assert_allclose(static_distortion(d, w, temperature), expected, rtol=1e-12, atol=1e-9)
 
 
@@ -86,8 +99,11 @@ def test_oracle_error_on_raw_is_hysteresis_plus_noise() -> None:
     hyst = hysteresis_term(d, w)
     np.testing.assert_allclose(clean, static_distortion(d, w, temperature) + hyst, rtol=0, atol=1e-9)
     v = w @ d.coupling.T
-    slope = 1 + d.temperature_gain * (temperature[:, None] - d.temperature_ref) \
+    slope = (
+        1
+        + d.temperature_gain * (temperature[:, None] - d.temperature_ref)
         + 2 * d.nonlinearity * np.abs(v) / d.full_scale
+    )
     first_order = np.linalg.solve(d.coupling, (hyst / slope).T).T
     err_clean = oracle_inverse(d, clean, temperature) - w
     np.testing.assert_allclose(err_clean, first_order, rtol=0, atol=1e-3 * np.abs(first_order).max())
@@ -158,22 +174,35 @@ def test_draw_respects_ranges() -> None:
         np.testing.assert_array_equal(lever_block, -lever_block.T)  # skew: tau += lever x f
         assert np.all(np.abs(lever_block) <= r.lever_m)
         assert np.all(np.abs(np.diag(d.coupling) - 1) <= r.gain)
-        assert np.all((r.offset_force_min <= np.abs(d.offset[:3]))
-                      & (np.abs(d.offset[:3]) <= r.offset_force_max))
-        assert np.all((r.offset_torque_min <= np.abs(d.offset[3:]))
-                      & (np.abs(d.offset[3:]) <= r.offset_torque_max))
+        assert np.all(
+            (r.offset_force_min <= np.abs(d.offset[:3])) & (np.abs(d.offset[:3]) <= r.offset_force_max)
+        )
+        assert np.all(
+            (r.offset_torque_min <= np.abs(d.offset[3:])) & (np.abs(d.offset[3:]) <= r.offset_torque_max)
+        )
         assert np.all((d.hysteresis >= 0) & (d.hysteresis <= r.hysteresis * d.full_scale))
 
 
-@pytest.mark.parametrize(("field", "value", "message"), [
-    ("coupling", 2, r"simulate\.sensors\.coupling must be in \[0, 0\.5\), got 2"),
-    ("gain", -0.1, r"simulate\.sensors\.gain must be in \[0, 0\.5\), got -0\.1"),
-    ("noise_force", "a lot", r"simulate\.sensors\.noise_force must be a number in \[0, inf\), got 'a lot'"),
-    ("full_scale_torque", 0, r"simulate\.sensors\.full_scale_torque must be in \(0, inf\), got 0"),
-    ("hysteresis_width", True, r"simulate\.sensors\.hysteresis_width must be a number"),
-    ("offset_force_min", 50.0, r"simulate\.sensors\.offset_force_min must not exceed "
-                               r"simulate\.sensors\.offset_force_max"),
-])
+@pytest.mark.parametrize(
+    ("field", "value", "message"),
+    [
+        ("coupling", 2, r"simulate\.sensors\.coupling must be in \[0, 0\.5\), got 2"),
+        ("gain", -0.1, r"simulate\.sensors\.gain must be in \[0, 0\.5\), got -0\.1"),
+        (
+            "noise_force",
+            "a lot",
+            r"simulate\.sensors\.noise_force must be a number in \[0, inf\), got 'a lot'",
+        ),
+        ("full_scale_torque", 0, r"simulate\.sensors\.full_scale_torque must be in \(0, inf\), got 0"),
+        ("hysteresis_width", True, r"simulate\.sensors\.hysteresis_width must be a number"),
+        (
+            "offset_force_min",
+            50.0,
+            r"simulate\.sensors\.offset_force_min must not exceed "
+            r"simulate\.sensors\.offset_force_max",
+        ),
+    ],
+)
 def test_distortion_ranges_reject_bad_values(field: str, value: object, message: str) -> None:
     with pytest.raises(ConfigError, match=message):
         DistortionRanges(**{field: value})
@@ -190,8 +219,9 @@ def test_play_operator_hand_example() -> None:
     # width 2: steps +1, +2, -1, -4, +1 move z by half of that, clipped to [-1, 1].
     x = np.array([0.0, 1.0, 3.0, 2.0, -2.0, -1.0])[:, None]
     np.testing.assert_allclose(play_operator(x, 2.0)[:, 0], [0.0, 0.5, 1.0, 0.5, -1.0, -0.5], atol=1e-15)
-    np.testing.assert_allclose(play_operator(x, 2.0, initial=-1.0)[:, 0], [-1.0, -0.5, 0.5, 0.0, -1.0, -0.5],
-                               atol=1e-15)
+    np.testing.assert_allclose(
+        play_operator(x, 2.0, initial=-1.0)[:, 0], [-1.0, -0.5, 0.5, 0.0, -1.0, -0.5], atol=1e-15
+    )
 
 
 @pytest.mark.parametrize("n", [0, 1, 2, 31, 32, 33, 64, 1025, 5000])
@@ -259,14 +289,17 @@ def test_imu_bias_and_noise_statistics() -> None:
     acc_true = np.tile([0.0, 0.0, 9.80665], (n, 1)) + rng.normal(size=(n, 3))
     gyro_true = rng.normal(size=(n, 3)) * 0.3
     acc, gyro = imu_readings(np.random.default_rng(9), acc_true, gyro_true, 0.01, p)
-    for err, bias, noise in ((acc - acc_true, p.acc_bias, p.acc_noise), (gyro - gyro_true, p.gyro_bias,
-                                                                          p.gyro_noise)):
+    for err, bias, noise in (
+        (acc - acc_true, p.acc_bias, p.acc_noise),
+        (gyro - gyro_true, p.gyro_bias, p.gyro_noise),
+    ):
         mean = err.mean(axis=0)
         assert np.all(np.abs(mean) <= bias + 4 * noise / math.sqrt(n))
         np.testing.assert_allclose(err.std(axis=0), noise, rtol=0.03)
         # constant bias: both halves of the log agree
-        np.testing.assert_allclose(err[: n // 2].mean(axis=0), err[n // 2:].mean(axis=0),
-                                   atol=6 * noise / math.sqrt(n / 2))
+        np.testing.assert_allclose(
+            err[: n // 2].mean(axis=0), err[n // 2 :].mean(axis=0), atol=6 * noise / math.sqrt(n / 2)
+        )
     # different logs (generator states) draw different biases
     acc2, _ = imu_readings(np.random.default_rng(10), acc_true, gyro_true, 0.01, p)
     assert not np.allclose((acc2 - acc_true).mean(axis=0), (acc - acc_true).mean(axis=0), atol=1e-3)

@@ -5,14 +5,16 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from pipeline.robot import RobotModel, wrench_transform
-from pipeline.sim_motion import Foot, MotionGenerator, MotionParams
-from pipeline.sim_truth import TruthComputer, split_front_rear
+from pipeline.physics.robot import RobotModel, wrench_transform
+from pipeline.sim.motion import Foot, MotionGenerator, MotionParams
+from pipeline.sim.truth import TruthComputer, split_front_rear
 from tests.conftest import GRAVITY, foot_pairs
 from tests.test_dynamics import LinkNewtonEuler
 
-FEET = [Foot("l_foot", "l_sole", "l_foot_front", "l_foot_rear"),
-        Foot("r_foot", "r_sole", "r_foot_front", "r_foot_rear")]
+FEET = [
+    Foot("l_foot", "l_sole", "l_foot_front", "l_foot_rear"),
+    Foot("r_foot", "r_sole", "r_foot_front", "r_foot_rear"),
+]
 
 
 @pytest.fixture(scope="module")

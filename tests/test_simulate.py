@@ -12,9 +12,9 @@ import pytest
 import yaml
 from mcap_ros2.reader import read_ros2_messages
 
-from pipeline.config import load_params
-from pipeline.errors import ConfigError
-from pipeline.simulate import build_world, make_motion, run, simulate_params
+from pipeline.core.config import load_params
+from pipeline.core.errors import ConfigError
+from pipeline.stages.simulate import build_world, make_motion, run, simulate_params
 
 REPO = Path(__file__).resolve().parents[1]
 SHORT_LOGS = [
@@ -34,7 +34,6 @@ def write_params(tmp: Path, seed: int = 42, plots: bool = False, **simulate: obj
     return path
 
 
-
 @pytest.fixture(scope="module")
 def sim_dir(tmp_path_factory: pytest.TempPathFactory, mlflow_store: None) -> Path:
     tmp = tmp_path_factory.mktemp("sim")
@@ -45,8 +44,12 @@ def sim_dir(tmp_path_factory: pytest.TempPathFactory, mlflow_store: None) -> Pat
 
 def test_outputs_and_plots(sim_dir: Path) -> None:
     logs = sorted(p.name for p in sim_dir.glob("*.mcap"))
-    assert logs == ["00_pole_train.mcap", "01_balancing_l_foot_train.mcap",
-                    "02_half_foot_r_foot_front_test.mcap", "03_walking_test.mcap"]
+    assert logs == [
+        "00_pole_train.mcap",
+        "01_balancing_l_foot_train.mcap",
+        "02_half_foot_r_foot_front_test.mcap",
+        "03_walking_test.mcap",
+    ]
     plots = sorted(p.name for p in (sim_dir / "plots").glob("*.png"))
     assert len(plots) == 16 and "03_walking_test_contacts.png" in plots
     truth = json.loads((sim_dir / "truth.json").read_text())
@@ -70,8 +73,13 @@ def test_every_topic_decodes_with_the_standard_decoder(sim_dir: Path) -> None:
         for s in sensors:
             expected |= {params.topics.sensor_topic(k, s) for k in params.topics.PER_SENSOR}
         assert topics == expected
-        assert schemas == {"sensor_msgs/msg/JointState", "geometry_msgs/msg/WrenchStamped",
-                           "sensor_msgs/msg/Imu", "sensor_msgs/msg/Temperature", "std_msgs/msg/String"}
+        assert schemas == {
+            "sensor_msgs/msg/JointState",
+            "geometry_msgs/msg/WrenchStamped",
+            "sensor_msgs/msg/Imu",
+            "sensor_msgs/msg/Temperature",
+            "std_msgs/msg/String",
+        }
 
 
 def truth_sensors(sim_dir: Path) -> list[str]:

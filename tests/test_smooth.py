@@ -10,11 +10,11 @@ import pytest
 import yaml
 from scipy.signal import savgol_filter
 
-from pipeline import schema as S
 from pipeline.cli import main
-from pipeline.errors import ConfigError
-from pipeline.ingest import read_table_metadata
-from pipeline.smooth import SmoothParams, segments, smooth_kinematics
+from pipeline.core.errors import ConfigError
+from pipeline.logs import schema as S
+from pipeline.stages.ingest import read_table_metadata
+from pipeline.stages.smooth import SmoothParams, segments, smooth_kinematics
 from tests.test_ingest import JOINTS, ROOT, SENSORS, T0, joint_position, run_one, write_log
 
 RATE = 100.0  # Hz

@@ -9,7 +9,7 @@ from pathlib import Path
 import pytest
 from mlflow import MlflowClient
 
-from pipeline.tracking import MAX_PARAM_VALUE_LENGTH, flatten, stage_run, tracking_uri
+from pipeline.core.tracking import MAX_PARAM_VALUE_LENGTH, flatten, stage_run, tracking_uri
 
 ROOT = Path(__file__).resolve().parent.parent
 

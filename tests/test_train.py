@@ -16,12 +16,12 @@ import pytest
 import torch
 import yaml
 
-from pipeline import schema as S
-from pipeline import train as T
+from pipeline.calib.models import load_model
 from pipeline.cli import main
-from pipeline.config import load_params, stage_section
-from pipeline.errors import ConfigError, DataError
-from pipeline.models import load_model
+from pipeline.core.config import load_params, stage_section
+from pipeline.core.errors import ConfigError, DataError
+from pipeline.logs import schema as S
+from pipeline.stages import train as T
 from tests.test_models import TRANSFORMS
 
 ROOT = Path(__file__).resolve().parents[1]

@@ -16,7 +16,7 @@ from contextlib import contextmanager
 from pathlib import Path
 from typing import Any
 
-from pipeline.config import repo_root
+from pipeline.core.config import repo_root
 
 EXPERIMENT = "ftcal"
 TRACKING_DB = "mlflow.db"

@@ -20,8 +20,8 @@ import numpy as np
 import pinocchio as pin
 from scipy.interpolate import make_interp_spline
 
-from pipeline.errors import RobotModelError
-from pipeline.robot import RobotModel
+from pipeline.core.errors import RobotModelError
+from pipeline.physics.robot import RobotModel
 
 
 @dataclass

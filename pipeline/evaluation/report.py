@@ -5,7 +5,7 @@ Figures, per sensor or foot sum (thesis figs 5.3-5.8): prediction vs expected vs
 whole test set, a zoom per experiment type, residuals, RMSE per axis of every model side by side; per
 group: training and validation loss curves, and one quasi-static stretch showing the noise each model
 adds; overall: headline RMSE of every model and the noise amplification ratios.
-Nothing here computes a metric: everything comes from `pipeline.evaluate`'s results.
+Nothing here computes a metric: everything comes from `pipeline.stages.evaluate`'s results.
 """
 
 from __future__ import annotations
@@ -22,10 +22,10 @@ from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
-from pipeline import schema as S
+from pipeline.logs import schema as S
 
 if TYPE_CHECKING:
-    from pipeline.evaluate import EvaluateParams, GroupResult
+    from pipeline.stages.evaluate import EvaluateParams, GroupResult
 
 AXIS_UNITS = {"fx": "N", "fy": "N", "fz": "N", "tx": "Nm", "ty": "Nm", "tz": "Nm"}
 _GAP_S = 3.0  # s of blank between consecutive logs in the whole-test-set plots
@@ -165,7 +165,7 @@ def plot_timeseries(r: GroupResult, name: str, path: Path) -> None:
 
 def _zoom_window(f: Any, kind: str, zoom_s: float) -> np.ndarray:
     """Row indices of a `zoom_s` window in the middle of the first test log of experiment type `kind`."""
-    from pipeline.evaluate import EXPERIMENT
+    from pipeline.stages.evaluate import EXPERIMENT
 
     rows = np.flatnonzero(f[EXPERIMENT].to_numpy() == kind)
     log = f[S.LOG].to_numpy()[rows[0]]
@@ -210,7 +210,7 @@ def plot_zoom(r: GroupResult, name: str, zoom_s: float, path: Path) -> None:
 
 def plot_residuals(r: GroupResult, name: str, path: Path) -> None:
     """Prediction minus label over the test set (thesis fig. 5.4): with raw (left), models only (right)."""
-    from pipeline.evaluate import ORACLE, PRED
+    from pipeline.stages.evaluate import ORACLE, PRED
 
     plt = _plt()
     f = r.inputs.frame
@@ -300,7 +300,7 @@ def plot_losses(r: GroupResult, path: Path) -> None:
 
 def _noise_model(r: GroupResult) -> str | None:
     """The model whose noise the example shows: the worst flagged one, else the noisiest network."""
-    from pipeline.evaluate import ORACLE
+    from pipeline.stages.evaluate import ORACLE
 
     ratios = {m: v for m, v in r.noise.ratio.items() if v is not None and m not in (ORACLE, "raw")}
     if not ratios:
@@ -312,7 +312,7 @@ def _noise_model(r: GroupResult) -> str | None:
 def plot_noise_example(r: GroupResult, cfg: EvaluateParams, path: Path) -> None:
     """The output of raw, the noisiest model and the recommended one on a quasi-static stretch: signal
     (top) and its high-frequency part (bottom), on the noisiest model's worst axis."""
-    from pipeline.evaluate import PRED, highpass
+    from pipeline.stages.evaluate import PRED, highpass
 
     plt = _plt()
     fig, axes = plt.subplots(2, 1, figsize=(13, 6), sharex=True)
@@ -385,7 +385,7 @@ def plot_noise_summary(results: Sequence[GroupResult], cfg: EvaluateParams, path
 
 def plot_overview(results: Sequence[GroupResult], path: Path) -> None:
     """Headline RMSE (global) of every model per group, against labels and truth (log scale)."""
-    from pipeline.evaluate import REFERENCE_TITLES, REFERENCES
+    from pipeline.stages.evaluate import REFERENCE_TITLES, REFERENCES
 
     plt = _plt()
     refs = [ref for ref in REFERENCES if any(ref in r.tables[r.inputs.headline] for r in results)]
@@ -421,7 +421,7 @@ def write_plot_data(out: Path, results: Sequence[GroupResult]) -> list[str]:
     """CSV series for `dvc plots` (see dvc.yaml), one file per group: plots_data/rmse_labels/<group>.csv
     and rmse_truth/<group>.csv (model, rmse: the headline's global RMSE), noise/<group>.csv (model, ratio,
     ratio_rms), loss/<group>_<network>.csv (epoch from 1, train_loss, val_rmse)."""
-    from pipeline.evaluate import LABELS, PLOTS_DATA_DIR, TRUTH
+    from pipeline.stages.evaluate import LABELS, PLOTS_DATA_DIR, TRUTH
 
     base = out / PLOTS_DATA_DIR
     subdirs = ("rmse_labels", "rmse_truth", "noise", "loss")
@@ -491,7 +491,7 @@ _METRIC_ROWS = [("global", ""), ("force", "_force"), ("torque", "_torque")] + [
 def thesis_table(tables: Mapping[str, Mapping[str, float]], models: Sequence[str], metric: str) -> str:
     """Thesis layout (tables 5.1-5.24): rows = MSE/MAE/RMSE global, force, torque, axes; columns = models.
     The lowest value of each row (oracle excluded) is bold."""
-    from pipeline.evaluate import ORACLE
+    from pipeline.stages.evaluate import ORACLE
 
     rows = []
     for label, suffix in _METRIC_ROWS:
@@ -566,7 +566,7 @@ def _cell(value: Any, good: bool | None = None, bold: bool = False) -> str:
 def summary_table(results: Sequence[GroupResult], cfg: EvaluateParams) -> str:
     """One row per group: headline RMSE of raw, the best-on-validation model, NN7 and the oracle against
     labels and truth; the acceptance ratios; the networks' noise ratios; the model to deploy."""
-    from pipeline.evaluate import LABELS, NN7, NN13, ORACLE, REFERENCE_TITLES, REFERENCES
+    from pipeline.stages.evaluate import LABELS, NN7, NN13, ORACLE, REFERENCE_TITLES, REFERENCES
 
     refs = [ref for ref in REFERENCES if any(ref in r.tables[r.inputs.headline] for r in results)]
     head1 = "<tr><th rowspan=2>group</th><th rowspan=2>sensor / sum</th>"
@@ -626,7 +626,7 @@ def _flags_box(results: Sequence[GroupResult], cfg: EvaluateParams) -> str:
 
 
 _SUMMARY_NOTE = (
-    "<p class='note'>Targets of the training issue: raw/NN7 &ge; {a:g} and NN7/oracle &le; {b:g}, "
+    "<p class='note'>Accuracy targets: raw/NN7 &ge; {a:g} and NN7/oracle &le; {b:g}, "
     "against the labels and against the truth (green: met, red: not). The oracle inverts each simulated "
     "sensor's static distortion exactly: its error is the noise floor. <i>deploy</i>: the model with the "
     "lowest validation error unless noise-flagged, else the next of the validation ranking. Labels exist "
@@ -647,7 +647,7 @@ _NOISE_NOTE = (
 
 
 def _group_section(r: GroupResult, figures: Mapping[str, Any]) -> list[str]:
-    from pipeline.evaluate import REFERENCE_TITLES, REFERENCES
+    from pipeline.stages.evaluate import REFERENCE_TITLES, REFERENCES
 
     g = r.inputs
     links = [f"training run {_e(r.train_run)}"] if r.train_run else ["no MLflow training run found"]
@@ -745,7 +745,7 @@ def write_all(
     progress: Any = None,
 ) -> list[str]:
     """Write plots/*.png, plots_data/*.csv and index.html into `out`; return the files written (relative)."""
-    from pipeline.evaluate import PLOTS_DIR, REPORT_FILE
+    from pipeline.stages.evaluate import PLOTS_DIR, REPORT_FILE
 
     plots = out / PLOTS_DIR
     plots.mkdir(parents=True, exist_ok=True)

@@ -31,9 +31,9 @@ import pyarrow as pa
 import pyarrow.parquet as pq
 from scipy.signal import savgol_filter
 
-from pipeline import schema as S
-from pipeline.config import Params, load_params, stage_section
-from pipeline.errors import ConfigError, DataError
+from pipeline.core.config import Params, load_params, stage_section
+from pipeline.core.errors import ConfigError, DataError
+from pipeline.logs import schema as S
 
 STAGE = "smooth"
 
@@ -164,7 +164,7 @@ class SmoothReport:
 
 def smooth_table(src: Path, dst: Path, cfg: SmoothParams) -> SmoothReport:
     """Read an ingested table, add the smoothed kinematics columns, write it atomically to `dst`."""
-    from pipeline.ingest import read_table_metadata
+    from pipeline.stages.ingest import read_table_metadata
 
     t0 = time.perf_counter()
     try:
@@ -253,7 +253,7 @@ def run(
     """Smooth every ingested table of `in_dir` into `out_dir`, in one MLflow run."""
     import mlflow
 
-    from pipeline.tracking import stage_run
+    from pipeline.core.tracking import stage_run
 
     cfg = stage_section(params, STAGE, SmoothParams)
     src, out = Path(in_dir), Path(out_dir)

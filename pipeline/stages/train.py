@@ -1,13 +1,13 @@
 """Stage `train@<group>`: baselines and neural networks for one sensor group (thesis chapter 5).
 
-``ftcal train GROUP LABELLED_DIR OUT_DIR`` reads the labelled tables (`pipeline.schema`, "Labelled
+``ftcal train GROUP LABELLED_DIR OUT_DIR`` reads the labelled tables (`pipeline.logs.schema`, "Labelled
 table"), splits them by whole logs, fits the baselines, trains the 7- and 13-input networks with an
 Optuna search, scores every model and writes ``OUT_DIR``:
 
 - ``metrics.json``: per model (raw, affine, poly1-4, nn7, nn13), validation and test errors against the
   labels (MSE/MAE/RMSE global, force, torque, per axis; per sensor and, for a foot, of the sum in the sole
   frame), and ``best_on_validation``: the model with the lowest validation error, the one to deploy.
-- ``nn7.json`` + ``nn7.pt``, ``nn13.json`` + ``nn13.pt``: the best networks (`pipeline.models.load_model`
+- ``nn7.json`` + ``nn7.pt``, ``nn13.json`` + ``nn13.pt``: the best networks (`calib.models.load_model`
   rebuilds them from the JSON and a weights-only state dict; normalisation constants are in the weights).
 - ``baselines.json``: the fitted affine and polynomial coefficients.
 - ``predictions.parquet``: the test samples, ``log``, ``stamp_ns``, ``time_s``, the group's labels and
@@ -58,10 +58,7 @@ import pyarrow as pa
 import pyarrow.parquet as pq
 import torch
 
-from pipeline import schema as S
-from pipeline.config import Params, load_params, repo_root, stage_section
-from pipeline.errors import ConfigError, DataError
-from pipeline.models import (
+from pipeline.calib.models import (
     ACTIVATIONS,
     INPUT_SIZES,
     NORMALISATIONS,
@@ -75,6 +72,9 @@ from pipeline.models import (
     switched_loss,
     wrench_errors,
 )
+from pipeline.core.config import Params, load_params, repo_root, stage_section
+from pipeline.core.errors import ConfigError, DataError
+from pipeline.logs import schema as S
 
 STAGE = "train"
 STUDIES_DIR = ".optuna"  # default --studies parent, at the repo root (git-ignored)
@@ -82,7 +82,9 @@ PRED, LOG, prediction_cols = S.PRED, S.LOG, S.prediction_cols  # the predictions
 RAW, AFFINE = "raw", "affine"
 ROLE_TRAIN, ROLE_TEST = "train", "test"
 SPLITS = ("train", "val", "test")
-_SOURCE_FILES = ("train.py", "models.py")  # their bytes are part of a study's identity
+_PACKAGE = Path(__file__).resolve().parents[1]
+# their bytes are part of a study's identity
+_SOURCE_FILES = ("stages/train.py", "calib/models.py")
 
 
 def nn_name(n_inputs: int) -> str:
@@ -91,7 +93,6 @@ def nn_name(n_inputs: int) -> str:
 
 def poly_name(order: int) -> str:
     return f"poly{order}"
-
 
 
 # --- params --------------------------------------------------------------------------------------
@@ -304,7 +305,7 @@ class Group:
 
 
 def input_cols(sensor: str, n_inputs: int = 13) -> list[str]:
-    """Input columns of one sensor's network, in the order of `pipeline.models`."""
+    """Input columns of one sensor's network, in the order of `pipeline.calib.models`."""
     cols = [*S.wrench_cols(S.FT, sensor), S.temperature_col(sensor)]
     if n_inputs == 13:
         cols += S.vector_cols(S.ACC, sensor) + S.vector_cols(S.GYR, sensor)
@@ -771,7 +772,7 @@ class _Progress:
 def _code_digest() -> str:
     h = hashlib.sha256()
     for name in _SOURCE_FILES:
-        h.update((Path(__file__).parent / name).read_bytes())
+        h.update((_PACKAGE / name).read_bytes())
     return h.hexdigest()
 
 
@@ -905,7 +906,7 @@ def search_network(
     considered = finished()[: gp.n_trials]
     complete = [t for t in considered if t.state == TrialState.COMPLETE]
     best = min(complete, key=lambda t: (t.value, t.number))
-    from pipeline.models import load_model
+    from pipeline.calib.models import load_model
 
     path = trial_dir / best.user_attrs["file"]
     try:
@@ -1192,7 +1193,7 @@ def train_group(
     """Run the stage for one group: read, split, fit, search, score, write `out_dir`, log to MLflow."""
     import mlflow
 
-    from pipeline.tracking import stage_run
+    from pipeline.core.tracking import stage_run
 
     t0 = time.perf_counter()
     src, out = Path(in_dir), Path(out_dir)

@@ -1,8 +1,8 @@
 """Stage `ingest`: MCAP logs -> one aligned Parquet table per log (plus the simulated truth apart).
 
-Every ``*.mcap`` under the source directory is decoded (`pipeline.rosmsg`), and every topic is aligned
+Every ``*.mcap`` under the source directory is decoded (`pipeline.logs.rosmsg`), and every topic is aligned
 on the joint-state header stamps, which are the time base of the log (one row per joint-state sample,
-columns in `pipeline.schema`). How the messages of a stream become values at a time-base sample:
+columns in `pipeline.logs.schema`). How the messages of a stream become values at a time-base sample:
 
 - Arrival order is the recorder's (log time, file position). Messages whose stamps go back by less than
   ``ingest.max_reorder_s`` in arrival order are out of order and simply re-sorted by stamp; a larger
@@ -40,10 +40,10 @@ import numpy as np
 import pyarrow as pa
 import pyarrow.parquet as pq
 
-from pipeline import rosmsg
-from pipeline import schema as S
-from pipeline.config import Params, TopicParams, load_params, repo_root, resolve_urdf, stage_section
-from pipeline.errors import ConfigError, DataError
+from pipeline.core.config import Params, TopicParams, load_params, repo_root, resolve_urdf, stage_section
+from pipeline.core.errors import ConfigError, DataError
+from pipeline.logs import rosmsg
+from pipeline.logs import schema as S
 
 STAGE = "ingest"
 _ROW_GROUP_ROWS = 16_384
@@ -806,8 +806,8 @@ def run(
     params: Params, source_dir: str | Path, out_dir: str | Path, *, progress: bool | None = None
 ) -> IngestSummary:
     """Ingest every log under `source_dir` into `out_dir`, in one MLflow run."""
-    from pipeline.robot import load_robot
-    from pipeline.tracking import stage_run
+    from pipeline.core.tracking import stage_run
+    from pipeline.physics.robot import load_robot
 
     cfg = stage_section(params, STAGE, IngestParams)
     source, out = Path(source_dir), Path(out_dir)

@@ -1,7 +1,7 @@
 """Stage `evaluate`: what a researcher reads to decide which calibration goes on the robot.
 
 ``ftcal evaluate MODELS LABELLED OUT [--truth INGESTED]`` reads every group of ``train.groups`` from
-``MODELS/<group>/`` (the test-set ``predictions.parquet`` and ``metrics.json`` of `pipeline.train`), the
+``MODELS/<group>/`` (the test-set ``predictions.parquet`` and ``metrics.json`` of the train stage), the
 labelled test tables (experiment type, FT-board gyroscopes, contact sets, foot-pair transforms) and, for
 simulated logs, the truth tables; it writes ``OUT``:
 
@@ -10,7 +10,7 @@ simulated logs, the truth tables; it writes ``OUT``:
   the sole frame and each part) and model, MSE/MAE/RMSE global, force, torque and per axis, against the
   labels (where the sensor's switch is 1) and, for simulated logs, against the true wrench (every sample);
   the simulator's ``oracle`` calibration is an extra model (the noise floor); RMSE per experiment type.
-- ``index.html`` and ``plots/*.png``: every table and figure (`pipeline.report`).
+- ``index.html`` and ``plots/*.png``: every table and figure (`pipeline.evaluation.report`).
 - ``plots_data/``: CSV series for ``dvc plots show`` (RMSE per model, loss curves, noise ratios).
 
 Against truth: ``true.<sensor>.<axis>`` and ``oracle.<sensor>.<axis>`` of ``<log>.truth.parquet`` aligned on
@@ -58,12 +58,12 @@ import pandas as pd
 import pyarrow as pa
 import pyarrow.parquet as pq
 
-from pipeline import schema as S
-from pipeline.config import Params, load_params, stage_section
-from pipeline.errors import ConfigError, DataError
-from pipeline.models import wrench_errors
-from pipeline.schema import LOG, PRED, prediction_cols
-from pipeline.train import RAW, nn_name
+from pipeline.calib.models import wrench_errors
+from pipeline.core.config import Params, load_params, stage_section
+from pipeline.core.errors import ConfigError, DataError
+from pipeline.logs import schema as S
+from pipeline.logs.schema import LOG, PRED, prediction_cols
+from pipeline.stages.train import RAW, nn_name
 
 STAGE = "evaluate"
 ORACLE = "oracle"  # the simulator's oracle calibration, an extra model in the tables (truth tables only)
@@ -845,7 +845,7 @@ def link_mlflow(results: Sequence[GroupResult], histories_needed: bool = True) -
     """Fill each result's loss histories (if not in metrics.json), training run and model versions."""
     import mlflow
 
-    from pipeline.tracking import EXPERIMENT
+    from pipeline.core.tracking import EXPERIMENT
 
     client = mlflow.MlflowClient()
     experiment = client.get_experiment_by_name(EXPERIMENT)
@@ -925,8 +925,8 @@ def run(
     """Evaluate every group of params into `out_dir` (module docstring) in one MLflow run ``evaluate``."""
     import mlflow
 
-    from pipeline import report
-    from pipeline.tracking import stage_run
+    from pipeline.core.tracking import stage_run
+    from pipeline.evaluation import report
 
     t0 = time.perf_counter()
     cfg = stage_section(params, STAGE, EvaluateParams)

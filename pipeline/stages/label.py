@@ -3,7 +3,7 @@
 Per log (a smoothed table): the contact set of every sample, either as the experiment declares it (a
 constant set in the ``experiment`` metadata) or detected from the raw foot-sensor normal forces; the link
 fixed in the world (a sole of a foot in contact, or root_link on the pole as declared) with gravity in its
-frame; then, from the smoothed joint kinematics and the URDF (:mod:`pipeline.dynamics`), every sensor's
+frame; then, from the smoothed joint kinematics and the URDF (`pipeline.physics.dynamics`), every sensor's
 expected wrench and switch and each foot pair's sum in its sole frame.
 
 Contact detection, per foot: the foot's normal force is the sum of its two sensors' raw readings mapped to
@@ -13,7 +13,7 @@ that force rises above ``contact_on`` x robot weight and stops when it falls bel
 weight (hysteresis); a touching foot touches with both parts. Around every change of the contact set a
 guard band of +- ``guard_s`` holds every switch at 0: the labels of either set are not trusted there.
 
-Output ``data/labelled/<log>.parquet`` (schema in :mod:`pipeline.schema`) and, in the MLflow run, a
+Output ``data/labelled/<log>.parquet`` (schema in :mod:`pipeline.logs.schema`) and, in the MLflow run, a
 per-log summary: fraction of exact labels per sensor and pair, contact phases, and for simulated logs the
 contact agreement with the true contact set and the label error against the true wrenches.
 """
@@ -34,11 +34,11 @@ import pandas as pd
 import pyarrow as pa
 import pyarrow.parquet as pq
 
-from pipeline import schema as S
-from pipeline.config import Params, load_params, repo_root, resolve_urdf, stage_section
-from pipeline.dynamics import ContactCase, expected_wrenches
-from pipeline.errors import ConfigError, DataError
-from pipeline.robot import FootPair, RobotModel, load_robot
+from pipeline.core.config import Params, load_params, repo_root, resolve_urdf, stage_section
+from pipeline.core.errors import ConfigError, DataError
+from pipeline.logs import schema as S
+from pipeline.physics.dynamics import ContactCase, expected_wrenches
+from pipeline.physics.robot import FootPair, RobotModel, load_robot
 
 STAGE = "label"
 
@@ -331,7 +331,7 @@ def label_table(
     truth_dir: Path | None = None,
 ) -> LogSummary:
     """Label one smoothed table into `dst` (written atomically)."""
-    from pipeline.ingest import read_table_metadata
+    from pipeline.stages.ingest import read_table_metadata
 
     start = time.perf_counter()
     try:
@@ -454,8 +454,8 @@ def run(
     """Label every smoothed table of `in_dir` into `out_dir`, in one MLflow run."""
     import mlflow
 
-    from pipeline.smooth import find_tables
-    from pipeline.tracking import stage_run
+    from pipeline.core.tracking import stage_run
+    from pipeline.stages.smooth import find_tables
 
     cfg = stage_section(params, STAGE, LabelParams)
     src, out = Path(in_dir), Path(out_dir)

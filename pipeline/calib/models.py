@@ -53,7 +53,7 @@ import numpy as np
 import torch
 from torch import nn
 
-from pipeline.errors import DataError
+from pipeline.core.errors import DataError
 
 WRENCH = 6  # fx, fy, fz [N], tx, ty, tz [Nm]
 N_FORCE = 3

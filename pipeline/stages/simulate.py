@@ -1,8 +1,8 @@
 """Stage `simulate`: realistic robot logs with known truth, written as ROS 2 MCAP (thesis 4.1).
 
-For every log in ``simulate.logs``: a true motion (:mod:`pipeline.sim_motion`), the true wrenches of a
-"true" robot whose links have mass and COM errors (:mod:`pipeline.sim_truth`), and what the robot's
-sensors make of it (:mod:`pipeline.sim_sensors`): distorted, noisy FT wrenches (the same hidden
+For every log in ``simulate.logs``: a true motion (:mod:`pipeline.sim.motion`), the true wrenches of a
+"true" robot whose links have mass and COM errors (:mod:`pipeline.sim.truth`), and what the robot's
+sensors make of it (:mod:`pipeline.sim.sensors`): distorted, noisy FT wrenches (the same hidden
 distortion in every log), a temperature that drifts with activity, FT-board IMUs, quantised encoders.
 Messages carry jittered stamps, a few are dropped or duplicated, and arrive with delays.
 
@@ -26,11 +26,11 @@ from typing import Any
 
 import numpy as np
 
-from pipeline.config import Params, load_params, repo_root, resolve_urdf, stage_section
-from pipeline.errors import ConfigError
-from pipeline.robot import FootPair, LinkInertial, RobotModel, load_robot
-from pipeline.sim_motion import Foot, Motion, MotionGenerator, MotionParams
-from pipeline.sim_sensors import (
+from pipeline.core.config import Params, load_params, repo_root, resolve_urdf, stage_section
+from pipeline.core.errors import ConfigError
+from pipeline.physics.robot import FootPair, LinkInertial, RobotModel, load_robot
+from pipeline.sim.motion import Foot, Motion, MotionGenerator, MotionParams
+from pipeline.sim.sensors import (
     DistortionRanges,
     ImuNoiseParams,
     SensorDistortion,
@@ -43,7 +43,7 @@ from pipeline.sim_sensors import (
     oracle_inverse,
     temperature_signals,
 )
-from pipeline.sim_truth import Truth, TruthComputer
+from pipeline.sim.truth import Truth, TruthComputer
 
 EXPERIMENT_TYPES = ("pole", "balancing", "half_foot", "walking")
 EPOCH_NS = 1_767_225_600 * 10**9  # 2026-01-01T00:00:00Z: stamps look like a real recording's
@@ -291,7 +291,7 @@ def _rmse(err: np.ndarray) -> dict[str, float]:
 
 def simulate_log(world: World, index: int, spec: LogSpec, out_dir: Path, plot: bool) -> LogResult:
     """Generate one log and write ``<out_dir>/<name>.mcap`` (atomically); returns its summary."""
-    from pipeline.rosmsg import LogWriter
+    from pipeline.logs.rosmsg import LogWriter
 
     start = time.perf_counter()
     sim, topics, robot = world.sim, world.params.topics, world.robot
@@ -432,7 +432,7 @@ def simulate_log(world: World, index: int, spec: LogSpec, out_dir: Path, plot: b
         {s: [float(d["temp"].min()), float(d["temp"].max())] for s, d in sensor_data.items()},
     )
     if plot:
-        from pipeline.sim_plots import plot_log
+        from pipeline.sim.plots import plot_log
 
         result.plots = plot_log(out_dir / "plots", name, robot, motion, truth, sensor_data)
     return result
@@ -456,7 +456,7 @@ def _work(args: tuple[int, LogSpec, str, bool]) -> LogResult:
 
 def run(params: Params, out_dir: Path, progress: bool = True) -> list[LogResult]:
     """Simulate every configured log into `out_dir` (replaced atomically as a whole) and log to MLflow."""
-    from pipeline.tracking import stage_run
+    from pipeline.core.tracking import stage_run
 
     sim = simulate_params(params)
     world = build_world(params, sim)  # validates robot and foot pairs before any work

@@ -1,6 +1,6 @@
 """Simulated sensor imperfections: FT distortion, FT temperature, FT-board IMU, joint encoders.
 
-Pure numpy functions used by the simulator (`pipeline/simulate.py`); everything here is hidden from the
+Pure numpy functions used by the simulator (`pipeline/stages/simulate.py`); everything here is hidden from the
 calibration, which only ever sees the raw readings. Conventions:
 
 - Wrenches are (N, 6) arrays ``[fx fy fz tx ty tz]`` in N and Nm, sensor frame; temperatures deg C.
@@ -29,7 +29,7 @@ from typing import Any
 import numpy as np
 from scipy.signal import lfilter
 
-from pipeline.errors import ConfigError
+from pipeline.core.errors import ConfigError
 
 FORCE = slice(0, 3)  # force axes of a wrench (N)
 TORQUE = slice(3, 6)  # torque axes of a wrench (Nm)
@@ -39,8 +39,9 @@ _SCAN_BLOCK = 32  # block length of the play-operator scan (fastest of 8..64 for
 # --- validation helpers --------------------------------------------------------------------------
 
 
-def _number(obj: Any, name: str, lo: float, hi: float, *, lo_open: bool = False,
-            hi_open: bool = True) -> None:
+def _number(
+    obj: Any, name: str, lo: float, hi: float, *, lo_open: bool = False, hi_open: bool = True
+) -> None:
     """Check field `name` of the params dataclass `obj` is a real number in the given interval.
 
     Converts ints to float in place (the dataclasses are frozen) and raises ConfigError naming
@@ -125,8 +126,16 @@ class DistortionRanges:
         _number(self, "gain", 0.0, 0.5)
         _number(self, "temperature_gain", 0.0, 0.005)  # keeps G(T) > 0.5 within 100 degC of T_ref
         _number(self, "temperature_ref", -50.0, 150.0, hi_open=False)
-        for name in ("offset_force_min", "offset_force_max", "offset_torque_min", "offset_torque_max",
-                     "offset_drift_force", "offset_drift_torque", "noise_force", "noise_torque"):
+        for name in (
+            "offset_force_min",
+            "offset_force_max",
+            "offset_torque_min",
+            "offset_torque_max",
+            "offset_drift_force",
+            "offset_drift_torque",
+            "noise_force",
+            "noise_torque",
+        ):
             _number(self, name, 0.0, math.inf)
         _ordered(self, "offset_force_min", "offset_force_max")
         _ordered(self, "offset_torque_min", "offset_torque_max")
@@ -169,8 +178,9 @@ class SensorDistortion:
             shape = (6, 6) if f.name == "coupling" else (6,)
             value = np.array(getattr(self, f.name), dtype=float)  # a private copy
             if value.shape != shape or not np.all(np.isfinite(value)):
-                raise ValueError(f"SensorDistortion.{f.name} must be finite with shape {shape}, "
-                                 f"got shape {value.shape}")
+                raise ValueError(
+                    f"SensorDistortion.{f.name} must be finite with shape {shape}, got shape {value.shape}"
+                )
             value.setflags(write=False)
             object.__setattr__(self, f.name, value)
         if np.any(self.full_scale <= 0) or np.any(self.hysteresis_width <= 0):
@@ -178,8 +188,10 @@ class SensorDistortion:
 
     def to_dict(self) -> dict[str, Any]:
         """JSON-serialisable form (nested lists of floats), e.g. for MCAP metadata or MLflow."""
-        return {f.name: (getattr(self, f.name).tolist() if f.name != "temperature_ref"
-                         else self.temperature_ref) for f in fields(self)}
+        return {
+            f.name: (getattr(self, f.name).tolist() if f.name != "temperature_ref" else self.temperature_ref)
+            for f in fields(self)
+        }
 
     @classmethod
     def from_dict(cls, data: dict[str, Any]) -> SensorDistortion:
@@ -198,14 +210,18 @@ def draw_distortion(rng: np.random.Generator, ranges: DistortionRanges) -> Senso
     coupling = rng.uniform(-r.coupling, r.coupling, size=(6, 6))
     lever = rng.uniform(-r.lever_m, r.lever_m, size=3)
     # A sensor origin displaced by `lever` reads tau + lever x f: the torque<-force block is skew(lever).
-    coupling[TORQUE, FORCE] = np.array([[0.0, -lever[2], lever[1]],
-                                        [lever[2], 0.0, -lever[0]],
-                                        [-lever[1], lever[0], 0.0]])
+    coupling[TORQUE, FORCE] = np.array(
+        [[0.0, -lever[2], lever[1]], [lever[2], 0.0, -lever[0]], [-lever[1], lever[0], 0.0]]
+    )
     np.fill_diagonal(coupling, 1.0 + rng.uniform(-r.gain, r.gain, size=6))
 
     temperature_gain = rng.uniform(-r.temperature_gain, r.temperature_gain, size=6)
-    magnitude = np.concatenate([rng.uniform(r.offset_force_min, r.offset_force_max, size=3),
-                                rng.uniform(r.offset_torque_min, r.offset_torque_max, size=3)])
+    magnitude = np.concatenate(
+        [
+            rng.uniform(r.offset_force_min, r.offset_force_max, size=3),
+            rng.uniform(r.offset_torque_min, r.offset_torque_max, size=3),
+        ]
+    )
     offset = magnitude * rng.choice([-1.0, 1.0], size=6)
     drift_bound = _per_axis(r.offset_drift_force, r.offset_drift_torque)
     offset_drift = rng.uniform(-1.0, 1.0, size=6) * drift_bound
@@ -239,8 +255,12 @@ def static_distortion(d: SensorDistortion, wrench: np.ndarray, temperature: np.n
     w = _as_samples(wrench, 6, "wrench")
     t = _temperature_column(temperature, len(w))
     v = w @ d.coupling.T
-    return (_gain(d, t) * v + d.nonlinearity * v * np.abs(v) / d.full_scale
-            + d.offset + d.offset_drift * (t - d.temperature_ref))
+    return (
+        _gain(d, t) * v
+        + d.nonlinearity * v * np.abs(v) / d.full_scale
+        + d.offset
+        + d.offset_drift * (t - d.temperature_ref)
+    )
 
 
 def play_operator(x: np.ndarray, width: np.ndarray | float, initial: np.ndarray | float = 0.0) -> np.ndarray:
@@ -326,8 +346,9 @@ def hysteresis_term(d: SensorDistortion, wrench: np.ndarray) -> np.ndarray:
     return d.hysteresis * play_operator(v, d.hysteresis_width)
 
 
-def distort(d: SensorDistortion, wrench: np.ndarray, temperature: np.ndarray | float,
-            rng: np.random.Generator) -> tuple[np.ndarray, np.ndarray]:
+def distort(
+    d: SensorDistortion, wrench: np.ndarray, temperature: np.ndarray | float, rng: np.random.Generator
+) -> tuple[np.ndarray, np.ndarray]:
     """The sensor's readings of a true wrench: (noise-free distorted, raw), each (N, 6) N / Nm.
 
     wrench: (N, 6) true wrench, N / Nm, one continuous recording (the hysteresis state starts at 0).
@@ -397,8 +418,9 @@ class ThermalParams:
         _number(self, "warmup_max", 0.0, 50.0)
 
 
-def thermal_response(activity: np.ndarray, dt: float, tau_s: float, baseline: float, heat_gain: float,
-                     initial: float) -> np.ndarray:
+def thermal_response(
+    activity: np.ndarray, dt: float, tau_s: float, baseline: float, heat_gain: float, initial: float
+) -> np.ndarray:
     """Noise-free sensor temperature, (N,) deg C: exact discretisation of
     ``dT/dt = (baseline + heat_gain * activity - T) / tau_s`` with activity held over each step.
 
@@ -416,14 +438,16 @@ def thermal_response(activity: np.ndarray, dt: float, tau_s: float, baseline: fl
     return out
 
 
-def temperature_profile(rng: np.random.Generator, activity: np.ndarray, dt: float, p: ThermalParams,
-                        initial: float | None = None) -> np.ndarray:
+def temperature_profile(
+    rng: np.random.Generator, activity: np.ndarray, dt: float, p: ThermalParams, initial: float | None = None
+) -> np.ndarray:
     """The FT sensor's published temperature over one log, (N,) deg C (see `temperature_signals`)."""
     return temperature_signals(rng, activity, dt, p, initial)[1]
 
 
-def temperature_signals(rng: np.random.Generator, activity: np.ndarray, dt: float, p: ThermalParams,
-                        initial: float | None = None) -> tuple[np.ndarray, np.ndarray]:
+def temperature_signals(
+    rng: np.random.Generator, activity: np.ndarray, dt: float, p: ThermalParams, initial: float | None = None
+) -> tuple[np.ndarray, np.ndarray]:
     """The FT sensor's (true, published) temperature over one log, each (N,) deg C.
 
     activity: (N,) in [0, 1], how hard the sensor's limb works (e.g. normalised joint torque), given by
@@ -479,8 +503,15 @@ class ImuNoiseParams:
     SECTION = "simulate.imu"  # dotted params key, for error messages (a class attribute, not a field)
 
     def __post_init__(self) -> None:
-        for name in ("acc_bias", "gyro_bias", "acc_noise", "gyro_noise", "burst_rate", "burst_acc",
-                     "burst_gyro"):
+        for name in (
+            "acc_bias",
+            "gyro_bias",
+            "acc_noise",
+            "gyro_noise",
+            "burst_rate",
+            "burst_acc",
+            "burst_gyro",
+        ):
             _number(self, name, 0.0, math.inf)
         _number(self, "burst_duration_min", 0.0, math.inf, lo_open=True)
         _number(self, "burst_duration_max", 0.0, math.inf, lo_open=True)
@@ -490,8 +521,9 @@ class ImuNoiseParams:
         _ordered(self, "burst_freq_min", "burst_freq_max")
 
 
-def vibration_bursts(rng: np.random.Generator, n: int, dt: float,
-                     p: ImuNoiseParams) -> tuple[np.ndarray, np.ndarray]:
+def vibration_bursts(
+    rng: np.random.Generator, n: int, dt: float, p: ImuNoiseParams
+) -> tuple[np.ndarray, np.ndarray]:
     """Vibration bursts over n samples: (acc (n, 3) m/s^2, gyro (n, 3) rad/s), zero outside bursts."""
     acc, gyro = np.zeros((n, 3)), np.zeros((n, 3))
     t = np.arange(n) * dt
@@ -512,8 +544,9 @@ def vibration_bursts(rng: np.random.Generator, n: int, dt: float,
     return acc, gyro
 
 
-def imu_readings(rng: np.random.Generator, proper_acc: np.ndarray, gyro: np.ndarray, dt: float,
-                 p: ImuNoiseParams) -> tuple[np.ndarray, np.ndarray]:
+def imu_readings(
+    rng: np.random.Generator, proper_acc: np.ndarray, gyro: np.ndarray, dt: float, p: ImuNoiseParams
+) -> tuple[np.ndarray, np.ndarray]:
     """What the FT board IMU publishes: (accelerometer (N, 3) m/s^2, gyroscope (N, 3) rad/s).
 
     proper_acc: (N, 3) true proper acceleration (specific force: acceleration minus gravity, so +g up at
@@ -538,8 +571,9 @@ def imu_readings(rng: np.random.Generator, proper_acc: np.ndarray, gyro: np.ndar
 # --- encoders ------------------------------------------------------------------------------------
 
 
-def encoder_readings(rng: np.random.Generator, q: np.ndarray, resolution_rad: float,
-                     noise_rad: float) -> np.ndarray:
+def encoder_readings(
+    rng: np.random.Generator, q: np.ndarray, resolution_rad: float, noise_rad: float
+) -> np.ndarray:
     """Measured joint positions, (N, n) rad: white noise of std `noise_rad`, then quantised to
     multiples of `resolution_rad` (rad per encoder count; 0 = no quantisation).
 

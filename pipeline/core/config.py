@@ -17,7 +17,7 @@ from typing import Any, TypeVar
 
 import yaml
 
-from pipeline.errors import ConfigError
+from pipeline.core.errors import ConfigError
 
 PARAMS_FILE = "params.yaml"
 PIPELINE_FILE = "dvc.yaml"  # marks the repo root
@@ -37,7 +37,7 @@ def repo_root() -> Path:
     for directory in (cwd, *cwd.parents):
         if (directory / PIPELINE_FILE).is_file():
             return directory
-    package_parent = Path(__file__).resolve().parent.parent
+    package_parent = Path(__file__).resolve().parents[2]
     if (package_parent / PIPELINE_FILE).is_file():
         return package_parent
     return cwd
@@ -135,8 +135,14 @@ class TopicParams:
     sim_wrench_oracle: str  # WrenchStamped: the oracle calibration of the raw reading (noise floor)
     sim_contacts: str  # std_msgs/msg/String: comma-separated links touching the environment
 
-    PER_SENSOR = ("ft_wrench", "ft_imu", "ft_temperature", "sim_wrench_true", "sim_wrench_distorted",
-                  "sim_wrench_oracle")
+    PER_SENSOR = (
+        "ft_wrench",
+        "ft_imu",
+        "ft_temperature",
+        "sim_wrench_true",
+        "sim_wrench_distorted",
+        "sim_wrench_oracle",
+    )
 
     def __post_init__(self) -> None:
         for name in self.__dataclass_fields__:

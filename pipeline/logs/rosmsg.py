@@ -40,7 +40,7 @@ from typing import Any
 
 import numpy as np
 
-from pipeline.errors import DataError
+from pipeline.core.errors import DataError
 
 # --- message types and their schemas ------------------------------------------------------------
 

@@ -10,9 +10,9 @@ matplotlib.use("Agg")
 import matplotlib.pyplot as plt  # noqa: E402
 import numpy as np  # noqa: E402
 
-from pipeline.robot import RobotModel  # noqa: E402
-from pipeline.sim_motion import Motion  # noqa: E402
-from pipeline.sim_truth import Truth  # noqa: E402
+from pipeline.physics.robot import RobotModel  # noqa: E402
+from pipeline.sim.motion import Motion  # noqa: E402
+from pipeline.sim.truth import Truth  # noqa: E402
 
 AXES = ("x", "y", "z")
 

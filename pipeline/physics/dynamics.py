@@ -26,8 +26,8 @@ from dataclasses import dataclass
 import numpy as np
 import pinocchio as pin
 
-from pipeline.errors import RobotModelError
-from pipeline.robot import FootPair, RobotModel, wrench_transform
+from pipeline.core.errors import RobotModelError
+from pipeline.physics.robot import FootPair, RobotModel, wrench_transform
 
 
 @dataclass(frozen=True)

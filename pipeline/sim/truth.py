@@ -1,8 +1,8 @@
 """True FT wrenches and FT-board IMU signals of a simulated motion.
 
-The true robot (URDF with mass and COM errors) moves as :class:`pipeline.sim_motion.Motion` says.
+The true robot (URDF with mass and COM errors) moves as :class:`pipeline.sim.motion.Motion` says.
 Where one side of a sensor's cut touches nothing, its true wrench is exactly what
-:mod:`pipeline.dynamics` computes. Where both sides touch, the split of the ground load decides it, and
+`pipeline.physics.dynamics` computes. Where both sides touch, the split of the ground load decides it, and
 the simulator chooses that split the way a real robot's compliance would, in ways the labeller cannot
 know:
 
@@ -23,9 +23,9 @@ from dataclasses import dataclass
 import numpy as np
 import pinocchio as pin
 
-from pipeline.dynamics import ContactCase, rooted_readings
-from pipeline.robot import FootPair, RobotModel, sensor_frame_name, wrench_transform
-from pipeline.sim_motion import Motion
+from pipeline.physics.dynamics import ContactCase, rooted_readings
+from pipeline.physics.robot import FootPair, RobotModel, sensor_frame_name, wrench_transform
+from pipeline.sim.motion import Motion
 
 PROFILE_WEIGHT = 0.2  # share of the double-support split set by the motion's profile, not by statics
 # A foot carrying less than this share of the load in double support carries nothing: it touches the

@@ -15,7 +15,7 @@ Conventions (they follow the URDF and iDynTree, see ARCHITECTURE.md "Physics"):
 Dynamics are computed on *contact-rooted* Pinocchio models: the kinematic tree re-rooted at a link
 that is fixed in the world, with every FT sensor joint replaced by a 6-DoF joint held at identity.
 The joint torque of that 6-DoF joint from RNEA is then the full wrench transmitted through the
-sensor, exactly (see :mod:`pipeline.dynamics`).
+sensor, exactly (see :mod:`pipeline.physics.dynamics`).
 """
 
 from __future__ import annotations
@@ -30,7 +30,7 @@ from pathlib import Path
 import numpy as np
 import pinocchio as pin
 
-from pipeline.errors import RobotModelError
+from pipeline.core.errors import RobotModelError
 
 _MOVABLE_TYPES = ("revolute", "continuous", "prismatic")
 _UNIT_AXES = {(1.0, 0.0, 0.0): "X", (0.0, 1.0, 0.0): "Y", (0.0, 0.0, 1.0): "Z"}
@@ -370,8 +370,15 @@ class RobotModel:
 
         for sensor in self.sensors.values():  # the frame each reading is expressed in
             child = sensor.child_link
-            model.addFrame(pin.Frame(sensor_frame_name(sensor.name), link_joint[child], 0,
-                                     link_placement[child] * sensor.child_T_sensor, pin.FrameType.OP_FRAME))
+            model.addFrame(
+                pin.Frame(
+                    sensor_frame_name(sensor.name),
+                    link_joint[child],
+                    0,
+                    link_placement[child] * sensor.child_T_sensor,
+                    pin.FrameType.OP_FRAME,
+                )
+            )
         q_index = np.array([model.idx_qs[joint_entry[n][0]] for n in self.joint_names], dtype=np.intp)
         v_index = np.array([model.idx_vs[joint_entry[n][0]] for n in self.joint_names], dtype=np.intp)
         sign = np.array([joint_entry[n][1] for n in self.joint_names])
@@ -496,8 +503,9 @@ def parse_urdf(path: Path) -> RobotModel:
         name, jtype = el.get("name"), el.get("type")
         where = f"{path}: joint {name}"
         if jtype not in (*_MOVABLE_TYPES, "fixed"):
-            raise RobotModelError(f"{where}: joint type {jtype!r} is not supported (revolute, continuous, "
-                                  "prismatic or fixed)")
+            raise RobotModelError(
+                f"{where}: joint type {jtype!r} is not supported (revolute, continuous, prismatic or fixed)"
+            )
         parent, child = el.find("parent"), el.find("child")
         if parent is None or child is None:
             raise RobotModelError(f"{where}: missing <parent> or <child>")
@@ -547,16 +555,18 @@ def parse_urdf(path: Path) -> RobotModel:
         if frame not in ("sensor", "child", "parent"):
             raise RobotModelError(f"{where}: <frame> must be sensor, child or parent, got {frame!r}")
         if direction not in ("child_to_parent", "parent_to_child"):
-            raise RobotModelError(f"{where}: <measure_direction> must be child_to_parent or "
-                                  f"parent_to_child, got {direction!r}")
+            raise RobotModelError(
+                f"{where}: <measure_direction> must be child_to_parent or parent_to_child, got {direction!r}"
+            )
         if frame == "sensor":
             child_T_sensor = _origin(el.find("origin"), where)
         elif frame == "child":
             child_T_sensor = pin.SE3.Identity()
         else:
             child_T_sensor = joint.origin.inverse()
-        sensors[name] = FTSensor(name, joint_name, joint.parent, joint.child, frame, direction,
-                                 child_T_sensor)
+        sensors[name] = FTSensor(
+            name, joint_name, joint.parent, joint.child, frame, direction, child_T_sensor
+        )
 
     model = RobotModel(
         urdf_path=path,
@@ -577,5 +587,5 @@ def load_robot(urdf: str | Path) -> RobotModel:
     path = resolve_urdf(urdf)
     robot = parse_urdf(path)
     if not robot.sensors:
-        raise RobotModelError(f"{path}: the URDF declares no <sensor type=\"force_torque\">")
+        raise RobotModelError(f'{path}: the URDF declares no <sensor type="force_torque">')
     return robot
