@@ -29,7 +29,9 @@ def progress_bar(enabled: bool | None = None, *, bytes_: bool = False) -> Any:
         TimeRemainingColumn,
     )
 
-    counts = (DownloadColumn(), TimeRemainingColumn()) if bytes_ else (MofNCompleteColumn(), TimeElapsedColumn())
+    counts = (
+        (DownloadColumn(), TimeRemainingColumn()) if bytes_ else (MofNCompleteColumn(), TimeElapsedColumn())
+    )
     return Progress(
         TextColumn("{task.description}"),
         BarColumn(),
