@@ -21,8 +21,8 @@ from pipeline.cli import main
 from pipeline.core.config import load_params, stage_section
 from pipeline.core.errors import ConfigError, DataError
 from pipeline.logs import schema as S
+from pipeline.logs.schema import prediction_cols
 from pipeline.stages import evaluate as E
-from pipeline.stages.train import prediction_cols
 from tests.test_models import TRANSFORMS
 
 ROOT = Path(__file__).resolve().parents[1]

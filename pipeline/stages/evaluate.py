@@ -63,7 +63,7 @@ from pipeline.core.config import Params, load_params, stage_section
 from pipeline.core.errors import ConfigError, DataError
 from pipeline.logs import schema as S
 from pipeline.logs.schema import LOG, PRED, prediction_cols
-from pipeline.stages.train import RAW, nn_name
+from pipeline.calib.params import RAW, nn_name
 
 STAGE = "evaluate"
 ORACLE = "oracle"  # the simulator's oracle calibration, an extra model in the tables (truth tables only)
