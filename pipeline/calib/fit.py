@@ -124,6 +124,7 @@ def score(
             "trials_run": r.trials_run,
             "trials_reused": r.trials_reused,
             "trials_pruned": r.trials_pruned,
+            "history": r.history,
         }
         for name, r in nets.items()
     }

@@ -118,8 +118,11 @@ def log_trial_run(
 
 def log_network(
     group: Group, name: str, model: GroupNet, example: np.ndarray, info: Mapping[str, Any]
-) -> None:
-    """Log a network in MLflow's pt2 format (no pickle) with signature and input example; register it."""
+) -> dict[str, str]:
+    """Log a network in MLflow's pt2 format (no pickle) with signature and input example; register it.
+
+    Returns the registered model version: {name, version, model_id} (what evaluate links to).
+    """
     import mlflow
     import mlflow.pytorch
     from mlflow.models import infer_signature
@@ -127,7 +130,7 @@ def log_network(
     example = example.astype(np.float32)
     with torch.no_grad():
         output = model(torch.from_numpy(example)).numpy()
-    mlflow.pytorch.log_model(
+    logged = mlflow.pytorch.log_model(
         model,
         name=name,
         signature=infer_signature(example, output),
@@ -137,6 +140,11 @@ def log_network(
         pip_requirements=[f"torch=={torch.__version__.split('+')[0]}"],
         metadata=dict(info),
     )
+    return {
+        "name": f"ftcal-{group.name}-{model.config.n_inputs}",
+        "version": str(logged.registered_model_version),
+        "model_id": str(logged.model_id or ""),
+    }
 
 
 def flatten_metrics(prefix: str, errors: Mapping[str, Any]) -> dict[str, float]:

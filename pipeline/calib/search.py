@@ -47,6 +47,7 @@ class NetResult:
     trials_run: int
     trials_reused: int
     trials_pruned: int
+    history: list[dict[str, float]]  # the best trial's epochs: {epoch, loss, val_rmse}
 
 
 def code_digest() -> str:
@@ -160,7 +161,8 @@ def search_network(
         finally:
             progress.remove(epochs)
         best = min(history, key=lambda h: h["val_rmse"])
-        save_model(trial_dir / f"trial_{trial.number:04d}", model, {"values": values, "seed": trial_seed})
+        info = {"values": values, "seed": trial_seed, "history": history}
+        save_model(trial_dir / f"trial_{trial.number:04d}", model, info)
         trial.set_user_attr("index", index)
         trial.set_user_attr("seed", trial_seed)
         trial.set_user_attr("best_epoch", int(best["epoch"]))
@@ -204,6 +206,7 @@ def search_network(
         trials_run=run,
         trials_reused=reused,
         trials_pruned=sum(t.state == TrialState.PRUNED for t in considered),
+        history=list(info.get("history", [])),
     )
 
 

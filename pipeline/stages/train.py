@@ -146,18 +146,23 @@ def train_group(
         out.mkdir(parents=True, exist_ok=True)
         files = ["metrics.json", "baselines.json", "predictions.parquet"]
         example = prep.test.subset(np.arange(min(5, len(prep.test))))
+        versions: dict[str, dict[str, str]] = {}
         for name, r in nets.items():
             info = network_info(prep, r, metrics, name)
             save_model(out / name, r.model, info)
             files += [f"{name}.json", f"{name}.pt"]
             t = time.perf_counter()
             columns = {k: info[k] for k in ("group", "sensors", "input_columns", "output_columns")}
-            log_network(group, name, r.model, flat_inputs(example, r.model.config.n_inputs), columns)
+            versions[name] = log_network(
+                group, name, r.model, flat_inputs(example, r.model.config.n_inputs), columns
+            )
             timings[f"log_{name}"] = time.perf_counter() - t
         write_json(out / "baselines.json", {name: b.to_dict() for name, b in baselines.items()})
         write_predictions(out / "predictions.parquet", group, prep.test, prep.log_names, preds["test"])
         timings["total"] = time.perf_counter() - t0
         metrics["seconds"] = timings
+        # how evaluate finds this run and the registered networks (by id, never by matching values)
+        metrics["mlflow"] = {"run_id": run.info.run_id, "models": versions}
         write_json(out / "metrics.json", metrics)
         mlflow.log_metrics(mlflow_metrics(group, metrics))
         mlflow.set_tag("best_on_validation", metrics["best_on_validation"])
