@@ -28,6 +28,7 @@ STAGE_MODULES = (
     "pipeline.stages.label",
     "pipeline.stages.train",
     "pipeline.stages.evaluate",
+    "pipeline.tools.convert_mat",
 )
 
 
