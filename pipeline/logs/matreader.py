@@ -29,7 +29,7 @@ from pipeline.core.errors import DataError
 from pipeline.logs import rosmsg
 from pipeline.logs.matlog import Leaf, MatLog, iter_windows
 
-CHUNK_ROWS = 30_000  # joint-state samples per chunk handed out (5 min at 100 Hz, ~50 MB of ergoCub values)
+CHUNK_ROWS = 3_000  # joint-state samples per chunk handed out (30 s at 100 Hz): memory stays bounded
 
 
 def sidecar_path(path: Path, suffix: str) -> Path:
