@@ -29,6 +29,7 @@ STAGE_MODULES = (
     "pipeline.stages.train",
     "pipeline.stages.evaluate",
     "pipeline.stages.report",
+    "pipeline.tools.convert_mat",
 )
 
 

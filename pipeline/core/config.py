@@ -159,6 +159,84 @@ class TopicParams:
         return getattr(self, kind).replace("{sensor}", sensor)
 
 
+_MAT_TEMPLATE_KEYS = ("ft", "temperature", "accelerometer", "gyroscope")
+_MAT_PATH_KEYS = ("joint_positions", "joint_velocities", "joint_torques")
+
+
+@dataclass(frozen=True)
+class MatParams:
+    """Section `ingest.mat`: where ingest finds each quantity in a YarpRobotLoggerDevice .mat file.
+
+    Paths are channel names with ``/`` between struct levels (the logger's ``::``), below the file's
+    top-level struct. Per-sensor entries are lists of templates tried in order (the first channel that
+    exists wins), in which ``{sensor}`` stands for the logger's name of a URDF FT sensor: the URDF
+    name itself, or its entry in `sensor_names`.
+    """
+
+    joint_positions: str  # rad, the time base (joint order from the file's description_list)
+    joint_velocities: str  # rad/s, the logger's own (-> dq_enc)
+    joint_torques: str  # Nm (-> tau_enc)
+    ft: tuple[str, ...]  # 6 values: fx fy fz (N), mx my mz (Nm), by position
+    temperature: tuple[str, ...]  # 1 value, deg C
+    accelerometer: tuple[str, ...]  # 3 values, m/s^2
+    gyroscope: tuple[str, ...]  # 3 values, rad/s
+    sensor_names: Mapping[str, str] = field(default_factory=dict)  # URDF sensor -> logger name
+    sidecar_suffix: str = ".yaml"  # experiment metadata file: <log stem><suffix> beside the .mat
+
+    def __post_init__(self) -> None:
+        for key in _MAT_PATH_KEYS:
+            _check_name(getattr(self, key), f"ingest.mat.{key}")
+        for key in _MAT_TEMPLATE_KEYS:
+            value = getattr(self, key)
+            if isinstance(value, str):
+                value = (value,)
+            if not isinstance(value, list | tuple) or not value:
+                raise ConfigError(
+                    f"ingest.mat.{key} must be a non-empty list of channel templates, got {value!r}"
+                )
+            for k, template in enumerate(value):
+                _check_name(template, f"ingest.mat.{key}[{k}]")
+                if "{sensor}" not in template:
+                    raise ConfigError(f"ingest.mat.{key}[{k}] must contain {{sensor}}, got {template!r}")
+            object.__setattr__(self, key, tuple(value))
+        names = self.sensor_names if self.sensor_names is not None else {}
+        if not isinstance(names, Mapping):
+            raise ConfigError(f"ingest.mat.sensor_names must be a mapping, got {names!r}")
+        for urdf_name, logger_name in names.items():
+            _check_name(urdf_name, "ingest.mat.sensor_names key")
+            _check_name(logger_name, f"ingest.mat.sensor_names.{urdf_name}")
+        object.__setattr__(self, "sensor_names", dict(names))
+        suffix = self.sidecar_suffix
+        if not isinstance(suffix, str) or not suffix.startswith(".") or len(suffix) < 2:
+            raise ConfigError(f"ingest.mat.sidecar_suffix must be a file suffix like '.yaml', got {suffix!r}")
+
+    @classmethod
+    def from_mapping(cls, data: Any) -> MatParams:
+        """Build from the parsed `ingest.mat` mapping (exactly the dataclass's keys)."""
+        if isinstance(data, cls):
+            return data
+        data = _mapping(data, "ingest.mat")
+        _section(data, "ingest.mat", set(cls.__dataclass_fields__))
+        return cls(**data)
+
+    def channels(self, key: str, sensor: str) -> tuple[str, ...]:
+        """The candidate channels of per-sensor quantity `key` (e.g. 'ft') for URDF FT sensor `sensor`."""
+        name = self.sensor_names.get(sensor, sensor)
+        return tuple(t.replace("{sensor}", name) for t in getattr(self, key))
+
+
+def mat_section(params: Params) -> MatParams:
+    """`ingest.mat` of params.yaml, validated (errors prefixed with the params file)."""
+    where = params.raw.get("__file__", PARAMS_FILE)
+    try:
+        ingest = _mapping(params.raw.get("ingest"), "ingest")
+        if "mat" not in ingest:
+            raise ConfigError("missing key ingest.mat")
+        return MatParams.from_mapping(ingest["mat"])
+    except ConfigError as exc:
+        raise ConfigError(f"{where}: {exc}") from None
+
+
 @dataclass(frozen=True)
 class Params:
     """The whole of params.yaml: typed shared sections plus the raw dict for the stage sections."""

@@ -40,7 +40,15 @@ import numpy as np
 import pyarrow as pa
 import pyarrow.parquet as pq
 
-from pipeline.core.config import Params, TopicParams, load_params, repo_root, resolve_urdf, stage_section
+from pipeline.core.config import (
+    MatParams,
+    Params,
+    TopicParams,
+    load_params,
+    repo_root,
+    resolve_urdf,
+    stage_section,
+)
 from pipeline.core.errors import ConfigError, DataError
 from pipeline.logs import rosmsg
 from pipeline.logs import schema as S
@@ -49,6 +57,8 @@ STAGE = "ingest"
 _ROW_GROUP_ROWS = 16_384
 _EMIT_ROWS = 2_000  # time-base samples buffered before aligning and writing them
 _STALL_S = 5.0  # a stream this far behind the joint states no longer holds the others back (s)
+MAT_SUFFIX = ".mat"  # YarpRobotLoggerDevice files, read through pipeline.logs.matreader
+LOG_SUFFIXES = (".mcap", MAT_SUFFIX)
 
 
 # --- params --------------------------------------------------------------------------------------
@@ -64,6 +74,7 @@ class IngestParams:
     max_reorder_s: float  # s, largest step back of stamps in arrival order that is re-sorted
     max_nonfinite_fraction: float  # fraction of a topic's messages that may hold NaN/inf (dropped)
     skip_bad_logs: bool  # true: a bad log is a warning and is skipped; false: an error
+    mat: Any = None  # MatParams (section ingest.mat): where .mat logger files keep each quantity
 
     def __post_init__(self) -> None:
         if not isinstance(self.source, str) or not self.source.strip():
@@ -84,6 +95,8 @@ class IngestParams:
         object.__setattr__(self, "max_nonfinite_fraction", float(f))
         if not isinstance(self.skip_bad_logs, bool):
             raise ConfigError(f"ingest.skip_bad_logs must be true or false, got {self.skip_bad_logs!r}")
+        if self.mat is not None:
+            object.__setattr__(self, "mat", MatParams.from_mapping(self.mat))
 
 
 # --- pure alignment functions --------------------------------------------------------------------
@@ -461,7 +474,7 @@ class _LogIngest:
 
     def run(self, progress: Callable[[int], None] | None = None) -> LogReport:
         t0 = time.perf_counter()
-        with rosmsg.LogReader(self.path) as reader:
+        with self._open_reader() as reader:
             self._check_experiment(reader.metadata)
             wants = self._resolve(reader)
             self._make_streams(wants)
@@ -489,6 +502,16 @@ class _LogIngest:
         return self.report
 
     # -- setup --
+
+    def _open_reader(self) -> Any:
+        """The log's reader: MCAP, or a logger .mat file seen as the same topics (pipeline.logs.matreader)."""
+        if self.path.suffix.lower() != MAT_SUFFIX:
+            return rosmsg.LogReader(self.path)
+        from pipeline.logs.matreader import MatLogReader
+
+        if self.cfg.mat is None:
+            raise ConfigError(f"{self.where}: a .mat log needs the name map ingest.mat in params")
+        return MatLogReader(self.path, self.topics, self.sensors, self.cfg.mat, self.joints)
 
     def _check_experiment(self, metadata: Mapping[str, Mapping[str, str]]) -> None:
         self.experiment = dict(metadata.get("experiment", {}))
@@ -798,8 +821,8 @@ def _progress_bar(enabled: bool) -> Iterator[Any]:
 
 
 def find_logs(source_dir: Path) -> list[Path]:
-    """Every *.mcap under `source_dir` (recursively), sorted."""
-    return sorted(p for p in source_dir.rglob("*.mcap") if p.is_file())
+    """Every *.mcap and *.mat (logger file) under `source_dir` (recursively), sorted."""
+    return sorted(p for p in source_dir.rglob("*") if p.is_file() and p.suffix.lower() in LOG_SUFFIXES)
 
 
 def run(
@@ -815,7 +838,7 @@ def run(
         raise DataError(f"{source}: source directory not found")
     logs = find_logs(source)
     if not logs:
-        raise DataError(f"{source}: no *.mcap logs found")
+        raise DataError(f"{source}: no *.mcap or *.mat logs found")
     names = [output_name(log, source) for log in logs]
     if len(set(names)) != len(names):
         raise DataError(f"{source}: two logs map to the same table name")
@@ -928,7 +951,7 @@ def add_cli(subparsers: Any) -> None:
         help="decode MCAP logs into aligned Parquet tables",
         description=(__doc__ or "").split("\n\n")[0],
     )
-    parser.add_argument("source", type=Path, help="directory searched recursively for *.mcap logs")
+    parser.add_argument("source", type=Path, help="directory searched recursively for *.mcap and *.mat logs")
     parser.add_argument("out", type=Path, help="output directory for <log>.parquet (+ <log>.truth.parquet)")
     parser.add_argument(
         "--params",
