@@ -10,7 +10,6 @@ from __future__ import annotations
 
 import io
 import struct
-import zlib
 from collections.abc import Callable, Iterable, Iterator, Mapping, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -21,6 +20,13 @@ import numpy as np
 from pipeline.core.errors import DataError
 from pipeline.logs.cdr import MAGIC, RECORD_HEADER, RECORD_HEADER_SIZE
 from pipeline.logs.decode import Batch, ChannelDecoder, as_struct, gather_rows
+from pipeline.logs.mcap_scan import (
+    ScannedSummary,
+    decompress_chunk,
+    message_offsets,
+    scan_blocks,
+    summarise_block,
+)
 
 
 @dataclass(frozen=True)
@@ -36,8 +42,9 @@ class TopicInfo:
 class LogReader:
     """Reads the messages of a ROS 2 MCAP log chunk by chunk, decoded into `Batch`es.
 
-    Needs a complete file (header magic, footer, summary); chunks are read through their message
-    indexes (or scanned when a writer did not index them) and their CRCs are checked. Every problem
+    Needs a complete file (header magic, data, footer). With chunk indexes and statistics in the summary,
+    chunks are read through their message indexes (or walked when a writer did not index them);
+    otherwise the data section is scanned (`pipeline.logs.mcap_scan`). CRCs are checked. Every problem
     is a `DataError` naming the file.
     """
 
@@ -84,26 +91,22 @@ class LogReader:
             self.metadata = {m.name: dict(m.metadata) for m in reader.iter_metadata()}
         except (McapError, struct.error, ValueError, EOFError) as exc:
             raise self._error(f"corrupted MCAP summary or metadata: {type(exc).__name__}: {exc}") from None
-        if summary is None:
-            raise self._error(
-                "MCAP file without summary section (not indexed); re-index it with `mcap recover`"
-            )
+        # The fast path needs chunk indexes; counts need statistics. Without them, scan the data section.
+        self.indexed = summary is not None and bool(summary.chunk_indexes)
+        if self.indexed and summary.statistics is not None:
+            schemas, channels = summary.schemas, summary.channels
+            counts = dict(summary.statistics.channel_message_counts)
+        else:
+            scanned = ScannedSummary()
+            for _offset, _consumed, block in scan_blocks(
+                f, self.size_bytes, str(self.path), self.validate_crcs
+            ):
+                summarise_block(block, scanned)
+            schemas, channels, counts = scanned.schemas, scanned.channels, scanned.counts
+            self.metadata = {**scanned.metadata, **self.metadata}
         self._summary = summary
-        counts = summary.statistics.channel_message_counts if summary.statistics else {}
-        topics: dict[str, TopicInfo] = {}
-        for cid, channel in sorted(summary.channels.items()):
-            schema = summary.schemas.get(channel.schema_id)
-            msgtype = schema.name if schema is not None else ""
-            known = topics.get(channel.topic)
-            count = int(counts.get(cid, 0))
-            if known is None:
-                topics[channel.topic] = TopicInfo(channel.topic, msgtype, count, (cid,))
-            else:
-                types = msgtype if msgtype == known.msgtype else f"{known.msgtype}|{msgtype}"
-                topics[channel.topic] = TopicInfo(
-                    channel.topic, types, known.message_count + count, (*known.channel_ids, cid)
-                )
-        self.topics = topics
+        self._schemas, self._channels = schemas, channels
+        self.topics = _topics(schemas, channels, counts)
 
     def close(self) -> None:
         self._file.close()
@@ -132,12 +135,20 @@ class LogReader:
         """
         wanted = set(self.topics) if topics is None else set(topics)
         decoders: dict[int, ChannelDecoder] = {}
-        for cid, channel in self._summary.channels.items():
+        for cid, channel in self._channels.items():
             if channel.topic in wanted:
-                schema = self._summary.schemas.get(channel.schema_id)
+                schema = self._schemas.get(channel.schema_id)
                 decoders[cid] = ChannelDecoder(
                     channel.topic, schema.name if schema else "", schema, channel.message_encoding, fast
                 )
+        if not self.indexed:
+            blocks = scan_blocks(self._file, self.size_bytes, str(self.path), self.validate_crcs)
+            for ordinal, (offset, consumed, data) in enumerate(blocks):
+                offsets = message_offsets(data, decoders.__contains__)
+                yield self._decode(data, offsets, ordinal, decoders, f"data at byte {offset}")
+                if progress is not None:
+                    progress(consumed)
+            return
         chunk_indexes = sorted(self._summary.chunk_indexes, key=lambda c: c.chunk_start_offset)
         for ordinal, index in enumerate(chunk_indexes):
             if index.message_index_offsets and not any(c in decoders for c in index.message_index_offsets):
@@ -155,41 +166,20 @@ class LogReader:
         record = f.read(index.chunk_length + index.message_index_length)
         if len(record) < index.chunk_length + index.message_index_length:
             raise self._error(f"truncated MCAP file ({where} ends after the end of the file)")
-        try:
-            op, _length, _t0, _t1, usize, crc, clen = struct.unpack_from("<BQQQQII", record, 0)
-            compression = record[41 : 41 + clen].decode()
-            (dlen,) = struct.unpack_from("<Q", record, 41 + clen)
-        except (struct.error, UnicodeDecodeError):
-            raise self._error(f"corrupted {where} (bad chunk header)") from None
-        if op != 0x06:
-            raise self._error(f"corrupted {where} (not a chunk record: opcode {op:#04x})")
-        start = 49 + clen
-        payload = record[start : start + dlen]
-        if len(payload) != dlen:
-            raise self._error(f"corrupted {where} (chunk data length {dlen} exceeds the record)")
-        try:
-            if compression == "zstd":
-                import zstandard
+        data = decompress_chunk(record, str(self.path), where, self.validate_crcs)
+        offsets = self._message_offsets(record[index.chunk_length :], index, data, decoders)
+        return self._decode(data, offsets, ordinal, decoders, where)
 
-                data = zstandard.ZstdDecompressor().decompress(payload, max_output_size=usize)
-            elif compression == "lz4":
-                import lz4.frame  # type: ignore[import-not-found]
-
-                data = lz4.frame.decompress(payload)
-            elif compression == "":
-                data = bytes(payload)
-            else:
-                raise self._error(f"{where}: unsupported compression {compression!r}")
-        except DataError:
-            raise
-        except Exception as exc:  # noqa: BLE001 (zstd/lz4 raise their own error types)
-            raise self._error(f"corrupted {where} (cannot decompress: {exc})") from None
-        if len(data) != usize:
-            raise self._error(f"corrupted {where} (decompressed {len(data)} bytes, expected {usize})")
-        if self.validate_crcs and crc != 0 and zlib.crc32(data) != crc:
-            raise self._error(f"corrupted {where} (CRC mismatch)")
+    def _decode(
+        self,
+        data: bytes,
+        offsets_by_channel: Mapping[int, np.ndarray],
+        ordinal: int,
+        decoders: Mapping[int, ChannelDecoder],
+        where: str,
+    ) -> list[Batch]:
+        """Decode the Message records at the given offsets of a block of records (a chunk)."""
         buf = np.frombuffer(data, dtype=np.uint8)
-        offsets_by_channel = self._message_offsets(record[index.chunk_length :], index, buf, data, decoders)
         batches: list[Batch] = []
         for cid, offs in offsets_by_channel.items():
             if len(offs) and (offs[0] < 0 or offs[-1] + RECORD_HEADER_SIZE > len(buf)):
@@ -205,23 +195,25 @@ class LogReader:
                 raise self._error(f"corrupted {where} (message index points outside a message record)")
             sizes = head["len"].astype(np.int64) - 22
             order = (np.int64(ordinal) << 32) + offs
-            batches.extend(
-                decoders[cid].decode(
-                    buf,
-                    offs + RECORD_HEADER_SIZE,
-                    sizes,
-                    head["log_time"].astype(np.int64),
-                    head["publish_time"].astype(np.int64),
-                    order,
+            try:
+                batches.extend(
+                    decoders[cid].decode(
+                        buf,
+                        offs + RECORD_HEADER_SIZE,
+                        sizes,
+                        head["log_time"].astype(np.int64),
+                        head["publish_time"].astype(np.int64),
+                        order,
+                    )
                 )
-            )
+            except DataError as exc:
+                raise self._error(str(exc)) from None
         return batches
 
     def _message_offsets(
         self,
         indexes: bytes,
         index: Any,
-        buf: np.ndarray,
         data: bytes,
         decoders: Mapping[int, ChannelDecoder],
     ) -> dict[int, np.ndarray]:
@@ -246,19 +238,7 @@ class LogReader:
                 if len(offsets):
                     out[cid] = offsets
             return out
-        # No message index: walk the records (opcode, uint64 length, body).
-        pos, n = 0, len(data)
-        found: dict[int, list[int]] = {}
-        while pos + 9 <= n:
-            op, length = struct.unpack_from("<BQ", data, pos)
-            if op == 0x05 and pos + 11 <= n:
-                (cid,) = struct.unpack_from("<H", data, pos + 9)
-                if cid in decoders:
-                    found.setdefault(cid, []).append(pos)
-            pos += 9 + length
-        for cid, offs in found.items():
-            out[cid] = np.array(offs, dtype=np.int64)
-        return out
+        return message_offsets(data, decoders.__contains__)  # no message index: walk the records
 
     def read(self, topics: Iterable[str] | None = None, *, fast: bool = True) -> dict[str, list[Batch]]:
         """All batches of the wanted topics, per topic (whole log in memory: for tests and small logs)."""
@@ -267,6 +247,26 @@ class LogReader:
             for batch in batches:
                 out.setdefault(batch.topic, []).append(batch)
         return out
+
+
+def _topics(
+    schemas: Mapping[int, Any], channels: Mapping[int, Any], counts: Mapping[int, int]
+) -> dict[str, TopicInfo]:
+    """Topics of a log from its schemas, channels and per-channel message counts (by topic name)."""
+    topics: dict[str, TopicInfo] = {}
+    for cid, channel in sorted(channels.items()):
+        schema = schemas.get(channel.schema_id)
+        msgtype = schema.name if schema is not None else ""
+        known = topics.get(channel.topic)
+        count = int(counts.get(cid, 0))
+        if known is None:
+            topics[channel.topic] = TopicInfo(channel.topic, msgtype, count, (cid,))
+        else:
+            types = msgtype if msgtype == known.msgtype else f"{known.msgtype}|{msgtype}"
+            topics[channel.topic] = TopicInfo(
+                channel.topic, types, known.message_count + count, (*known.channel_ids, cid)
+            )
+    return topics
 
 
 def concat_batches(batches: Sequence[Batch]) -> dict[str, np.ndarray]:
