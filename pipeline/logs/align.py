@@ -135,6 +135,8 @@ class StreamStats:
     reordered: int = 0  # arrived after a message with a later stamp: re-sorted
     nonfinite: int = 0  # NaN/inf values: dropped
     late: int = 0  # arrived after the samples around its stamp were written (too late to be used)
+    zero_stamps: int = 0  # header stamp 0: a driver that does not stamp
+    usable_samples: int = 0  # time-base samples at which the stream has a value (ok)
     rate_hz: float = float("nan")  # 1 / median stamp step
     first_stamp_ns: int | None = None
     last_stamp_ns: int | None = None

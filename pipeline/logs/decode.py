@@ -17,6 +17,7 @@ from pipeline.core.errors import DataError
 from pipeline.logs.cdr import (
     CDR_HEAD,
     JOINT_STATE,
+    SCHEMAS,
     STANDARD_LAYOUTS,
     STRING,
     fixed_template,
@@ -26,6 +27,7 @@ from pipeline.logs.cdr import (
     parse_joint_state_layout,
     schema_layout,
 )
+from pipeline.logs.idl import idl_layout
 
 # --- decoded batches --------------------------------------------------------------------------------------
 
@@ -72,6 +74,18 @@ def as_struct(rows: np.ndarray, dtype: np.dtype) -> np.ndarray:
     return np.ascontiguousarray(rows).view(dtype).reshape(len(rows))
 
 
+def _has_standard_layout(msgtype: str, schema: Any) -> bool:
+    """Whether a ros2msg or ros2idl schema has the field layout of the standard type `msgtype`."""
+    if schema is None or msgtype not in STANDARD_LAYOUTS:
+        return False
+    text = schema.data.decode("utf-8", "replace")
+    if schema.encoding == "ros2msg":
+        return schema_layout(schema.name, text) == STANDARD_LAYOUTS[msgtype]
+    if schema.encoding == "ros2idl":
+        return idl_layout(schema.name, text) == STANDARD_LAYOUTS[msgtype]
+    return False
+
+
 class ChannelDecoder:
     """Decodes the messages of one channel: vectorised where the layout is known, else mcap_ros2."""
 
@@ -82,15 +96,15 @@ class ChannelDecoder:
         self.topic = topic
         self.msgtype = msgtype
         self.schema = schema
-        self.fast = (
-            fast
-            and message_encoding == "cdr"
-            and schema is not None
-            and schema.encoding == "ros2msg"
-            and msgtype in STANDARD_LAYOUTS
-            and schema_layout(schema.name, schema.data.decode("utf-8", "replace"))
-            == STANDARD_LAYOUTS[msgtype]
-        )
+        self.encoding = getattr(schema, "encoding", "")
+        standard = message_encoding == "cdr" and _has_standard_layout(msgtype, schema)
+        if standard and self.encoding == "ros2idl":  # same CDR bytes: decode it as the .msg definition
+            from mcap.records import Schema
+
+            self.schema = Schema(
+                id=schema.id, name=msgtype, encoding="ros2msg", data=SCHEMAS[msgtype].encode()
+            )
+        self.fast = fast and standard
         self.message_encoding = message_encoding
         self._standard: Callable[[bytes], Any] | None = None
         self._layouts: dict[int, np.dtype] = {}
@@ -266,8 +280,13 @@ class ChannelDecoder:
             decoder = DecoderFactory().decoder_for(self.message_encoding, self.schema)
             if decoder is None:
                 raise DataError(
-                    f"topic {self.topic}: cannot decode {self.message_encoding!r} messages "
-                    f"of schema {getattr(self.schema, 'name', None)!r}"
+                    f"topic {self.topic}: cannot decode {self.message_encoding!r} messages of schema "
+                    f"{getattr(self.schema, 'name', None)!r} in {self.encoding!r} encoding"
+                    + (
+                        " (its layout is not the standard one of this type)"
+                        if self.encoding == "ros2idl"
+                        else ""
+                    )
                 )
             self._standard = decoder
         groups: dict[Any, list[tuple[int, int, dict[str, Any]]]] = {}

@@ -22,7 +22,7 @@ from pipeline.core.config import TopicParams
 from pipeline.core.errors import DataError
 from pipeline.logs import rosmsg
 from pipeline.logs import schema as S
-from pipeline.logs.align import Stream, align_continuous, align_latest, joint_permutation
+from pipeline.logs.align import Stream, StreamStats, align_continuous, align_latest, joint_permutation
 from pipeline.logs.tables import AtomicParquet, LogReport
 
 if TYPE_CHECKING:
@@ -90,6 +90,8 @@ class _LogIngest:
         self.where = str(path)
         self.report = LogReport(source=str(path))
         self._perm_cache: dict[tuple[str, ...], np.ndarray] = {}
+        self._delay_ns: int | None = None  # joint states' median (log time - stamp), ns
+        self._restamped: set[str] = set()
 
     def warn(self, message: str) -> None:
         self.report.warnings.append(f"{self.path.name}: {message}")
@@ -103,8 +105,7 @@ class _LogIngest:
             table, truth = self._open_outputs(reader, wants)
             try:
                 for batches in reader.iter_chunks([w.topic for w in wants], progress=progress):
-                    for batch in batches:
-                        self._add(batch)
+                    self._add_chunk(batches)
                     if self.streams[S.JOINTS_STREAM].buffered() >= _EMIT_ROWS:
                         self._emit(table, truth, final=False)
                 self._emit(table, truth, final=True)
@@ -223,22 +224,51 @@ class _LogIngest:
 
     # -- streaming --
 
-    def _add(self, batch: rosmsg.Batch) -> None:
-        stream = self.by_topic[batch.topic]
+    def _add_chunk(self, batches: Sequence[rosmsg.Batch]) -> None:
+        """Add the batches of one chunk, each stream's at once (one arrival order across its batches)."""
+        parts: dict[str, list[tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]]] = {}
+        for batch in batches:
+            if len(batch):
+                stream = self.by_topic[batch.topic]
+                values = self._values(stream, batch)
+                parts.setdefault(stream.name, []).append(
+                    (batch.stamp_ns, batch.log_time_ns, batch.order, values)
+                )
+                self.log_time_now = max(self.log_time_now, int(batch.log_time_ns.max()))
+        for key in sorted(parts, key=lambda k: k != S.JOINTS_STREAM):  # the time base first
+            stamps, log_time, order, values = (np.concatenate(x) for x in zip(*parts[key], strict=True))
+            stream = self.streams[key]
+            zero = stamps == 0
+            stream.stats.zero_stamps += int(zero.sum())
+            if zero.all() and self.cfg.unstamped_fallback and not stream.time_base:
+                stamps = log_time - self._time_base_delay(stream)
+            elif stream.time_base and self._delay_ns is None:
+                self._delay_ns = int(np.median(log_time - stamps))
+            stream.add(stamps, log_time, order, values)
+
+    def _time_base_delay(self, stream: Stream) -> int:
+        """ns: the joint states' median (log time - stamp), for a stream re-stamped with its log time."""
+        delay = 0 if self._delay_ns is None else self._delay_ns
+        if stream.topic not in self._restamped:
+            self._restamped.add(stream.topic)
+            self.warn(
+                f"{stream.topic}: every header stamp is zero (the driver does not stamp): using its log "
+                f"time minus {delay / 1e9:.4f} s, the joint states' median delay (ingest.unstamped_fallback)"
+            )
+        return delay
+
+    def _values(self, stream: Stream, batch: rosmsg.Batch) -> np.ndarray:
+        """(K, width) values of a batch for its stream (object (K,) for the contacts)."""
         f = batch.fields
         if stream.name == S.JOINTS_STREAM:
-            values = self._joint_values(batch)
-        elif batch.msgtype == rosmsg.WRENCH_STAMPED:
-            values = f["wrench"]
-        elif batch.msgtype == rosmsg.IMU:
-            values = np.concatenate([f["linear_acceleration"], f["angular_velocity"]], axis=1)
-        elif batch.msgtype == rosmsg.TEMPERATURE:
-            values = f["temperature"].reshape(-1, 1)
-        else:
-            values = f["data"]
-        stream.add(batch.stamp_ns, batch.log_time_ns, batch.order, values)
-        if len(batch):
-            self.log_time_now = max(self.log_time_now, int(batch.log_time_ns.max()))
+            return self._joint_values(batch)
+        if batch.msgtype == rosmsg.WRENCH_STAMPED:
+            return f["wrench"]
+        if batch.msgtype == rosmsg.IMU:
+            return np.concatenate([f["linear_acceleration"], f["angular_velocity"]], axis=1)
+        if batch.msgtype == rosmsg.TEMPERATURE:
+            return f["temperature"].reshape(-1, 1)
+        return f["data"]
 
     def _joint_values(self, batch: rosmsg.Batch) -> np.ndarray:
         """(K, 3J) [position | velocity | effort] in URDF joint order; NaN where the log has none."""
@@ -310,6 +340,8 @@ class _LogIngest:
                 (S.TEMPERATURE_STREAM, [S.temperature_col(s)]),
             ):
                 values, ok = self._aligned(f"{stream_kind}.{s}", target, len(names))
+                if (stream := self.streams.get(f"{stream_kind}.{s}")) is not None:
+                    stream.stats.usable_samples += int(ok.sum())
                 cols.update({c: values[:, k] for k, c in enumerate(names)})
                 cols[S.ok_col(stream_kind, s)] = ok
             for kind in S.TRUTH_KINDS:
@@ -347,6 +379,8 @@ class _LogIngest:
         limit = self.cfg.max_nonfinite_fraction
         for stream in self.streams.values():
             st = stream.stats
+            if stream.name.startswith(S.WRENCH_STREAM + ".") and st.usable_samples == 0:
+                raise DataError(f"{self.where}: {st.topic}: no usable sample ({self._why_unusable(st)})")
             if st.nonfinite and st.nonfinite > limit * st.messages:
                 raise DataError(
                     f"{self.where}: {st.topic} has NaN/inf values in {st.nonfinite} of {st.messages} "
@@ -356,6 +390,19 @@ class _LogIngest:
                 self.warn(f"{st.topic}: {st.nonfinite} messages with NaN/inf values dropped")
             if st.late:
                 self.warn(f"{st.topic}: {st.late} messages arrived after their rows were written")
+
+    def _why_unusable(self, st: StreamStats) -> str:
+        if st.messages and st.zero_stamps == st.messages:
+            return (
+                "every header stamp is zero: the driver does not stamp; ingest.unstamped_fallback: true "
+                "uses the log times instead"
+            )
+        if st.messages == st.nonfinite:
+            return "every message holds NaN/inf values"
+        return (
+            f"no message within ingest.max_gap_s = {self.cfg.max_gap_s:g} s of a "
+            f"{self.topics.joint_states} stamp: its stamps are on another clock, or it has too few messages"
+        )
 
     def _final_metadata(self) -> dict[str, Any]:
         streams = {}
