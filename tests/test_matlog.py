@@ -24,7 +24,8 @@ from pipeline.core.config import MatParams, load_params, mat_section
 from pipeline.core.errors import DataError
 from pipeline.logs import schema as S
 from pipeline.logs.matlog import MatLog, ns_to_seconds, seconds_to_ns
-from pipeline.stages.ingest import IngestParams, ingest_log
+from pipeline.logs.mcap_table import ingest_log
+from pipeline.stages.ingest import IngestParams
 from tests import matfile
 from tests.test_ingest import CFG, JOINTS, SENSORS, TOPICS, write_log
 

@@ -331,7 +331,7 @@ def label_table(
     truth_dir: Path | None = None,
 ) -> LogSummary:
     """Label one smoothed table into `dst` (written atomically)."""
-    from pipeline.stages.ingest import read_table_metadata
+    from pipeline.logs.tables import read_table_metadata
 
     start = time.perf_counter()
     try:

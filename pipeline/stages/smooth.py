@@ -17,11 +17,8 @@ from __future__ import annotations
 
 import argparse
 import math
-import os
 import sys
 import time
-from collections.abc import Iterator
-from contextlib import contextmanager
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
 from typing import Any
@@ -164,7 +161,8 @@ class SmoothReport:
 
 def smooth_table(src: Path, dst: Path, cfg: SmoothParams) -> SmoothReport:
     """Read an ingested table, add the smoothed kinematics columns, write it atomically to `dst`."""
-    from pipeline.stages.ingest import read_table_metadata
+    from pipeline.core.io import atomic_path
+    from pipeline.logs.tables import read_table_metadata
 
     t0 = time.perf_counter()
     try:
@@ -199,25 +197,18 @@ def smooth_table(src: Path, dst: Path, cfg: SmoothParams) -> SmoothReport:
     kv = {k.encode(): v for k, v in meta.items() if k != S.META_SCHEMA.decode()}
     kv[S.META_SMOOTH] = smooth_meta
     out_schema = S.arrow_schema([*names, *extra], S.KIND_SMOOTHED, kv)
-    tmp = dst.with_name(f".{dst.name}.{os.getpid()}.tmp")
-    dst.parent.mkdir(parents=True, exist_ok=True)
     row = 0
-    try:
-        with pq.ParquetWriter(tmp, out_schema, compression="zstd") as writer:
-            for batch in pf.iter_batches(batch_size=65_536):
-                k = batch.num_rows
-                cols = {name: batch.column(name) for name in names}
-                sl = slice(row, row + k)
-                for quantity, arr in ((S.QS, res.q), (S.DQS, res.dq), (S.DDQS, res.ddq)):
-                    for jj, name in enumerate(S.joint_cols(quantity, joints)):
-                        cols[name] = pa.array(arr[sl, jj])
-                cols[S.ok_col(S.KINEMATICS_STREAM)] = pa.array(res.ok[sl])
-                writer.write_table(pa.Table.from_pydict(cols, schema=out_schema))
-                row += k
-        os.replace(tmp, dst)
-    except BaseException:
-        tmp.unlink(missing_ok=True)
-        raise
+    with atomic_path(dst) as tmp, pq.ParquetWriter(tmp, out_schema, compression="zstd") as writer:
+        for batch in pf.iter_batches(batch_size=65_536):
+            k = batch.num_rows
+            cols = {name: batch.column(name) for name in names}
+            sl = slice(row, row + k)
+            for quantity, arr in ((S.QS, res.q), (S.DQS, res.dq), (S.DDQS, res.ddq)):
+                for jj, name in enumerate(S.joint_cols(quantity, joints)):
+                    cols[name] = pa.array(arr[sl, jj])
+            cols[S.ok_col(S.KINEMATICS_STREAM)] = pa.array(res.ok[sl])
+            writer.write_table(pa.Table.from_pydict(cols, schema=out_schema))
+            row += k
     return SmoothReport(
         str(src),
         str(dst),
@@ -235,24 +226,13 @@ def find_tables(in_dir: Path) -> list[Path]:
     return sorted(p for p in in_dir.glob(f"*{S.PARQUET_SUFFIX}") if not p.name.endswith(truth))
 
 
-@contextmanager
-def _progress_bar(enabled: bool, total: int) -> Iterator[Any]:
-    if not enabled:
-        yield None
-        return
-    from rich.console import Console
-    from rich.progress import Progress
-
-    with Progress(console=Console(stderr=True), transient=True) as progress:
-        yield progress, progress.add_task("smooth", total=total)
-
-
 def run(
     params: Params, in_dir: str | Path, out_dir: str | Path, *, progress: bool | None = None
 ) -> list[SmoothReport]:
     """Smooth every ingested table of `in_dir` into `out_dir`, in one MLflow run."""
     import mlflow
 
+    from pipeline.core.progress import progress_bar
     from pipeline.core.tracking import stage_run
 
     cfg = stage_section(params, STAGE, SmoothParams)
@@ -262,15 +242,14 @@ def run(
     tables = find_tables(src)
     if not tables:
         raise DataError(f"{src}: no ingested *.parquet tables")
-    show = sys.stderr.isatty() if progress is None else progress
     reports: list[SmoothReport] = []
     t0 = time.perf_counter()
-    with stage_run(STAGE, {"smooth": asdict(cfg)}), _progress_bar(show, len(tables)) as bar:
+    with stage_run(STAGE, {"smooth": asdict(cfg)}), progress_bar(progress) as bar:
+        task = bar.add_task(STAGE, total=len(tables))
         mlflow.set_tags({"in_dir": str(src), "out_dir": str(out), "logs": str(len(tables))})
         for table in tables:
             reports.append(smooth_table(table, out / table.name, cfg))
-            if bar is not None:
-                bar[0].advance(bar[1])
+            bar.advance(task)
         warnings = [
             f"{Path(r.source).name}: {r.short_segments} segment(s) shorter than the window "
             f"({cfg.window} samples): {r.samples_not_ok} samples not smoothed"
