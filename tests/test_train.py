@@ -26,7 +26,7 @@ from pipeline.core.config import load_params, stage_section
 from pipeline.core.errors import ConfigError, DataError
 from pipeline.logs import schema as S
 from pipeline.logs.schema import LOG, prediction_cols
-from pipeline.stages.train import train_group
+from pipeline.stages.train import train_group  # the stage entry (default studies dir)
 from tests.test_models import TRANSFORMS
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -186,7 +186,7 @@ def mlflow_uri(tmp_path_factory: pytest.TempPathFactory, monkeypatch: pytest.Mon
 
 def _comparable(metrics: dict[str, Any]) -> dict[str, Any]:
     """Metrics without what legitimately differs between runs (timings, run ids, trial bookkeeping)."""
-    m = {k: v for k, v in metrics.items() if k != "seconds"}
+    m = {k: v for k, v in metrics.items() if k not in ("seconds", "mlflow")}
     m["networks"] = {
         name: {k: v for k, v in net.items() if k not in ("trials_run", "trials_reused")}
         for name, net in metrics["networks"].items()

@@ -455,7 +455,7 @@ def run(
     import mlflow
 
     from pipeline.core.tracking import stage_run
-    from pipeline.stages.smooth import find_tables
+    from pipeline.logs.smoothing import find_tables
 
     cfg = stage_section(params, STAGE, LabelParams)
     src, out = Path(in_dir), Path(out_dir)

@@ -39,139 +39,36 @@ MLflow run of the stage's run; the best networks are logged with `mlflow.pytorch
 from __future__ import annotations
 
 import argparse
-import time
-from dataclasses import asdict
 from pathlib import Path
 from typing import Any
-
-import numpy as np
-import torch
-
-from pipeline.calib.fit import fit_baselines, mlflow_metrics, network_info, prepare, score
-from pipeline.calib.models import (
-    WRENCH,
-    save_model,
-)
-from pipeline.calib.params import RAW, nn_name
-from pipeline.calib.records import TrainResult, log_network, log_trial_run, write_predictions
-from pipeline.calib.search import NetResult, code_digest, data_digest, search_network
-from pipeline.calib.training import flat_inputs, predict
-from pipeline.core.config import Params, load_params, repo_root
-from pipeline.core.io import write_json
-from pipeline.core.progress import ProgressLog
 
 STAGE = "train"
 STUDIES_DIR = ".optuna"  # default --studies parent, at the repo root (git-ignored)
 
 
 def train_group(
-    params: Params,
+    params: Any,
     group_name: str,
     in_dir: str | Path,
     out_dir: str | Path,
     studies: str | Path | None = None,
     *,
     progress: bool | None = None,
-) -> TrainResult:
-    """Run the stage for one group: read, split, fit, search, score, write `out_dir`, log to MLflow."""
-    import mlflow
+) -> Any:
+    """Run the stage for one group (module docstring); returns the `TrainResult`.
 
-    from pipeline.core.tracking import stage_run
+    `studies` defaults to ``.optuna/<group>`` at the repo root.
+    """
+    from pipeline.calib.run import train_group as run_group
+    from pipeline.core.config import repo_root
 
-    t0 = time.perf_counter()
-    src, out = Path(in_dir), Path(out_dir)
     studies = Path(studies) if studies is not None else repo_root() / STUDIES_DIR / group_name
-    prep = prepare(params, group_name, src)
-    gp, group = prep.gp, prep.group
-    data = {"val": prep.val, "test": prep.test}
-    torch.set_num_threads(prep.cfg.threads)
-    torch.use_deterministic_algorithms(True)
-    ui = ProgressLog(progress)
-    identity = {  # everything a study's result depends on, but n_trials (more trials extend a study)
-        "group": {k: v for k, v in asdict(gp).items() if k != "n_trials"},
-        "seed": params.seed,
-        "threads": prep.cfg.threads,
-        "split": prep.split,
-        "data": data_digest(prep.train, prep.val),
-        "code": code_digest(),
-        "torch": torch.__version__,
-    }
-    timings: dict[str, float] = {}
-    preds: dict[str, dict[str, np.ndarray]] = {k: {RAW: d.x[:, :, :WRENCH].copy()} for k, d in data.items()}
-    own = {k: v for k, v in asdict(gp).items() if k != "name"}
-    stage_params = {
-        "train": {"group": group_name, "val_logs": prep.cfg.val_logs, "threads": prep.cfg.threads, **own},
-        "seed": params.seed,
-    }
-    with stage_run(f"{STAGE}@{group_name}", stage_params) as run, ui.running():
-        mlflow.set_tags(
-            {
-                "group": group_name,
-                "in_dir": str(src),
-                "out_dir": str(out),
-                "val_logs": ",".join(prep.split["val"]),
-                "test_logs": ",".join(prep.split["test"]),
-            }
-        )
-        t = time.perf_counter()
-        baselines = fit_baselines(gp, group, prep.train)
-        for name, model in baselines.items():
-            for k, d in data.items():
-                preds[k][name] = model.predict(d.x)
-        timings["baselines"] = time.perf_counter() - t
-        seconds = timings["baselines"]
-        ui.line(f"{group.name}: baselines fitted on {len(prep.train)} samples in {seconds:.1f} s")
-
-        nets: dict[str, NetResult] = {}
-        for n_inputs in gp.inputs:
-            name = nn_name(n_inputs)
-            t = time.perf_counter()
-            nets[name] = search_network(
-                gp,
-                group,
-                prep.train,
-                prep.val,
-                n_inputs,
-                params.seed,
-                studies,
-                identity,
-                ui,
-                log_trial_run(group.name, name),
-            )
-            for k, d in data.items():
-                preds[k][name] = predict(nets[name].model, d)
-            timings[name] = time.perf_counter() - t
-
-        metrics = score(prep, preds, nets)
-        out.mkdir(parents=True, exist_ok=True)
-        files = ["metrics.json", "baselines.json", "predictions.parquet"]
-        example = prep.test.subset(np.arange(min(5, len(prep.test))))
-        versions: dict[str, dict[str, str]] = {}
-        for name, r in nets.items():
-            info = network_info(prep, r, metrics, name)
-            save_model(out / name, r.model, info)
-            files += [f"{name}.json", f"{name}.pt"]
-            t = time.perf_counter()
-            columns = {k: info[k] for k in ("group", "sensors", "input_columns", "output_columns")}
-            versions[name] = log_network(
-                group, name, r.model, flat_inputs(example, r.model.config.n_inputs), columns
-            )
-            timings[f"log_{name}"] = time.perf_counter() - t
-        write_json(out / "baselines.json", {name: b.to_dict() for name, b in baselines.items()})
-        write_predictions(out / "predictions.parquet", group, prep.test, prep.log_names, preds["test"])
-        timings["total"] = time.perf_counter() - t0
-        metrics["seconds"] = timings
-        # how evaluate finds this run and the registered networks (by id, never by matching values)
-        metrics["mlflow"] = {"run_id": run.info.run_id, "models": versions}
-        write_json(out / "metrics.json", metrics)
-        mlflow.log_metrics(mlflow_metrics(group, metrics))
-        mlflow.set_tag("best_on_validation", metrics["best_on_validation"])
-        for name in ("metrics.json", "baselines.json"):
-            mlflow.log_artifact(str(out / name))
-    return TrainResult(group.name, metrics, time.perf_counter() - t0, run.info.run_id, files)
+    return run_group(params, group_name, in_dir, out_dir, studies, progress=progress)
 
 
 def _cmd(args: argparse.Namespace) -> int:
+    from pipeline.core.config import load_params
+
     params = load_params(args.params)
     result = train_group(params, args.group, args.inputs, args.out, args.studies)
     m = result.metrics
