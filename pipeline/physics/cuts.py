@@ -207,7 +207,7 @@ def _rotate(rot: np.ndarray, axis: np.ndarray, angle: np.ndarray) -> np.ndarray:
     x, y or z (URDF's usual) rotate two columns in place of a full product."""
     c, s = np.cos(angle)[:, None], np.sin(angle)[:, None]
     k = int(np.argmax(np.abs(axis)))
-    if abs(abs(axis[k]) - 1.0) < 1e-12:
+    if np.count_nonzero(axis) == 1:
         s = s * np.sign(axis[k])
         i, j = (k + 1) % 3, (k + 2) % 3
         out = rot.copy()
