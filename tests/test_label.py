@@ -243,3 +243,51 @@ def test_bad_inputs(tmp_path: Path, default_run: Path, mlflow_store: None) -> No
     with pytest.raises(RobotModelError, match="no force_torque sensor named 'l_toe_ft'"):
         run(load_params(path), default_run / "smoothed", tmp_path / "out")
     assert not (tmp_path / "out").exists()
+
+
+def test_label_stage_on_ergocub(tmp_path: Path, mlflow_store: None) -> None:
+    """Nothing iCub-specific: a smoothed table of ergoCub in declared double support (random kinematics)
+    labels every cut set; the leg-pair and four-foot sums match iDynTree mapped to their frames."""
+    from pipeline.physics.robot import load_robot
+    from tests.conftest import robot_source
+    from tests.idyntree_ref import random_in_limits
+    from tests.test_dynamics_cuts import DOUBLE, _wrench_X
+    from tests.test_dynamics_idyntree import oracle
+
+    robot = load_robot(robot_source("ergoCubSN001"))
+    n, joints, sensors = 40, robot.joint_names, list(robot.sensors)
+    q, dq, ddq = random_in_limits(robot.urdf_path, joints, n, np.random.default_rng(5))
+    cols: dict[str, np.ndarray] = {S.STAMP: np.arange(n) * 10_000_000, S.TIME: np.arange(n) * 0.01}
+    for c in S.ingested_columns(joints, sensors)[2:] + S.smoothed_extra_columns(joints):
+        cols[c] = np.ones(n, dtype=bool) if c.startswith(S.OK + ".") else np.zeros(n)
+    for quantity, values in ((S.QS, q), (S.DQS, dq), (S.DDQS, ddq), (S.Q, q)):
+        for k, c in enumerate(S.joint_cols(quantity, joints)):
+            cols[c] = values[:, k]
+    experiment = {"contacts": ",".join(DOUBLE), "fixed_link": "l_sole"}
+    schema = S.arrow_schema(list(cols), S.KIND_SMOOTHED, {S.META_EXPERIMENT: experiment})
+    (tmp_path / "smoothed").mkdir()
+    pq.write_table(pa_table(cols, schema), tmp_path / "smoothed" / "ergo.parquet")
+    data = yaml.safe_load((REPO / "params.yaml").read_text())
+    data["robot"]["urdf"] = str(robot.urdf_path)
+    (tmp_path / "p.yaml").write_text(yaml.safe_dump(data))
+    run(load_params(tmp_path / "p.yaml"), tmp_path / "smoothed", tmp_path / "labelled")
+    path = tmp_path / "labelled" / "ergo.parquet"
+    table, cuts = pd.read_parquet(path), cut_sets(path)
+    ref = oracle(robot).expected(q, dq, ddq, DOUBLE, "l_sole", np.array([0.0, 0.0, -9.80665]))
+    assert len(cuts) == 6
+    for name, cut in cuts.items():
+        assert (table[S.cut_switch_col(name)] == 1).all(), name
+        theirs = np.zeros((n, 6))
+        for s in cut["sensors"]:
+            xs = np.array([_wrench_X(h) for h in oracle(robot).sensor_poses(q, cut["frame"], s)])
+            theirs += cut["signs"][s] * np.einsum("nij,nj->ni", xs, ref[s])
+        np.testing.assert_allclose(table[S.cut_sum_cols(name)].to_numpy(), theirs, rtol=0, atol=1e-6)
+        np.testing.assert_allclose(map_sum(table, cut, ref), theirs, rtol=0, atol=1e-6)
+
+
+def pa_table(cols: dict[str, np.ndarray], schema):  # noqa: ANN201
+    import pyarrow as pa
+
+    return pa.Table.from_pydict(
+        {k: pa.array(v, type=schema.field(k).type) for k, v in cols.items()}, schema=schema
+    )
