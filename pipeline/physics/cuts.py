@@ -273,6 +273,15 @@ def pose_wrench_transforms(poses: np.ndarray) -> np.ndarray:
     return out
 
 
+def map_wrenches(poses: np.ndarray, wrenches: np.ndarray) -> np.ndarray:
+    """(N, 6) wrenches of frame b expressed in frame a, from (N, 12) poses of b in a and (N, 6) wrenches:
+    ``f_a = R f_b``, ``tau_a = R tau_b + p x f_a`` (``pose_wrench_transforms(poses) @ w``, cheaper)."""
+    rot, p = poses[:, :9].reshape(-1, 3, 3), poses[:, 9:]
+    force = np.einsum("nij,nj->ni", rot, wrenches[:, :3])
+    moment = np.einsum("nij,nj->ni", rot, wrenches[:, 3:]) + np.cross(p, force)
+    return np.concatenate([force, moment], axis=1)
+
+
 def cut_poses(
     robot: RobotModel, cut: CutSet, q: np.ndarray, cache: dict[tuple[str, str], np.ndarray] | None = None
 ) -> dict[str, np.ndarray]:
@@ -292,12 +301,9 @@ def cut_sums(cut: CutSet, readings: dict[str, np.ndarray], poses: dict[str, np.n
 
     poses: (N, 12) per joint-dependent sensor (:func:`cut_poses`); N, Nm (moment about the frame origin).
     """
-    total = None
+    total = np.zeros_like(readings[cut.sensors[0]])
     for sensor, sign in zip(cut.sensors, cut.signs, strict=True):
         f = readings[sensor]
-        if sensor in cut.fixed_X:
-            term = f @ cut.fixed_X[sensor].T
-        else:
-            term = np.einsum("nij,nj->ni", pose_wrench_transforms(poses[sensor]), f)
-        total = sign * term if total is None else total + sign * term
+        fixed = cut.fixed_X.get(sensor)
+        total += sign * (f @ fixed.T if fixed is not None else map_wrenches(poses[sensor], f))
     return total
