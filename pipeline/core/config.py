@@ -252,6 +252,40 @@ class Params:
             raise ConfigError(f"seed must be an integer in [0, 2**32), got {s!r}")
 
 
+@dataclass(frozen=True)
+class LabelParams:
+    """Section `label` of params.yaml (stage `label`; see the comments there).
+
+    Thresholds are in robot-weight units (fractions of the URDF's total mass times gravity), so the same
+    values hold for any robot.
+    """
+
+    contact_on: float  # fraction of robot weight: a foot's normal force above this -> touching
+    contact_off: float  # fraction of robot weight: below this -> not touching
+    guard_s: float  # s: half-width of the guard band around every contact change
+    zero_quantile: float  # the foot's zero level is the median of its readings below this quantile
+    cut_max_sensors: int  # cut sets (summed labels) of 2 to this many FT sensors; 1 = none
+
+    def __post_init__(self) -> None:
+        for name in ("contact_on", "contact_off", "guard_s", "zero_quantile"):
+            v = getattr(self, name)
+            if isinstance(v, bool) or not isinstance(v, int | float) or not math.isfinite(v):
+                raise ConfigError(f"label.{name} must be a number, got {v!r}")
+            object.__setattr__(self, name, float(v))
+        if not 0.0 < self.contact_off < self.contact_on < 1.0:
+            raise ConfigError(
+                f"label.contact_off and label.contact_on must satisfy 0 < contact_off < contact_on < 1 "
+                f"(fractions of the robot weight), got {self.contact_off} and {self.contact_on}"
+            )
+        if not 0.0 <= self.guard_s <= 1.0:
+            raise ConfigError(f"label.guard_s must be in [0, 1] s, got {self.guard_s}")
+        if not 0.01 <= self.zero_quantile <= 0.5:
+            raise ConfigError(f"label.zero_quantile must be in [0.01, 0.5], got {self.zero_quantile}")
+        m = self.cut_max_sensors
+        if isinstance(m, bool) or not isinstance(m, int) or not 1 <= m <= 6:
+            raise ConfigError(f"label.cut_max_sensors must be an integer in [1, 6], got {m!r}")
+
+
 # --- loading -----------------------------------------------------------------------------------
 
 
