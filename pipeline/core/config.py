@@ -395,6 +395,43 @@ def stage_section(params: Params, key: str, cls: type[T]) -> T:
         raise ConfigError(f"{where}: {key}: {exc}") from None
 
 
+# Every stage section of params.yaml and the validator that builds it: called when params.yaml is
+# loaded, whichever stage runs, so a typo anywhere is reported at once with its dotted key. A validator
+# is "module:function(params)" or "module:Class" (built with `stage_section`).
+SECTIONS: dict[str, str] = {
+    "simulate": "pipeline.sim.params:simulate_params",
+    "ingest": "pipeline.logs.params:IngestParams",
+    "smooth": "pipeline.logs.smoothing:SmoothParams",
+    "label": "pipeline.core.config:LabelParams",
+    "train": "pipeline.calib.params:TrainParams",
+    "evaluate": "pipeline.evaluation.params:EvaluateParams",
+}
+SHARED_KEYS = ("seed", "robot", "topics")
+
+
+def validate_sections(params: Params) -> None:
+    """Build every stage section of `params` (ConfigError naming the dotted key if one is invalid).
+
+    A section may be absent (a params file for some stages only); an unknown top-level key is an error.
+    """
+    import importlib
+
+    unknown = sorted(
+        str(k) for k in params.raw if k not in SECTIONS and k not in SHARED_KEYS and k != "__file__"
+    )
+    if unknown:
+        raise ConfigError(f"unknown key {unknown[0]} (allowed: {', '.join([*SHARED_KEYS, *SECTIONS])})")
+    for key, ref in SECTIONS.items():
+        if key not in params.raw:
+            continue
+        module, name = ref.split(":")
+        validator = getattr(importlib.import_module(module), name)
+        if isinstance(validator, type):
+            stage_section(params, key, validator)
+        else:
+            validator(params)
+
+
 def load_params(path: str | Path | None = None) -> Params:
     """Load and validate params.yaml (default: ``<repo_root()>/params.yaml``).
 
@@ -406,6 +443,11 @@ def load_params(path: str | Path | None = None) -> Params:
     try:
         params = _parse(_read_yaml(path))
         params.raw["__file__"] = _display(path)  # type: ignore[index]
-        return params
     except ConfigError as exc:
         raise ConfigError(f"{_display(path)}: {exc}") from None
+    try:
+        validate_sections(params)
+    except ConfigError as exc:  # stage_section already names the file
+        message, where = str(exc), _display(path)
+        raise ConfigError(message if message.startswith(where) else f"{where}: {message}") from None
+    return params

@@ -138,6 +138,39 @@ def load_group(
         DataError: the group's directory, metrics or predictions are missing or unusable, or a test log's
             labelled table is missing.
     """
+    train, frame, names, models = _read_predictions(group, gdir)
+    sensors, pair = tuple(train["sensors"]), train.get("pair")
+    pred_path = gdir / PREDICTIONS
+    frame, kinds, transforms, any_truth = _join_extras(
+        frame, pred_path, labelled_dir, truth_dir, sensors, pair
+    )
+    frame[EXPERIMENT] = frame[LOG].map(kinds)
+    frame = _truth_and_oracle(frame, sensors, pair, names, transforms)
+    if any_truth:
+        models.append(ORACLE)
+    segments, fs = segment_ids(frame[LOG].to_numpy(), frame[S.STAMP].to_numpy())
+    gyro = [frame[S.vector_cols(S.GYR, s)].to_numpy(np.float64) for s in sensors]
+    frame[SPEED] = board_speed(gyro, segments, fs, cfg.highpass_hz, cfg.highpass_order)
+    logs = list(dict.fromkeys(frame[LOG].tolist()))
+    return GroupInputs(
+        group=group,
+        sensors=sensors,
+        pair=pair,
+        headline=str(train.get("headline") or names[0]),
+        names=names,
+        models=models,
+        train=train,
+        frame=frame,
+        fs=fs,
+        segments=segments,
+        transforms=transforms,
+        has_truth=any_truth,
+        experiments=list(dict.fromkeys(kinds[log] for log in logs)),
+    )
+
+
+def _read_predictions(group: str, gdir: Path) -> tuple[dict[str, Any], pd.DataFrame, list[str], list[str]]:
+    """(train metrics, predictions sorted by log and stamp, names, models) of a group's model directory."""
     if not gdir.is_dir():
         raise DataError(f"{gdir}: no models for group {group} (run `dvc repro train@{group}`)")
     pred_path = gdir / PREDICTIONS
@@ -175,7 +208,19 @@ def load_group(
     if frame.empty:
         raise DataError(f"{pred_path}: no test samples")
     frame = frame.sort_values([LOG, S.STAMP], kind="stable").reset_index(drop=True)
+    return train, frame, names, models
 
+
+def _join_extras(
+    frame: pd.DataFrame,
+    pred_path: Path,
+    labelled_dir: Path,
+    truth_dir: Path | None,
+    sensors: tuple[str, ...],
+    pair: str | None,
+) -> tuple[pd.DataFrame, dict[str, str], np.ndarray | None, bool]:
+    """The predictions joined with each test log's labelled and truth extras; (frame, log -> experiment
+    type, the pair's transforms, whether any truth was found)."""
     parts, kinds, transforms, any_truth = [], {}, None, False
     logs = list(dict.fromkeys(frame[LOG].tolist()))
     for log in logs:
@@ -199,9 +244,18 @@ def load_group(
             f"{pred_path}: test samples not in the labelled tables (log {bad.iloc[0] if len(bad) else '?'})"
         )
     frame[S.GUARD] = frame[S.GUARD].astype(bool)
-    frame[EXPERIMENT] = frame[LOG].map(kinds)
+    return frame, kinds, transforms, any_truth
 
-    # truth and oracle per name (a pair's sums in the sole frame); the oracle becomes a model
+
+def _truth_and_oracle(
+    frame: pd.DataFrame,
+    sensors: tuple[str, ...],
+    pair: str | None,
+    names: list[str],
+    transforms: np.ndarray | None,
+) -> pd.DataFrame:
+    """Truth and oracle columns per name (a pair's sums in the sole frame); the oracle as a model's."""
+    n = len(frame)
     new_cols: dict[str, np.ndarray] = {}
     for quantity in (S.TRUE, S.ORACLE):
         per_sensor = {}
@@ -216,25 +270,4 @@ def load_group(
             for a, c in enumerate(S.wrench_cols(target, name)):
                 new_cols[c] = per_sensor[name][:, a]
     frame = frame.drop(columns=[c for c in frame.columns if c.startswith((S.TRUE + ".", S.ORACLE + "."))])
-    frame = pd.concat([frame, pd.DataFrame(new_cols, index=frame.index)], axis=1)
-    if any_truth:
-        models.append(ORACLE)
-
-    segments, fs = segment_ids(frame[LOG].to_numpy(), frame[S.STAMP].to_numpy())
-    gyro = [frame[S.vector_cols(S.GYR, s)].to_numpy(np.float64) for s in sensors]
-    frame[SPEED] = board_speed(gyro, segments, fs, cfg.highpass_hz, cfg.highpass_order)
-    return GroupInputs(
-        group=group,
-        sensors=sensors,
-        pair=pair,
-        headline=str(train.get("headline") or names[0]),
-        names=names,
-        models=models,
-        train=train,
-        frame=frame,
-        fs=fs,
-        segments=segments,
-        transforms=transforms,
-        has_truth=any_truth,
-        experiments=list(dict.fromkeys(kinds[log] for log in logs)),
-    )
+    return pd.concat([frame, pd.DataFrame(new_cols, index=frame.index)], axis=1)

@@ -26,7 +26,7 @@ from pipeline.logs.align import Stream, StreamStats, align_continuous, align_lat
 from pipeline.logs.tables import AtomicParquet, LogReport
 
 if TYPE_CHECKING:
-    from pipeline.stages.ingest import IngestParams
+    from pipeline.logs.params import IngestParams
 
 _EMIT_ROWS = 2_000  # time-base samples buffered before aligning and writing them
 _STALL_S = 5.0  # a stream this far behind the joint states no longer holds the others back (s)
