@@ -17,7 +17,7 @@ from pipeline.labels.contacts import guard_band, hysteresis
 from pipeline.logs import schema as S
 from pipeline.physics.cuts import pose_wrench_transforms
 from pipeline.stages.label import run
-from tests.idyntree_ref import IDynTreeFT
+from tests.relabel import relabel_with_idyntree
 
 REPO = Path(__file__).resolve().parents[1]
 LOGS = [
@@ -200,27 +200,8 @@ IDEAL_TOLERANCE = 1e-3  # N / Nm, per sensor (a cut-set sum may be off by its se
 )
 def test_relabel_with_idyntree(default_run: Path, log: str) -> None:
     """500 labelled samples of each experiment type, recomputed with iDynTree from the same kinematics."""
-    from pipeline.physics.robot import load_robot
-
-    robot = load_robot("iCubGenova09")
-    table = pd.read_parquet(default_run / "labelled" / f"{log}.parquet")
-    smoothed = pd.read_parquet(default_run / "smoothed" / f"{log}.parquet").set_index(S.STAMP)
-    smoothed = smoothed.reindex(table[S.STAMP].to_numpy())
-    oracle = IDynTreeFT(robot.urdf_path, robot.joint_names)
-    rows = np.flatnonzero((table[[S.switch_col(s) for s in robot.sensors]].to_numpy() == 1).any(axis=1))
-    rows = rows[np.linspace(0, len(rows) - 1, 500).astype(int)]
-    compared = 0
-    for (contacts, fixed), group in table.iloc[rows].groupby([S.CONTACTS, S.FIXED_LINK]):
-        idx = group.index.to_numpy()
-        kin = [smoothed[S.joint_cols(k, robot.joint_names)].to_numpy()[idx] for k in (S.QS, S.DQS, S.DDQS)]
-        ref = oracle.expected(*kin, contacts.split(","), fixed, np.array([0.0, 0.0, -9.80665]))
-        for s in robot.sensors:
-            on = group[S.switch_col(s)].to_numpy() == 1
-            np.testing.assert_allclose(
-                group[S.wrench_cols(S.EXPECTED, s)].to_numpy()[on], ref[s][on], atol=1e-6
-            )
-            compared += int(on.sum())
-    assert compared >= 500
+    table, smoothed = (default_run / k / f"{log}.parquet" for k in ("labelled", "smoothed"))
+    assert relabel_with_idyntree(table, smoothed, "iCubGenova09", samples=500) < 1e-6
 
 
 def test_bad_inputs(tmp_path: Path, default_run: Path, mlflow_store: None) -> None:

@@ -1,0 +1,105 @@
+"""End to end on a few seconds of simulated logs: simulate -> ingest -> smooth -> label -> train -> evaluate
+-> report, through the stages' own `run` functions, on iCub 3 and on ergoCub (by robot.urdf alone).
+
+What it checks is the hand-offs: every stage reads what the previous one wrote; train's outputs are what
+evaluate reads (the contract of `pipeline.calib.records`, linked to MLflow by run id); the labels of the
+simulated logs agree with iDynTree's expected FT measurements (1e-6 N/Nm).
+"""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import pandas as pd
+import pytest
+import yaml
+
+from pipeline.core.config import load_params
+from pipeline.stages import evaluate, ingest, label, report, simulate, smooth, train
+from tests.conftest import REPO, robot_source
+from tests.relabel import relabel_with_idyntree
+
+LOGS = [
+    {"type": "pole", "duration_s": 8, "role": "train"},
+    {"type": "pole", "duration_s": 8, "role": "train"},
+    {"type": "walking", "duration_s": 12, "role": "train"},
+    {"type": "pole", "duration_s": 6, "role": "test"},
+    {"type": "walking", "duration_s": 10, "role": "test"},
+]
+GROUP = "r_leg_ft"
+
+
+def _params(tmp: Path, urdf: str) -> Path:
+    data = yaml.safe_load((REPO / "params.yaml").read_text())
+    data["robot"]["urdf"] = urdf
+    data["simulate"].update(logs=LOGS, workers=1, plots=False)
+    data["simulate"]["motion"]["steps_per_direction"] = 2
+    defaults = data["train"]["defaults"]
+    defaults.update(hidden=16, epochs=2, n_trials=1, batch_size=256, search={}, inputs=[7, 13])
+    data["train"]["groups"] = {GROUP: {"sensor": GROUP}}
+    path = tmp / "params.yaml"
+    path.write_text(yaml.safe_dump(data, sort_keys=False))
+    return path
+
+
+@pytest.fixture(scope="module", params=["iCubGenova09", "ergoCubSN001"])
+def pipeline_run(request: pytest.FixtureRequest, tmp_path_factory: pytest.TempPathFactory) -> dict[str, Any]:
+    urdf = robot_source(request.param)
+    tmp = tmp_path_factory.mktemp(f"e2e_{request.param}")
+    patch = pytest.MonkeyPatch()
+    patch.setenv("MLFLOW_TRACKING_URI", f"sqlite:///{tmp / 'mlflow.db'}")
+    try:
+        params = load_params(_params(tmp, urdf))
+        d = {k: tmp / k for k in ("sim", "ingested", "smoothed", "labelled", "models", "reports")}
+        simulate.run(params, d["sim"], progress=False)
+        ingest.run(params, d["sim"], d["ingested"], progress=False)
+        smooth.run(params, d["ingested"], d["smoothed"], progress=False)
+        label.run(params, d["smoothed"], d["labelled"], truth_dir=d["ingested"], progress=False)
+        trained = train.train_group(
+            params, GROUP, d["labelled"], d["models"] / GROUP, tmp / "studies", progress=False
+        )
+        result = evaluate.run(
+            params, GROUP, d["models"] / GROUP, d["labelled"], d["reports"], d["ingested"], progress=False
+        )
+        report.run(params, d["reports"])
+    finally:
+        patch.undo()
+    return {"dirs": d, "trained": trained, "result": result, "urdf": urdf, "tmp": tmp}
+
+
+def test_every_stage_hands_over_to_the_next(pipeline_run: dict[str, Any]) -> None:
+    d, result = pipeline_run["dirs"], pipeline_run["result"]
+    assert len(list(d["labelled"].glob("*.parquet"))) == len(LOGS)
+    metrics = json.loads((d["models"] / GROUP / "metrics.json").read_text())
+    assert metrics["mlflow"]["run_id"] == pipeline_run["trained"].mlflow_run == result.train_run
+    assert set(result.model_versions) == {"nn7", "nn13"}
+    assert result.recommended in result.models and result.histories["nn7"]
+    raw, best = (result.headline_rmse("truth", m) for m in ("raw", result.recommended))
+    assert raw > 5.0 and best < raw / 3  # the simulated leg sensor is miscalibrated; the fit corrects it
+    small = json.loads((d["reports"] / "metrics" / f"{GROUP}.json").read_text())
+    assert small["recommended"] == result.recommended
+    page = (d["reports"] / "index.html").read_text()
+    assert GROUP in page and f"groups/{GROUP}/plots/loss.png" in page
+
+
+def test_labels_agree_with_idyntree(pipeline_run: dict[str, Any]) -> None:
+    d = pipeline_run["dirs"]
+    table = sorted(d["labelled"].glob("*walking_test.parquet"))[0]
+    smoothed = d["smoothed"] / table.name
+    worst = relabel_with_idyntree(table, smoothed, pipeline_run["urdf"], samples=40)
+    assert worst < 1e-6
+
+
+def test_labelled_sensor_errors_against_truth_are_small(pipeline_run: dict[str, Any]) -> None:
+    """Labels are within what the simulator's 3% mass errors allow of the true leg wrench."""
+    d = pipeline_run["dirs"]
+    frame = pd.read_parquet(sorted(d["labelled"].glob("*pole_test.parquet"))[0])
+    truth = pd.read_parquet(sorted(d["ingested"].glob("*pole_test.truth.parquet"))[0])
+    exp = frame[[f"exp.{GROUP}.{a}" for a in ("fx", "fy", "fz")]].to_numpy()
+    true = truth[[f"true.{GROUP}.{a}" for a in ("fx", "fy", "fz")]].to_numpy()
+    ok = np.isfinite(exp).all(axis=1) & np.isfinite(true).all(axis=1)
+    assert ok.mean() > 0.9
+    assert np.sqrt(np.mean((exp[ok] - true[ok]) ** 2)) < 3.0
