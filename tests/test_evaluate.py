@@ -28,10 +28,10 @@ from pipeline.logs import schema as S
 from pipeline.logs.schema import prediction_cols
 from pipeline.stages import evaluate as E
 from pipeline.stages import report as REPORT
+from tests.factories import FRONT, LEG, PAIR, REAR, labelled_metadata, write_table
 from tests.test_models import TRANSFORMS
 
 ROOT = Path(__file__).resolve().parents[1]
-LEG, FRONT, REAR, PAIR = "r_leg_ft", "r_foot_front_ft", "r_foot_rear_ft", "r_foot"
 FS = 100.0  # Hz
 NOISE = np.array([0.5, 0.5, 0.5, 0.03, 0.03, 0.03])  # raw white noise std per axis, N and Nm
 
@@ -168,12 +168,6 @@ LOGS = [("08_pole_test", "pole", 0.01, None), ("11_walking_test", "walking", 0.8
 N = 600
 
 
-def _write(path: Path, cols: dict[str, Any], kind: str, meta: dict[bytes, Any]) -> None:
-    schema = S.arrow_schema(list(cols), kind, meta)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    pq.write_table(pa.Table.from_pydict(cols, schema=schema), path)
-
-
 def build_fixture(root: Path) -> dict[str, Path]:
     """labelled/, ingested/ (truth) and models/<group>/ for a leg sensor and a foot pair.
 
@@ -215,22 +209,10 @@ def build_fixture(root: Path) -> dict[str, Path]:
         lab[S.CONTACTS] = contacts
         lab[S.GUARD] = np.zeros(N, dtype=bool)
         tru[S.CONTACTS] = contacts
-        meta = {
-            S.META_EXPERIMENT: {"type": kind, "role": "test", "log": log},
-            S.META_LABEL: {
-                "pairs": {
-                    PAIR: {
-                        "front": FRONT,
-                        "rear": REAR,
-                        "sole": "r_sole",
-                        "sole_X_front": TRANSFORMS[0].ravel().tolist(),
-                        "sole_X_rear": TRANSFORMS[1].ravel().tolist(),
-                    }
-                }
-            },
-        }
-        _write(dirs["labelled"] / f"{log}.parquet", lab, S.KIND_LABELLED, meta)
-        _write(dirs["ingested"] / f"{log}{S.TRUTH_SUFFIX}.parquet", tru, S.KIND_TRUTH, {})
+        write_table(
+            dirs["labelled"] / f"{log}.parquet", lab, S.KIND_LABELLED, labelled_metadata(kind, "test", log)
+        )
+        write_table(dirs["ingested"] / f"{log}{S.TRUTH_SUFFIX}.parquet", tru, S.KIND_TRUTH, {})
         extra = rng.normal(size=(N, 6)) * 3 * NOISE
         switch = np.ones(N, dtype=np.uint8) if period is None else (contacts == "l_sole").astype(np.uint8)
         for group, names in ((LEG, (LEG,)), (PAIR, (PAIR, FRONT, REAR))):

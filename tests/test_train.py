@@ -27,108 +27,10 @@ from pipeline.core.errors import ConfigError, DataError
 from pipeline.logs import schema as S
 from pipeline.logs.schema import LOG, prediction_cols
 from pipeline.stages.train import train_group  # the stage entry (default studies dir)
+from tests.factories import FRONT, LEG, LOGS, PAIR, REAR, write_labelled_log
 from tests.test_models import TRANSFORMS
 
 ROOT = Path(__file__).resolve().parents[1]
-LEG, FRONT, REAR, PAIR = "r_leg_ft", "r_foot_front_ft", "r_foot_rear_ft", "r_foot"
-SENSORS = (LEG, FRONT, REAR)
-SCALE = np.array([60.0, 60.0, 200.0, 4.0, 4.0, 1.5])  # N, N, N, Nm, Nm, Nm: amplitude of the true wrenches
-# Which labels each synthetic experiment type has: (leg, parts, pair) as functions of the phase u in [0, 1).
-SWITCHES = {
-    "pole": lambda u: (np.ones_like(u), np.ones_like(u), np.ones_like(u)),  # the foot touches nothing
-    "balancing": lambda u: (np.ones_like(u), np.zeros_like(u), np.ones_like(u)),  # whole foot on the floor
-    # swing (parts exact), single support (sum exact), double support (nothing exact)
-    "walking": lambda u: ((u % 0.5) < 0.4, (u % 0.5) < 0.2, (u % 0.5) < 0.4),
-}
-
-
-def _distortion(sensor: str) -> dict[str, np.ndarray]:
-    """The hidden distortion of a sensor, the same in every log: raw = M w + b + d (T - 25) + q w_z^2."""
-    rng = np.random.default_rng(list(SENSORS).index(sensor) + 100)
-    return {
-        "gain": np.eye(6) + 0.03 * rng.normal(size=(6, 6)),
-        "offset": rng.uniform(20, 40, 6) * np.r_[1, 1, 1, 0.1, 0.1, 0.1] * rng.choice([-1, 1], 6),
-        "drift": rng.normal(size=6) * np.r_[0.5, 0.5, 0.5, 0.02, 0.02, 0.02],
-        "quadratic": rng.normal(size=6) * 1e-4,
-    }
-
-
-def write_labelled_log(path: Path, kind: str, role: str, n: int, seed: int, bad_rows: int = 3) -> None:
-    """A labelled table (schema "Labelled table"): the three sensors, the r_foot pair and its transforms."""
-    rng = np.random.default_rng(seed)
-    t = np.arange(n) / 100.0
-    u = np.arange(n) / n
-    cols: dict[str, Any] = {
-        S.STAMP: (1_700_000_000_000_000_000 + np.arange(n) * 10_000_000).astype(np.int64),
-        S.TIME: t,
-    }
-    truth = {}
-    for s, sensor in enumerate(SENSORS):
-        phase = rng.uniform(0, 2 * np.pi, (3, 6))
-        freq = rng.uniform(0.05, 0.8, (3, 6))
-        w = sum(np.sin(2 * np.pi * freq[k] * t[:, None] + phase[k]) for k in range(3)) * SCALE / 2
-        temp = 30 + 4 * np.sin(2 * np.pi * 0.01 * t + seed + s) + rng.uniform(-2, 2)
-        d = _distortion(sensor)
-        raw = (
-            w @ d["gain"].T + d["offset"] + np.outer(temp - 25, d["drift"]) + d["quadratic"] * w[:, [2]] ** 2
-        )
-        raw += rng.normal(size=raw.shape) * 0.05
-        ok = np.ones(n, dtype=bool)
-        ok[rng.choice(n, bad_rows, replace=False)] = False  # lost messages: NaN values, flag False
-        raw[~ok] = np.nan
-        for c, v in zip(S.wrench_cols(S.FT, sensor), raw.T, strict=True):
-            cols[c] = v
-        cols[S.temperature_col(sensor)] = temp
-        for c, v in zip(
-            S.vector_cols(S.ACC, sensor) + S.vector_cols(S.GYR, sensor), rng.normal(size=(6, n)), strict=True
-        ):
-            cols[c] = v
-        cols[S.ok_col(S.WRENCH_STREAM, sensor)] = ok
-        cols[S.ok_col(S.IMU_STREAM, sensor)] = np.ones(n, dtype=bool)
-        cols[S.ok_col(S.TEMPERATURE_STREAM, sensor)] = np.ones(n, dtype=bool)
-        truth[sensor] = w
-    sw_leg, sw_parts, sw_pair = (np.asarray(a, dtype=bool) for a in SWITCHES[kind](u))
-    total = truth[FRONT] @ TRANSFORMS[0].T + truth[REAR] @ TRANSFORMS[1].T
-    for name, w, sw in (
-        (LEG, truth[LEG], sw_leg),
-        (FRONT, truth[FRONT], sw_parts),
-        (REAR, truth[REAR], sw_parts),
-        (PAIR, total, sw_pair),
-    ):
-        for c, v in zip(S.wrench_cols(S.EXPECTED, name), np.where(sw[:, None], w, np.nan).T, strict=True):
-            cols[c] = v
-        cols[S.switch_col(name)] = sw.astype(np.uint8)
-    cols[S.CONTACTS] = np.full(n, "r_foot_front,r_foot_rear", dtype=object)
-    cols[S.FIXED_LINK] = np.full(n, "r_sole", dtype=object)
-    cols[S.GUARD] = np.zeros(n, dtype=bool)
-    meta = {
-        S.META_EXPERIMENT: {"type": kind, "role": role, "log": path.stem},
-        S.META_LABEL: {
-            "pairs": {
-                PAIR: {
-                    "front": FRONT,
-                    "rear": REAR,
-                    "sole": "r_sole",
-                    "sole_X_front": TRANSFORMS[0].tolist(),
-                    "sole_X_rear": TRANSFORMS[1].tolist(),
-                }
-            }
-        },
-    }
-    schema = S.arrow_schema(list(cols), S.KIND_LABELLED, meta)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    pq.write_table(pa.Table.from_pydict(cols, schema=schema), path)
-
-
-LOGS = [
-    ("00_pole", "pole", "train"),
-    ("01_pole", "pole", "train"),
-    ("02_balancing", "balancing", "train"),
-    ("03_walking", "walking", "train"),
-    ("04_walking", "walking", "train"),
-    ("05_pole", "pole", "test"),
-    ("06_walking", "walking", "test"),
-]
 
 
 @pytest.fixture(scope="module")
