@@ -28,6 +28,8 @@ STAGE_MODULES = (
     "pipeline.stages.label",
     "pipeline.stages.train",
     "pipeline.stages.evaluate",
+    "pipeline.stages.export",
+    "pipeline.tools.calibrate",
 )
 
 
