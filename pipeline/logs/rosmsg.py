@@ -323,6 +323,47 @@ _MAX_BUFFERED_MESSAGES = 200_000
 _MAX_BUFFERED_BYTES = 256 * 2**20
 
 
+def fixed_records(
+    template: _CdrTemplate,
+    channel: int,
+    sequence: np.ndarray,
+    log_times: np.ndarray,
+    publish_times: np.ndarray,
+    stamps: np.ndarray,
+    values: Mapping[str, np.ndarray],
+) -> np.ndarray:
+    """(n, size) uint8: n complete MCAP Message records (record header + CDR) of a fixed-layout type.
+
+    `template` (`_fixed_template`) fixes the type and frame_id; times are int64 ns (header.stamp from
+    `stamps`); `values` fills the template's slots by name (e.g. ``wrench`` (n, 6)).
+    """
+    n = len(stamps)
+    dtype = template.dtype(
+        prefix=_RH,
+        extra=[
+            (name, _RECORD_HEADER.fields[name][0], _RECORD_HEADER.fields[name][1])
+            for name in _RECORD_HEADER.names
+        ],
+    )
+    size = dtype.itemsize
+    rows = np.empty(n, dtype=dtype)
+    raw = rows.view(np.uint8).reshape(n, size)
+    raw[:, _RH:] = np.frombuffer(bytes(template.buf), dtype=np.uint8)
+    rows["op"] = 0x05
+    rows["len"] = size - 9
+    rows["channel"] = channel
+    rows["sequence"] = sequence
+    rows["log_time"] = np.asarray(log_times, dtype=np.int64).view(np.uint64)
+    rows["publish_time"] = np.asarray(publish_times, dtype=np.int64).view(np.uint64)
+    sec, nanosec = split_stamps(np.asarray(stamps, dtype=np.int64))
+    rows["sec"] = sec
+    rows["nanosec"] = nanosec
+    for name, value in values.items():
+        if name in dtype.names:
+            rows[name] = value
+    return raw
+
+
 @dataclass
 class _Pending:
     """A batch of encoded MCAP Message records of one channel, all of the same size."""
@@ -696,29 +737,10 @@ class LogWriter:
         if len(log_times) != n:
             raise ValueError(f"{topic}: {len(log_times)} log times for {n} stamps")
         channel = self._channel(topic, msgtype)
-        dtype = template.dtype(
-            prefix=_RH,
-            extra=[
-                (name, _RECORD_HEADER.fields[name][0], _RECORD_HEADER.fields[name][1])
-                for name in _RECORD_HEADER.names
-            ],
+        raw = fixed_records(
+            template, channel, self._next_sequence(channel, n), log_times, stamps, stamps, values
         )
-        size = dtype.itemsize
-        rows = np.empty(n, dtype=dtype)
-        raw = rows.view(np.uint8).reshape(n, size)
-        raw[:, _RH:] = np.frombuffer(bytes(template.buf), dtype=np.uint8)
-        rows["op"] = 0x05
-        rows["len"] = size - 9
-        rows["channel"] = channel
-        rows["sequence"] = self._next_sequence(channel, n)
-        rows["log_time"] = log_times.view(np.uint64)
-        rows["publish_time"] = stamps.view(np.uint64)
-        sec, nanosec = split_stamps(stamps)
-        rows["sec"] = sec
-        rows["nanosec"] = nanosec
-        for name, value in values.items():
-            if name in dtype.names:
-                rows[name] = value
+        size = raw.shape[1]
         self._push(_Pending(raw.reshape(-1), size, log_times, channel))
 
     def _push(self, pending: _Pending) -> None:
@@ -1310,6 +1332,11 @@ class LogReader:
         self.close()
 
     @property
+    def summary(self) -> Any:
+        """The file's summary (mcap.reader Summary: schemas, channels, statistics, chunk indexes)."""
+        return self._summary
+
+    @property
     def message_count(self) -> int:
         return sum(t.message_count for t in self.topics.values())
 
@@ -1325,7 +1352,32 @@ class LogReader:
         `fast=False` decodes every message with the standard mcap_ros2 decoder. `progress(n)` is called
         with the number of file bytes consumed after each chunk.
         """
-        wanted = set(self.topics) if topics is None else set(topics)
+        decoders = self._decoders(set(self.topics) if topics is None else set(topics), fast)
+        for index, batches in self._indexed_chunks(decoders):
+            if batches is not None:
+                yield batches
+            if progress is not None:
+                progress(index.chunk_length + index.message_index_length)
+
+    def iter_indexed_chunks(
+        self, topics: Iterable[str], *, fast: bool = True
+    ) -> Iterator[tuple[Any, list[Batch]]]:
+        """Yield every chunk in file order as (its ChunkIndex, the decoded batches of `topics` in it)."""
+        for index, batches in self._indexed_chunks(self._decoders(set(topics), fast)):
+            yield index, batches or []
+
+    def _indexed_chunks(
+        self, decoders: Mapping[int, _ChannelDecoder]
+    ) -> Iterator[tuple[Any, list[Batch] | None]]:
+        """(index, batches) of every chunk in file order; batches None when no wanted channel is in it."""
+        chunk_indexes = sorted(self._summary.chunk_indexes, key=lambda c: c.chunk_start_offset)
+        for ordinal, index in enumerate(chunk_indexes):
+            if index.message_index_offsets and not any(c in decoders for c in index.message_index_offsets):
+                yield index, None
+            else:
+                yield index, self._read_chunk(index, ordinal, decoders)
+
+    def _decoders(self, wanted: set[str], fast: bool) -> dict[int, _ChannelDecoder]:
         decoders: dict[int, _ChannelDecoder] = {}
         for cid, channel in self._summary.channels.items():
             if channel.topic in wanted:
@@ -1333,15 +1385,7 @@ class LogReader:
                 decoders[cid] = _ChannelDecoder(
                     channel.topic, schema.name if schema else "", schema, channel.message_encoding, fast
                 )
-        chunk_indexes = sorted(self._summary.chunk_indexes, key=lambda c: c.chunk_start_offset)
-        for ordinal, index in enumerate(chunk_indexes):
-            if index.message_index_offsets and not any(c in decoders for c in index.message_index_offsets):
-                if progress is not None:
-                    progress(index.chunk_length + index.message_index_length)
-                continue
-            yield self._read_chunk(index, ordinal, decoders)
-            if progress is not None:
-                progress(index.chunk_length + index.message_index_length)
+        return decoders
 
     def _read_chunk(self, index: Any, ordinal: int, decoders: Mapping[int, _ChannelDecoder]) -> list[Batch]:
         where = f"chunk at byte {index.chunk_start_offset}"
