@@ -8,7 +8,11 @@ N and Nm, each in its sensor frame), sensor after sensor. N is dynamic (1 in a c
 Per sensor, with x its columns (the forms of `pipeline.export.trained`):
 
 - network: ``x[:, :6] + out_scale * mlp((x - in_offset) / in_scale)``, mlp = Gemm layers with their
-  activations, the operations in torch's order (so float32 matches torch's float32 closely);
+  activations, the operations in torch's order (so float32 matches torch's float32 closely); networks of
+  one architecture (the sensors of a foot, or of every group in the fused graph) are evaluated together,
+  one batched MatMul per layer, with the normalisation folded into the first layer and the output scale
+  into the last (fewer operations per call: the latency of a control loop's single sample is per-operation
+  overhead more than arithmetic);
 - affine / polynomial: ``x[:, :6] + phi((x[:, :7] - offset) / scale) @ W^T``, phi the monomials: the
   standardised inputs padded with a column of ones, gathered by an index table (P, order) and multiplied
   along the last axis (ReduceProd), so one Gather and one ReduceProd compute every monomial;
@@ -159,14 +163,77 @@ def _sensor(b: _Builder, x: str, part: Any, hint: str) -> str:
     return b.op("Add", [raw, correction], f"{hint}_calibrated")
 
 
-def _group(b: _Builder, x: str, start: int, model: GroupModel) -> tuple[str, int]:
-    """Outputs (N, 6 S) of a group whose inputs are x[:, start : start + S n_inputs]; the next start."""
-    outs = []
-    for s, (sensor, part) in enumerate(zip(model.sensors, model.parts, strict=True)):
-        lo = start + s * model.n_inputs
-        outs.append(_sensor(b, b.columns(x, lo, lo + model.n_inputs, f"{sensor}_inputs"), part, sensor))
-    out = outs[0] if len(outs) == 1 else b.op("Concat", outs, f"{model.group}_calibrated", axis=1)
-    return out, start + len(model.sensors) * model.n_inputs
+def _signature(part: Any, n_inputs: int) -> tuple | None:
+    """Networks of one signature (inputs, layer shapes, activations) are evaluated stacked; None: alone."""
+    if not isinstance(part, NetworkPart):
+        return None
+    return (n_inputs, tuple((layer.weight.shape, layer.activation, layer.alpha) for layer in part.layers))
+
+
+def _folded(part: NetworkPart) -> list[tuple[np.ndarray, np.ndarray]]:
+    """(W, b) per layer with the input normalisation folded into the first layer and the output scale
+    into the last (float64): ``W1 (x - o) / s = (W1 / s) x - (W1 / s) o``, ``c (W x + b) = (c W) x + c b``."""
+    layers = [(layer.weight.copy(), layer.bias.copy()) for layer in part.layers]
+    w, bias = layers[0]
+    w = w / part.in_scale[None, :]
+    layers[0] = (w, bias - w @ part.in_offset)
+    w, bias = layers[-1]
+    layers[-1] = (part.out_scale[:, None] * w, part.out_scale * bias)
+    return layers
+
+
+def _stack(b: _Builder, x: str, starts: Sequence[int], n_inputs: int, parts: Sequence[NetworkPart]) -> str:
+    """Calibrated wrenches (N, 6 S) of S networks of one signature, as one batched MatMul per layer:
+    x[:, starts[s] : starts[s] + n_inputs] -> (S, N, n_inputs) -> layers -> (N, S, 6) -> (N, 6 S).
+    Normalisation and output scale are folded into the first and last layers (`_folded`)."""
+    s_count = len(parts)
+    columns = np.concatenate([np.arange(lo, lo + n_inputs) for lo in starts])
+    if not np.array_equal(columns, np.arange(len(columns))):
+        x = b.op("Gather", [x, b.const("stack_columns", columns, np.int64)], axis=1)
+    inputs = b.op("Reshape", [x, b.const("shape", [0, s_count, n_inputs], np.int64)], "stack_inputs")
+    bounds = (b.const(k, v, np.int64) for k, v in (("lo", [0]), ("hi", [WRENCH]), ("ax", [2])))
+    raw = b.op("Slice", [inputs, *bounds], "stack_raw")
+    h = b.op("Transpose", [inputs], perm=[1, 0, 2])  # (S, N, n)
+    folded = [_folded(p) for p in parts]
+    for k, layer in enumerate(parts[0].layers):
+        w = b.const(f"w{k}", np.stack([f[k][0].T for f in folded]))  # (S, in, out)
+        bias = b.const(f"b{k}", np.stack([f[k][1][None, :] for f in folded]))  # (S, 1, out)
+        h = _activation(b, b.op("Add", [b.op("MatMul", [h, w]), bias], f"layer{k}"), layer, f"act{k}")
+    h = b.op("Transpose", [h], perm=[1, 0, 2])  # (N, S, 6)
+    calibrated = b.op("Add", [raw, h], "stack_calibrated")
+    return b.op("Reshape", [calibrated, b.const("shape", [0, s_count * WRENCH], np.int64)])
+
+
+def _all(b: _Builder, x: str, models: Sequence[GroupModel]) -> tuple[str, int]:
+    """Output (N, 6 S) of every sensor of `models` (input columns side by side); the number of inputs.
+
+    Networks of equal signature are stacked (`_stack`); the others run alone; a final Gather restores
+    the sensor order when stacking changed it.
+    """
+    sensors, start = [], 0  # (input start, n_inputs, part, name)
+    for m in models:
+        for sensor, part in zip(m.sensors, m.parts, strict=True):
+            sensors.append((start, m.n_inputs, part, sensor))
+            start += m.n_inputs
+    stacks: dict[Any, list[int]] = {}
+    for k, (_, n, part, _) in enumerate(sensors):
+        key = _signature(part, n)
+        stacks.setdefault(key if key is not None else ("alone", k), []).append(k)
+    outs, order = [], []
+    for members in stacks.values():
+        if len(members) > 1:
+            picked = [sensors[k] for k in members]
+            outs.append(_stack(b, x, [s[0] for s in picked], picked[0][1], [s[2] for s in picked]))
+        else:
+            lo, n, part, sensor = sensors[members[0]]
+            inputs = x if (lo, n) == (0, start) else b.columns(x, lo, lo + n, f"{sensor}_inputs")
+            outs.append(_sensor(b, inputs, part, sensor))
+        order += members
+    out = outs[0] if len(outs) == 1 else b.op("Concat", outs, "concat", axis=1)
+    if order != sorted(order):
+        columns = np.concatenate([np.arange(k * WRENCH, (k + 1) * WRENCH) for k in np.argsort(order)])
+        out = b.op("Gather", [out, b.const("sensor_order", columns, np.int64)], "in_sensor_order", axis=1)
+    return out, start
 
 
 def build(models: Sequence[GroupModel], dtype: str, metadata: dict[str, str], name: str) -> Any:
@@ -176,14 +243,8 @@ def build(models: Sequence[GroupModel], dtype: str, metadata: dict[str, str], na
     if dtype not in DTYPES:
         raise ValueError(f"dtype must be one of {DTYPES}, got {dtype!r}")
     b = _Builder(dtype)
-    start, outs = 0, []
-    for model in models:
-        out, start = _group(b, INPUT, start, model)
-        outs.append(out)
-    if len(outs) == 1:
-        b.op("Identity", outs, output=OUTPUT)
-    else:
-        b.op("Concat", outs, output=OUTPUT, axis=1)
+    out, start = _all(b, INPUT, models)
+    b.op("Identity", [out], output=OUTPUT)
     elem = TensorProto.FLOAT if dtype == "float32" else TensorProto.DOUBLE
     n_out = sum(len(m.sensors) for m in models) * WRENCH
     graph = helper.make_graph(

@@ -149,3 +149,41 @@ def data_sha256(paths: Sequence[Path]) -> str:
     for path in sorted(paths, key=lambda p: p.name):
         digest.update(f"{path.name}\0{sha256_file(path)}\n".encode())
     return digest.hexdigest()
+
+
+def build_graphs(
+    models: Sequence[GroupModel], topics: Any, robot: str, trainings: Mapping[str, Mapping[str, Any]]
+) -> dict[str, tuple[dict[str, Any], dict[str, Any]]]:
+    """name -> (manifest entry, {dtype: ONNX ModelProto}) of each group's graph and of the fused one."""
+    from pipeline.export import graph
+
+    out = {}
+    for name, members in [*((m.group, [m]) for m in models), (FUSED, list(models))]:
+        entry = graph_entry(members, topics, trainings)
+        props = metadata(entry, robot)
+        out[name] = (
+            entry,
+            {dtype: graph.build(members, dtype, props, f"ftcal_{name}") for dtype in graph.DTYPES},
+        )
+    return out
+
+
+def write_export(
+    out_dir: Path, robot: str, built: Mapping[str, tuple[dict[str, Any], dict[str, Any]]]
+) -> dict[str, Any]:
+    """Write every graph as ``<name>.<dtype>.onnx`` and manifest.json into `out_dir`; the manifest."""
+    import onnx
+
+    from pipeline.core.io import write_json
+
+    entries = {}
+    for name, (entry, graphs) in built.items():
+        entry = dict(entry)
+        entry["files"] = {dtype: f"{name}.{dtype}.onnx" for dtype in graphs}
+        for dtype, model in graphs.items():
+            onnx.save_model(model, out_dir / entry["files"][dtype])
+        entry["sha256"] = {d: sha256_file(out_dir / f) for d, f in entry["files"].items()}
+        entries[name] = entry
+    doc = document(robot, entries)
+    write_json(out_dir / MANIFEST_FILE, doc)
+    return doc

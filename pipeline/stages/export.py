@@ -150,16 +150,6 @@ def _register(client: Any, run: Any, manifest: dict[str, Any]) -> dict[str, str]
     return registered
 
 
-def _write(tmp: Path, name: str, graphs: dict[str, Any]) -> dict[str, str]:
-    import onnx
-
-    files = {}
-    for dtype, graph in graphs.items():
-        files[dtype] = f"{name}.{dtype}.onnx"
-        onnx.save_model(graph, tmp / files[dtype])
-    return files
-
-
 def _replace_dir(tmp: Path, out: Path) -> None:
     """Move the finished directory `tmp` to `out`, replacing an older export."""
     old = out.with_name(f".{out.name}.{os.getpid()}.old")
@@ -176,9 +166,8 @@ def run(
     import mlflow
 
     from pipeline.core.config import ExportParams, stage_section
-    from pipeline.core.io import write_json
     from pipeline.core.tracking import stage_run
-    from pipeline.export import check, graph, manifest
+    from pipeline.export import check, manifest
     from pipeline.export.trained import read_group, read_metrics
 
     t0 = time.perf_counter()
@@ -220,26 +209,14 @@ def run(
         shutil.rmtree(tmp, ignore_errors=True)
         tmp.mkdir()
         try:
-            entries = {}
-            for name, members, result_of in [
-                *(
-                    (m.group, [m], lambda g, s=s: check.check_group(g, s))
-                    for m, s in zip(models, samples, strict=True)
-                ),
-                (manifest.FUSED, models, lambda g: check.check_fused(g, samples)),
-            ]:
-                entry = manifest.graph_entry(members, params.topics, trainings)
-                props = manifest.metadata(entry, robot)
-                graphs = {
-                    dtype: graph.build(members, dtype, props, f"ftcal_{name}") for dtype in graph.DTYPES
-                }
-                entry["check"] = result_of(graphs)
+            built = manifest.build_graphs(models, params.topics, robot, trainings)
+            for name, (entry, graphs) in built.items():
+                if name == manifest.FUSED:
+                    entry["check"] = check.check_fused(graphs, samples)
+                else:
+                    entry["check"] = check.check_group(graphs, samples[groups.index(name)])
                 check.assert_within(name, entry["check"], tolerance)
-                entry["files"] = _write(tmp, name, graphs)
-                entry["sha256"] = {d: manifest.sha256_file(tmp / f) for d, f in entry["files"].items()}
-                entries[name] = entry
-            doc = manifest.document(robot, entries)
-            write_json(tmp / manifest.MANIFEST_FILE, doc)
+            doc = manifest.write_export(tmp, robot, built)
             _replace_dir(tmp, out)
         except BaseException:
             shutil.rmtree(tmp, ignore_errors=True)
@@ -248,7 +225,7 @@ def run(
         mlflow.log_metrics(
             {
                 f"check.{name}.{dtype}.max_abs_diff": r["max_abs_diff"]
-                for name, e in entries.items()
+                for name, e in doc["graphs"].items()
                 for dtype, r in e["check"].items()
             }
         )
