@@ -129,13 +129,26 @@ class Deployment:
                 )
         return out
 
-    def predict(self, plan: SensorPlan, x: np.ndarray) -> np.ndarray:
-        """(n, 6) calibrated wrench of `plan`'s sensor from its inputs x (n, n_inputs), float64."""
+    def predict(self, group: str, inputs: Mapping[int, np.ndarray]) -> dict[int, np.ndarray]:
+        """Calibrated wrenches {slot: (n_slot, 6)} of a group's sensors from their inputs {slot: (n_slot,
+        n_inputs)}, float64, in one graph call: the slots' rows side by side (a slot with fewer rows, or
+        none, repeats rows of another; separable models make their outputs irrelevant)."""
         from pipeline.export.check import run
 
-        sensors = len(self.groups()[plan.group]["sensors"])
-        y = run(self.sessions[plan.group], np.tile(x, (1, sensors)))
-        return y[:, plan.slot * 6 : (plan.slot + 1) * 6].astype(np.float64)
+        n_slots = len(self.groups()[group]["sensors"])
+        rows = max(len(x) for x in inputs.values())
+        filler = next(x for x in inputs.values() if len(x))
+        columns = []
+        for slot in range(n_slots):
+            x = inputs.get(slot)
+            x = filler if x is None or not len(x) else x
+            columns.append(x[np.arange(rows) % len(x)])
+        y = run(self.sessions[group], np.concatenate(columns, axis=1))
+        return {
+            slot: y[: len(x), slot * 6 : (slot + 1) * 6].astype(np.float64)
+            for slot, x in inputs.items()
+            if len(x)
+        }
 
 
 class _Stream:
@@ -223,7 +236,8 @@ class CausalCalibrator:
         return out
 
     def _calibrate(self, batches: Sequence[Any]) -> list[Calibrated]:
-        out = []
+        """Calibrate wrench batches: their inputs, then one graph call per group."""
+        todo: dict[str, list[tuple[Any, SensorPlan, np.ndarray, np.ndarray]]] = {}
         for b in batches:
             plan = self.plans[b.topic]
             temperature, ok = self._temperature[plan.sensor].at(b.stamp_ns)
@@ -233,21 +247,29 @@ class CausalCalibrator:
                 parts.append(imu)
                 ok &= ok_imu
             self.uncalibrated[plan.sensor] += int((~ok).sum())
-            if not ok.any():
-                continue
-            x = np.concatenate(parts, axis=1)[ok]
-            wrench = self.deployment.predict(plan, x)
-            self.calibrated[plan.sensor] += len(wrench)
-            out.append(
-                Calibrated(
-                    plan,
-                    b.stamp_ns[ok],
-                    b.log_time_ns[ok],
-                    b.publish_time_ns[ok],
-                    b.fields["frame_id"][ok],
-                    wrench,
+            if ok.any():
+                todo.setdefault(plan.group, []).append((b, plan, ok, np.concatenate(parts, axis=1)[ok]))
+        out = []
+        for group, items in todo.items():
+            inputs: dict[int, list[np.ndarray]] = {}
+            for _, plan, _, x in items:
+                inputs.setdefault(plan.slot, []).append(x)
+            y = self.deployment.predict(group, {slot: np.concatenate(xs) for slot, xs in inputs.items()})
+            taken: dict[int, int] = {}
+            for b, plan, ok, x in items:
+                k = taken.get(plan.slot, 0)
+                taken[plan.slot] = k + len(x)
+                self.calibrated[plan.sensor] += len(x)
+                out.append(
+                    Calibrated(
+                        plan,
+                        b.stamp_ns[ok],
+                        b.log_time_ns[ok],
+                        b.publish_time_ns[ok],
+                        b.fields["frame_id"][ok],
+                        y[plan.slot][k : k + len(x)],
+                    )
                 )
-            )
         return out
 
 

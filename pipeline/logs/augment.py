@@ -207,15 +207,14 @@ class LogAugmenter:
         channel = np.concatenate([np.full(len(t), c, dtype=np.int64) for c, _, t in parts])
         log_time = np.concatenate([np.asarray(t, dtype=np.int64) for _, _, t in parts])
         sizes = np.concatenate([np.full(len(t), r.shape[1], dtype=np.int64) for _, r, t in parts])
-        source_start = np.cumsum(np.r_[0, sizes[:-1]])
-        source = memoryview(b"".join(np.ascontiguousarray(r).tobytes() for _, r, _ in parts))
         order = np.argsort(log_time, kind="stable")
-        data = b"".join(
-            [
-                source[s : s + n]
-                for s, n in zip(source_start[order].tolist(), sizes[order].tolist(), strict=True)
-            ]
-        )
+        if len({r.shape[1] for _, r, _ in parts}) == 1:  # one record size (the usual case): one gather
+            data = np.concatenate([r for _, r, _ in parts])[order].tobytes()
+        else:
+            source_start = np.cumsum(np.r_[0, sizes[:-1]])
+            source = memoryview(b"".join(np.ascontiguousarray(r).tobytes() for _, r, _ in parts))
+            pieces = zip(source_start[order].tolist(), sizes[order].tolist(), strict=True)
+            data = b"".join([source[s : s + n] for s, n in pieces])
         offset = np.cumsum(np.r_[0, sizes[order][:-1]])
         channel, log_time = channel[order], log_time[order]
         compressed = self._compressor.compress(data)
