@@ -28,14 +28,15 @@ def write_log(
     imu: bool = True,
     joints: int = 4,
     block_s: float = 20.0,
+    chunk_size: int = 4 * 2**20,
 ) -> int:
-    """Write a log of `seconds` of robot time; return its number of messages."""
+    """Write a log of `seconds` of robot time in chunks of `chunk_size` bytes; the number of messages."""
     rng = np.random.default_rng(seed)
     meta = {"experiment": {"type": "walking", "robot": robot, "role": "test", "log": path.stem}}
     t0 = 1_700_000_000_000_000_000
     count = 0
     names = [f"joint_{k}" for k in range(joints)]
-    with LogWriter(path, meta) as writer:
+    with LogWriter(path, meta, chunk_size=chunk_size) as writer:
         start = 0.0
         while start < seconds:
             t = np.arange(start, min(start + block_s, seconds), 1.0 / rate_hz)
