@@ -193,7 +193,8 @@ def _stack(b: _Builder, x: str, starts: Sequence[int], n_inputs: int, parts: Seq
     inputs = b.op("Reshape", [x, b.const("shape", [0, s_count, n_inputs], np.int64)], "stack_inputs")
     bounds = (b.const(k, v, np.int64) for k, v in (("lo", [0]), ("hi", [WRENCH]), ("ax", [2])))
     raw = b.op("Slice", [inputs, *bounds], "stack_raw")
-    h = b.op("Transpose", [inputs], perm=[1, 0, 2])  # (S, N, n)
+    # (S, N, n): one (N, n) x (n, out) product per sensor, efficient for batches as for single samples
+    h = b.op("Transpose", [inputs], perm=[1, 0, 2])
     folded = [_folded(p) for p in parts]
     for k, layer in enumerate(parts[0].layers):
         w = b.const(f"w{k}", np.stack([f[k][0].T for f in folded]))  # (S, in, out)
@@ -244,7 +245,10 @@ def build(models: Sequence[GroupModel], dtype: str, metadata: dict[str, str], na
         raise ValueError(f"dtype must be one of {DTYPES}, got {dtype!r}")
     b = _Builder(dtype)
     out, start = _all(b, INPUT, models)
-    b.op("Identity", [out], output=OUTPUT)
+    if b.nodes[-1].output[0] == out:  # name the last result the graph's output (no extra Identity)
+        b.nodes[-1].output[0] = OUTPUT
+    else:
+        b.op("Identity", [out], output=OUTPUT)
     elem = TensorProto.FLOAT if dtype == "float32" else TensorProto.DOUBLE
     n_out = sum(len(m.sensors) for m in models) * WRENCH
     graph = helper.make_graph(
