@@ -213,3 +213,72 @@ def test_bad_input_is_one_line_and_writes_nothing(
     assert sorted(p.name for p in tmp_path.iterdir()) == before  # no output, no .part left
     if case == "output exists":
         assert (tmp_path / "existing.mcap").read_bytes() == b"keep"
+
+
+def test_attachments_metadata_and_foreign_records_survive(setup: dict, tmp_path: Path) -> None:
+    """A log written by mcap's own writer (one message per chunk, an attachment and metadata between the
+    chunks): everything read back identical, the attachment and metadata at their moved offsets."""
+    from mcap.reader import make_reader
+    from mcap.writer import Writer
+
+    from pipeline.logs.rosmsg import _RH, SCHEMAS, TEMPERATURE, WRENCH_STAMPED, _fixed_template, fixed_records
+
+    src = tmp_path / "foreign.mcap"
+    t0 = 1_700_000_000_000_000_000
+    with src.open("wb") as f:
+        w = Writer(f, chunk_size=200)
+        w.start(profile="ros2", library="test")
+        ids = {}
+        for msgtype, topic in (
+            (WRENCH_STAMPED, f"/ft/{LEG}/wrench"),
+            (TEMPERATURE, f"/ft/{LEG}/temperature"),
+        ):
+            schema = w.register_schema(name=msgtype, encoding="ros2msg", data=SCHEMAS[msgtype].encode())
+            ids[msgtype] = w.register_channel(topic=topic, message_encoding="cdr", schema_id=schema)
+        w.add_metadata("experiment", {"robot": "iCubGenova09", "role": "test"})
+        for k in range(30):
+            stamp = np.array([t0 + k * 10_000_000])
+            rec = fixed_records(
+                _fixed_template(TEMPERATURE, b"t"),
+                0,
+                np.zeros(1, np.uint32),
+                stamp,
+                stamp,
+                stamp,
+                {"temperature": np.array([30.0 + k])},
+            )
+            w.add_message(ids[TEMPERATURE], int(stamp[0]), rec[0, _RH:].tobytes(), int(stamp[0]), sequence=k)
+            rec = fixed_records(
+                _fixed_template(WRENCH_STAMPED, b"w"),
+                0,
+                np.zeros(1, np.uint32),
+                stamp + 5,
+                stamp + 5,
+                stamp + 5,
+                {"wrench": np.full((1, 6), float(k))},
+            )
+            w.add_message(ids[WRENCH_STAMPED], int(stamp[0]) + 5, rec[0, _RH:].tobytes(), int(stamp[0]) + 5)
+            if k == 10:
+                w.add_attachment(
+                    create_time=1, log_time=2, name="notes.txt", media_type="text/plain", data=b"hello"
+                )
+        w.finish()
+    out = tmp_path / "out.mcap"
+    assert main(_cli(setup, src, out)) == 2  # a 13-input model needs the IMU this log lacks
+    models = tmp_path / "leg7"
+    report = tmp_path / "report.json"
+    report.write_text(json.dumps({"summary": {LEG: {"recommended": "nn7"}, PAIR: {"recommended": "nn7"}}}))
+    patch = pytest.MonkeyPatch()
+    patch.setenv("MLFLOW_TRACKING_URI", f"sqlite:///{tmp_path / 'm.db'}")
+    try:
+        E.run(load_params(setup["params"]), setup["models"], report, setup["labelled"], models)
+    finally:
+        patch.undo()
+    assert main(_cli(setup, src, out, models=models)) == 0
+    assert [m for m in _messages(out) if not m[0].endswith("_calibrated")] == _messages(src)
+    assert sum(m[0].endswith("_calibrated") for m in _messages(out)) == 30
+    with out.open("rb") as f:
+        reader = make_reader(f, validate_crcs=True)
+        (attachment,) = list(reader.iter_attachments())
+        assert (attachment.name, attachment.data) == ("notes.txt", b"hello")
+        assert [m.metadata for m in reader.iter_metadata()] == [{"robot": "iCubGenova09", "role": "test"}]

@@ -250,22 +250,12 @@ class LogAugmenter:
         )
         return b"".join(out)
 
-    def _finish(self) -> None:
-        """DataEnd, summary (schemas, channels, statistics, indexes), summary offsets, footer, magic."""
-        from mcap.data_stream import RecordBuilder
+    def _summary_groups(self) -> list[tuple[int, list[Any]]]:
+        """(opcode, records) of the summary: original records with moved offsets plus the added ones."""
         from mcap.opcode import Opcode
-        from mcap.records import (
-            AttachmentIndex,
-            ChunkIndex,
-            DataEnd,
-            Footer,
-            MetadataIndex,
-            Statistics,
-            SummaryOffset,
-        )
+        from mcap.records import AttachmentIndex, ChunkIndex, MetadataIndex, Statistics
 
         summary = self.reader.summary
-        self._out.write(_record_bytes(DataEnd(data_section_crc=0)))
         chunk_indexes = [
             ChunkIndex(
                 message_start_time=c.message_start_time,
@@ -285,55 +275,52 @@ class LogAugmenter:
         counts = dict(old.channel_message_counts) if old else {}
         for cid, n in self._counts.items():
             counts[cid] = counts.get(cid, 0) + n
-        added = sum(self._counts.values())
-        times = [(c.message_start_time, c.message_end_time) for c in self._new_chunk_indexes]
-        start_times = [t[0] for t in times] + ([old.message_start_time] if old and old.message_count else [])
-        end_times = [t[1] for t in times] + ([old.message_end_time] if old and old.message_count else [])
+        had = bool(old and old.message_count)
+        starts = [c.message_start_time for c in self._new_chunk_indexes] + (
+            [old.message_start_time] if had else []
+        )
+        ends = [c.message_end_time for c in self._new_chunk_indexes] + ([old.message_end_time] if had else [])
         statistics = Statistics(
-            message_count=(old.message_count if old else 0) + added,
+            message_count=(old.message_count if old else 0) + sum(self._counts.values()),
             schema_count=len(self._schemas),
             channel_count=len(self._channels),
             attachment_count=old.attachment_count if old else 0,
             metadata_count=old.metadata_count if old else 0,
             chunk_count=len(chunk_indexes),
-            message_start_time=min(start_times, default=0),
-            message_end_time=max(end_times, default=0),
+            message_start_time=min(starts, default=0),
+            message_end_time=max(ends, default=0),
             channel_message_counts=dict(sorted(counts.items())),
         )
-        groups = (
+        attachments = [
+            _moved_attachment(a, self._moved(a.offset), AttachmentIndex) for a in summary.attachment_indexes
+        ]
+        metadata = [MetadataIndex(self._moved(m.offset), m.length, m.name) for m in summary.metadata_indexes]
+        return [
             (Opcode.SCHEMA, [self._schemas[k] for k in sorted(self._schemas)]),
             (Opcode.CHANNEL, [self._channels[k] for k in sorted(self._channels)]),
             (Opcode.STATISTICS, [statistics]),
             (Opcode.CHUNK_INDEX, chunk_indexes),
-            (
-                Opcode.ATTACHMENT_INDEX,
-                [
-                    _moved_attachment(a, self._moved(a.offset), AttachmentIndex)
-                    for a in summary.attachment_indexes
-                ],
-            ),
-            (
-                Opcode.METADATA_INDEX,
-                [
-                    MetadataIndex(offset=self._moved(m.offset), length=m.length, name=m.name)
-                    for m in summary.metadata_indexes
-                ],
-            ),
-        )
+            (Opcode.ATTACHMENT_INDEX, attachments),
+            (Opcode.METADATA_INDEX, metadata),
+        ]
+
+    def _finish(self) -> None:
+        """DataEnd, summary (schemas, channels, statistics, indexes), summary offsets, footer, magic."""
+        from mcap.data_stream import RecordBuilder
+        from mcap.opcode import Opcode
+        from mcap.records import DataEnd, Footer, SummaryOffset
+
+        self._out.write(_record_bytes(DataEnd(data_section_crc=0)))
         summary_start = self._out.tell()
         builder = RecordBuilder()
         offsets = []
-        for opcode, records in groups:
+        for opcode, records in self._summary_groups():
             if not records:
                 continue
             first = builder.count
             for record in records:
                 record.write(builder)
-            offsets.append(
-                SummaryOffset(
-                    group_opcode=opcode, group_start=summary_start + first, group_length=builder.count - first
-                )
-            )
+            offsets.append(SummaryOffset(opcode, summary_start + first, builder.count - first))
         summary_offset_start = summary_start + builder.count
         for offset in offsets:
             offset.write(builder)
@@ -341,10 +328,7 @@ class LogAugmenter:
         crc = zlib.crc32(data)
         crc = zlib.crc32(struct.pack("<BQQQ", Opcode.FOOTER, 20, summary_start, summary_offset_start), crc)
         self._out.write(data)
-        footer = Footer(
-            summary_start=summary_start, summary_offset_start=summary_offset_start, summary_crc=crc
-        )
-        self._out.write(_record_bytes(footer))
+        self._out.write(_record_bytes(Footer(summary_start, summary_offset_start, crc)))
         self._out.write(_MAGIC)
 
 
