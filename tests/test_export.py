@@ -58,8 +58,11 @@ def test_group_graph_equals_project_model(trained_models: dict, name: str) -> No
     x = _inputs(2, model.n_inputs)
     reference = model.reference(x)
     np.testing.assert_allclose(_outputs(model, "float64", x), reference, rtol=0, atol=1e-9)
-    # float32: within float32 resolution of the largest wrenches (|f| < 1000 N: 6e-5 N per ulp)
-    np.testing.assert_allclose(_outputs(model, "float32", x), reference, rtol=0, atol=2e-3)
+    if model.family == "network":  # float32 arithmetic (as torch's): against torch in test_network_graph_...
+        np.testing.assert_allclose(_outputs(model, "float32", x), reference, rtol=0, atol=2e-3)
+    else:  # float32 in and out, float64 inside: only the output's rounding (|f| < 1000 N: < 6.1e-5 N)
+        rounded = model.reference(x.astype(np.float32).astype(np.float64))
+        np.testing.assert_allclose(_outputs(model, "float32", x), rounded, rtol=0, atol=6.2e-5)
 
 
 def test_affine_graph_equals_hand_computation_from_baselines_json(trained_models: dict) -> None:

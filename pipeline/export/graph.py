@@ -10,12 +10,12 @@ Per sensor, with x its columns (the forms of `pipeline.export.trained`):
 - network: ``x[:, :6] + out_scale * mlp((x - in_offset) / in_scale)``, mlp = Gemm layers with their
   activations, the operations in torch's order (so float32 matches torch's float32 closely); networks of
   one architecture (the sensors of a foot, or of every group in the fused graph) are evaluated together,
-  one batched MatMul per layer, with the normalisation folded into the first layer and the output scale
-  into the last (fewer operations per call: the latency of a control loop's single sample is per-operation
-  overhead more than arithmetic);
+  one batched MatMul per layer (fewer operations per call: the latency of a control loop's single sample
+  is per-operation overhead more than arithmetic);
 - affine / polynomial: ``x[:, :6] + phi((x[:, :7] - offset) / scale) @ W^T``, phi the monomials: the
   standardised inputs padded with a column of ones, gathered by an index table (P, order) and multiplied
-  along the last axis (ReduceProd), so one Gather and one ReduceProd compute every monomial;
+  along the last axis (ReduceProd), so one Gather and one ReduceProd compute every monomial; in float64
+  also inside a float32 graph (as the project computes them: float32 arithmetic would lose 1e-3 N);
 - raw: ``x[:, :6]``.
 
 The fused graph of several groups slices its input per group and concatenates the groups' outputs, so a
@@ -156,6 +156,18 @@ def _sensor(b: _Builder, x: str, part: Any, hint: str) -> str:
         return b.op("Identity", [raw], f"{hint}_calibrated")
     if isinstance(part, NetworkPart):
         correction = _network(b, x, part, hint)
+    elif isinstance(part, LinearPart) and b.dtype == np.float32:
+        # The project computes these models in float64 (a 4th-order polynomial in float32 loses 1e-3 N):
+        # float32 in and out, float64 inside.
+        from onnx import TensorProto
+
+        b.dtype = np.dtype(np.float64)
+        try:
+            x64 = b.op("Cast", [x], f"{hint}_x64", to=TensorProto.DOUBLE)
+            y64 = b.op("Add", [b.columns(x64, 0, WRENCH, f"{hint}_raw64"), _linear(b, x64, part, hint)])
+        finally:
+            b.dtype = np.dtype(np.float32)
+        return b.op("Cast", [y64], f"{hint}_calibrated", to=TensorProto.FLOAT)
     elif isinstance(part, LinearPart):
         correction = _linear(b, x, part, hint)
     else:
@@ -170,22 +182,10 @@ def _signature(part: Any, n_inputs: int) -> tuple | None:
     return (n_inputs, tuple((layer.weight.shape, layer.activation, layer.alpha) for layer in part.layers))
 
 
-def _folded(part: NetworkPart) -> list[tuple[np.ndarray, np.ndarray]]:
-    """(W, b) per layer with the input normalisation folded into the first layer and the output scale
-    into the last (float64): ``W1 (x - o) / s = (W1 / s) x - (W1 / s) o``, ``c (W x + b) = (c W) x + c b``."""
-    layers = [(layer.weight.copy(), layer.bias.copy()) for layer in part.layers]
-    w, bias = layers[0]
-    w = w / part.in_scale[None, :]
-    layers[0] = (w, bias - w @ part.in_offset)
-    w, bias = layers[-1]
-    layers[-1] = (part.out_scale[:, None] * w, part.out_scale * bias)
-    return layers
-
-
 def _stack(b: _Builder, x: str, starts: Sequence[int], n_inputs: int, parts: Sequence[NetworkPart]) -> str:
     """Calibrated wrenches (N, 6 S) of S networks of one signature, as one batched MatMul per layer:
-    x[:, starts[s] : starts[s] + n_inputs] -> (S, N, n_inputs) -> layers -> (N, S, 6) -> (N, 6 S).
-    Normalisation and output scale are folded into the first and last layers (`_folded`)."""
+    x[:, starts[s] : starts[s] + n_inputs] -> (S, N, n_inputs) -> layers -> (N, S, 6) -> (N, 6 S), the
+    element-wise steps (normalisation, output scale, residual) as torch does them."""
     s_count = len(parts)
     columns = np.concatenate([np.arange(lo, lo + n_inputs) for lo in starts])
     if not np.array_equal(columns, np.arange(len(columns))):
@@ -193,15 +193,18 @@ def _stack(b: _Builder, x: str, starts: Sequence[int], n_inputs: int, parts: Seq
     inputs = b.op("Reshape", [x, b.const("shape", [0, s_count, n_inputs], np.int64)], "stack_inputs")
     bounds = (b.const(k, v, np.int64) for k, v in (("lo", [0]), ("hi", [WRENCH]), ("ax", [2])))
     raw = b.op("Slice", [inputs, *bounds], "stack_raw")
+    offset = b.const("in_offset", np.stack([p.in_offset for p in parts]))  # (S, n)
+    scale = b.const("in_scale", np.stack([p.in_scale for p in parts]))
+    h = b.op("Div", [b.op("Sub", [inputs, offset]), scale])
     # (S, N, n): one (N, n) x (n, out) product per sensor, efficient for batches as for single samples
-    h = b.op("Transpose", [inputs], perm=[1, 0, 2])
-    folded = [_folded(p) for p in parts]
+    h = b.op("Transpose", [h], perm=[1, 0, 2])
     for k, layer in enumerate(parts[0].layers):
-        w = b.const(f"w{k}", np.stack([f[k][0].T for f in folded]))  # (S, in, out)
-        bias = b.const(f"b{k}", np.stack([f[k][1][None, :] for f in folded]))  # (S, 1, out)
+        w = b.const(f"w{k}", np.stack([p.layers[k].weight.T for p in parts]))  # (S, in, out)
+        bias = b.const(f"b{k}", np.stack([p.layers[k].bias[None, :] for p in parts]))  # (S, 1, out)
         h = _activation(b, b.op("Add", [b.op("MatMul", [h, w]), bias], f"layer{k}"), layer, f"act{k}")
     h = b.op("Transpose", [h], perm=[1, 0, 2])  # (N, S, 6)
-    calibrated = b.op("Add", [raw, h], "stack_calibrated")
+    out_scale = b.const("out_scale", np.stack([p.out_scale for p in parts]))  # (S, 6)
+    calibrated = b.op("Add", [raw, b.op("Mul", [out_scale, h])], "stack_calibrated")
     return b.op("Reshape", [calibrated, b.const("shape", [0, s_count * WRENCH], np.int64)])
 
 
