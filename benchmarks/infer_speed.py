@@ -8,7 +8,9 @@ Builds a synthetic export of iCubGenova09's 8 sensors (`benchmarks/export_fixtur
 2. the same in float64;
 3. torch eager (the project's `GroupNet` modules, float32, ``torch.no_grad``), one call per group:
    p50 / p99 latency of all 8 sensors (us);
-4. batch throughput (samples/s) of both on 10,000-sample batches.
+4. batch throughput (samples/s) of both on 10,000-sample batches;
+5. for scale, the same call of a graph that only copies its input (onnxruntime's per-call floor from
+   Python on this machine at this load).
 
 Both agree on the outputs first. Targets: onnxruntime p50 <= 20 us and p99 <= 50 us. The machine's load
 average is printed (the figures depend on what else runs). The last line is the ratio torch / onnxruntime
@@ -24,7 +26,9 @@ import os
 import sys
 import tempfile
 import time
+from collections.abc import Callable
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 import torch
@@ -46,6 +50,34 @@ def latencies(call, inputs: np.ndarray, calls: int, warmup: int = 500) -> np.nda
         call(x)
         out[k] = (time.perf_counter_ns() - t) / 1e3
     return out
+
+
+def _bound(sess: Any, n_out: int) -> Callable[[np.ndarray], None]:
+    """One call as a control loop makes it: input and output buffers bound once (I/O binding), the input
+    row overwritten in place before each run."""
+    inp, out = sess.get_inputs()[0], sess.get_outputs()[0]
+    dtype = np.float32 if inp.type == "tensor(float)" else np.float64
+    x_buf, y_buf = np.zeros((1, inp.shape[1]), dtype), np.zeros((1, n_out), dtype)
+    binding = sess.io_binding()
+    binding.bind_input(inp.name, "cpu", 0, x_buf.dtype, x_buf.shape, x_buf.ctypes.data)
+    binding.bind_output(out.name, "cpu", 0, y_buf.dtype, y_buf.shape, y_buf.ctypes.data)
+
+    def call(x: np.ndarray) -> None:
+        x_buf[...] = x
+        sess.run_with_iobinding(binding)
+
+    return call
+
+
+def _empty_session(n: int) -> Any:
+    """A float32 graph that only copies its input: the per-call floor of onnxruntime from Python."""
+    from onnx import TensorProto, helper
+
+    io = [helper.make_tensor_value_info(k, TensorProto.FLOAT, ["N", n]) for k in ("inputs", "calibrated")]
+    graph = helper.make_graph(
+        [helper.make_node("Identity", ["inputs"], ["calibrated"])], "empty", io[:1], io[1:]
+    )
+    return session(helper.make_model(graph, opset_imports=[helper.make_opsetid("", 17)]), threads=1)
 
 
 def main() -> None:
@@ -82,17 +114,13 @@ def main() -> None:
         results[f"onnxruntime {dtype}"] = latencies(
             lambda x, s=sess, n=name: s.run(None, {n: x}), rows, args.calls
         )
-        # as a control loop runs it: input and output buffers bound once, the input row overwritten in place
-        x_buf, y_buf = np.zeros((1, n_in), dtype), np.zeros((1, fused["output_shape"][1]), dtype)
-        binding = sess.io_binding()
-        binding.bind_input(name, "cpu", 0, x_buf.dtype, x_buf.shape, x_buf.ctypes.data)
-        binding.bind_output(sess.get_outputs()[0].name, "cpu", 0, y_buf.dtype, y_buf.shape, y_buf.ctypes.data)
-
-        def bound(x: np.ndarray, s=sess, bd=binding, buf=x_buf) -> None:
-            buf[...] = x
-            s.run_with_iobinding(bd)
-
-        results[f"onnxruntime {dtype} bound"] = latencies(bound, rows, args.calls)
+        results[f"onnxruntime {dtype} bound"] = latencies(
+            _bound(sess, fused["output_shape"][1]), rows, args.calls
+        )
+    rows32 = pool.astype(np.float32).reshape(len(pool), 1, -1)
+    results["onnxruntime empty graph bound"] = latencies(
+        _bound(_empty_session(n_in), n_in), rows32, args.calls
+    )
     rows_t = [torch.tensor(r, dtype=torch.float32).reshape(1, -1) for r in pool]
     results["torch eager float32"] = latencies(torch_all, rows_t, args.calls)
 
