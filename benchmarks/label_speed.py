@@ -4,6 +4,8 @@ Both compute the 8 FT sensors' expected wrenches of iCubGenova09 standing on its
 random in-limit (q, dq, ddq). iDynTree is used efficiently: estimator and buffers built once, values
 copied into preallocated buffers (tests/idyntree_ref.py). Also printed, to show what bounds our
 figure: one thread vs all cores, and a plain per-sample ``pin.rnea`` loop on the same model.
+Also the cost of the cut-set sums (poses of the joint-dependent members and the signed sums of every
+cut set, double support) relative to the expected wrenches themselves.
 The last line is the ratio ours / iDynTree (>= 1.0 required, >= 2.0 aimed for).
 
     python benchmarks/label_speed.py [--samples 5000] [--repeats 3]
@@ -22,6 +24,7 @@ import pinocchio as pin
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
+from pipeline.physics.cuts import cut_poses, cut_sums, find_cut_sets  # noqa: E402
 from pipeline.physics.dynamics import ContactCase, expected_wrenches  # noqa: E402
 from pipeline.physics.robot import load_robot  # noqa: E402
 from tests.idyntree_ref import IDynTreeFT, random_in_limits  # noqa: E402
@@ -79,6 +82,27 @@ def main() -> None:
             pin.rnea(model, data, qs[k], vs[k], accs[k])
 
     t_rnea = best_of(args.repeats, rnea_loop)
+
+    # cut sets in double support: every sum is exact there
+    pairs = [
+        robot.foot_pair("l_foot", "l_foot_front_ft", "l_foot_rear_ft", "l_sole"),
+        robot.foot_pair("r_foot", "r_foot_front_ft", "r_foot_rear_ft", "r_sole"),
+    ]
+    cuts = [c for c in find_cut_sets(robot, pairs) if c.pair is None]
+    double = ContactCase.make([*CONTACTS, "r_foot_front", "r_foot_rear"], FIXED, GRAVITY)
+    t_double = best_of(args.repeats, lambda: expected_wrenches(robot, q, dq, ddq, double))
+    readings = expected_wrenches(robot, q, dq, ddq, double).reading
+
+    def sums() -> None:
+        cache: dict = {}
+        for cut in cuts:
+            cut_sums(cut, readings, cut_poses(robot, cut, q, cache))
+
+    t_cuts = best_of(args.repeats, sums)
+    print(
+        f"{len(cuts)} cut sets: sums {1e6 * t_cuts / args.samples:.2f} us/sample, "
+        f"{t_cuts / t_double:.2f} x the expected wrenches of the same samples"
+    )
 
     n = args.samples
     rows = [

@@ -3,7 +3,7 @@
 Runs the default params' logs (or a fraction of their durations) through `pipeline.stages.simulate.run` into a
 temporary directory, with a throwaway MLflow store, and prints robot seconds per wall second last.
 
-    python benchmarks/sim_speed.py [--scale 1.0] [--workers 0]
+    python benchmarks/sim_speed.py [--scale 1.0] [--workers 0] [--urdf PATH]   (PATH: e.g. an ergoCub URDF)
 """
 
 from __future__ import annotations
@@ -30,6 +30,7 @@ def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--scale", type=float, default=1.0, help="fraction of every log's duration")
     parser.add_argument("--workers", type=int, default=0, help="processes (0: one per core)")
+    parser.add_argument("--urdf", default=None, help="robot.urdf instead of the params' (e.g. ergoCub's)")
     args = parser.parse_args()
     with tempfile.TemporaryDirectory() as tmp:
         data = yaml.safe_load((REPO / "params.yaml").read_text())
@@ -38,6 +39,8 @@ def main() -> None:
             log["duration_s"] = max(2.0, log["duration_s"] * args.scale)
         sim.update({"workers": args.workers, "plots": False})
         data["simulate"] = sim
+        if args.urdf:
+            data["robot"]["urdf"] = args.urdf
         path = Path(tmp) / "params.yaml"
         path.write_text(yaml.safe_dump(data, sort_keys=False))
         os.environ["MLFLOW_TRACKING_URI"] = f"sqlite:///{tmp}/mlflow.db"

@@ -19,18 +19,22 @@ EXIT_OK = 0
 EXIT_USAGE = 2  # as argparse: bad arguments or bad input the user can fix
 EXIT_INTERRUPTED = 130  # 128 + SIGINT, as shells report Ctrl-C
 
-# Stage modules, in pipeline order. Each defines ``add_cli(subparsers)``, which adds its subcommand
-# (same name as its DVC stage) with ``set_defaults(func=...)``; a module not written yet is skipped.
-STAGE_MODULES = (
-    "pipeline.stages.simulate",
-    "pipeline.stages.ingest",
-    "pipeline.stages.smooth",
-    "pipeline.stages.label",
-    "pipeline.stages.train",
-    "pipeline.stages.evaluate",
-    "pipeline.stages.export",
-    "pipeline.tools.calibrate",
-)
+# Commands, in pipeline order: name -> (module, one-line help). A command's module defines
+# ``add_cli(subparsers)``, which adds its subcommand (same name as its DVC stage, if it is one) with
+# ``set_defaults(func=...)``. Only the module of the command being run is imported (stages import torch,
+# pinocchio, mlflow): `ftcal --help` lists the commands from this table alone.
+COMMANDS: dict[str, tuple[str, str]] = {
+    "simulate": ("pipeline.stages.simulate", "simulate experiment logs (MCAP) of the robot with known truth"),
+    "ingest": ("pipeline.stages.ingest", "decode MCAP and .mat logs into aligned Parquet tables"),
+    "smooth": ("pipeline.stages.smooth", "Savitzky-Golay joint positions, velocities, accelerations"),
+    "label": ("pipeline.stages.label", "contacts, expected wrenches and exact-label switches per sensor"),
+    "train": ("pipeline.stages.train", "baselines and neural networks of one sensor group"),
+    "evaluate": ("pipeline.stages.evaluate", "error tables, figures and noise check of one group's models"),
+    "report": ("pipeline.stages.report", "assemble the report page of every group's evaluation"),
+    "export": ("pipeline.stages.export", "the recommended models as ONNX graphs with a manifest"),
+    "calibrate": ("pipeline.tools.calibrate", "copy a log adding the exported calibration's wrenches"),
+    "convert-mat": ("pipeline.tools.convert_mat", "convert a robot-logger .mat file to a contract MCAP"),
+}
 
 
 def _cmd_robot(args: argparse.Namespace) -> int:
@@ -78,8 +82,8 @@ def _cmd_robot(args: argparse.Namespace) -> int:
     return EXIT_OK
 
 
-def build_parser() -> argparse.ArgumentParser:
-    """The argument parser of `ftcal` with its subcommands."""
+def build_parser(command: str | None = None) -> argparse.ArgumentParser:
+    """The argument parser of `ftcal`: every command listed, the arguments of `command` only (None: all)."""
     parser = argparse.ArgumentParser(
         prog="ftcal",
         description="In-situ calibration of 6-axis force/torque sensors on humanoid robots.",
@@ -104,20 +108,24 @@ def build_parser() -> argparse.ArgumentParser:
     )
     robot.set_defaults(func=_cmd_robot)
 
-    for module_name in STAGE_MODULES:
-        try:
-            module = importlib.import_module(module_name)
-        except ModuleNotFoundError as exc:
-            if exc.name == module_name:
-                continue
-            raise
-        module.add_cli(sub)
+    for name, (module_name, help_text) in COMMANDS.items():
+        if command is None or name == command:
+            importlib.import_module(module_name).add_cli(sub)
+        else:
+            sub.add_parser(name, help=help_text)  # listed; its arguments are built when it runs
     return parser
+
+
+def _command(argv: Sequence[str]) -> str | None:
+    """The command named on the command line (its first word that is a command), if any."""
+    return next((a for a in argv if a in COMMANDS), None)
 
 
 def main(argv: Sequence[str] | None = None) -> int:
     """Run `ftcal` with `argv` (default: the command line); return the exit status."""
-    parser = build_parser()
+    argv = list(sys.argv[1:] if argv is None else argv)
+    command = _command(argv)
+    parser = build_parser(command if command is not None else "")
     try:
         args = parser.parse_args(argv)
     except SystemExit as exc:  # --help, --version, usage errors: argparse has printed what to say

@@ -376,6 +376,35 @@ class IDynTreeFT:
                 self._read_slow(out[i])
         return {name: out[:, 6 * k : 6 * k + 6].copy() for k, name in enumerate(self.sensor_names)}
 
+    def sensor_poses(self, q: np.ndarray, frame: str, sensor: str) -> np.ndarray:
+        """``(N, 4, 4)`` homogeneous pose of FT sensor `sensor`'s frame in link/frame `frame`.
+
+        From iDynTree alone: ``KinDynComputations.getRelativeTransform(frame, link)`` for the link the
+        sensor's wrench is applied to, composed with ``getLinkSensorTransform(link)`` of the sensor.
+        q: ``(N, n_joints)`` in ``joint_names`` order, rad.
+        """
+        if not hasattr(self, "_kindyn"):
+            self._kindyn = iDynTree.KinDynComputations()
+            if not self._kindyn.loadRobotModel(self._model):
+                raise RuntimeError("KinDynComputations.loadRobotModel failed")
+        sensors = self._est.sensors()
+        k = self.sensor_names.index(sensor)
+        ft = sensors.getSixAxisForceTorqueSensor(k)
+        link = ft.getAppliedWrenchLink()
+        link_H_sensor = iDynTree.Transform()
+        if not ft.getLinkSensorTransform(link, link_H_sensor):
+            raise RuntimeError(f"getLinkSensorTransform failed for {sensor}")
+        link_h = link_H_sensor.asHomogeneousTransform().toNumPy()
+        frame_index = self.frame_index(frame)
+        q2 = self._check_joint_array(q, "q")[:, self._to_idyn]
+        out = np.empty((q2.shape[0], 4, 4))
+        for i in range(q2.shape[0]):
+            self._q.set(np.ascontiguousarray(q2[i]))
+            self._kindyn.setJointPos(self._q.vec)
+            rel = self._kindyn.getRelativeTransform(frame_index, link)
+            out[i] = rel.asHomogeneousTransform().toNumPy() @ link_h
+        return out
+
     def _read_slow(self, row: np.ndarray) -> None:
         for k in range(self._n_ft):
             self._predicted.getMeasurement(iDynTree.SIX_AXIS_FORCE_TORQUE, k, self._wrench)

@@ -26,11 +26,19 @@ SENSORS = (LEG, FRONT, REAR, OTHER)
 RECOMMENDED = {LEG: "nn13", PAIR: "nn7"}
 
 
+def _metrics_dir(tmp: Path, recommended: dict[str, str]) -> Path:
+    """evaluate's reports/metrics directory: <group>.json naming the recommended model."""
+    path = tmp / "metrics"
+    path.mkdir(exist_ok=True)
+    for group, model in recommended.items():
+        (path / f"{group}.json").write_text(json.dumps({"recommended": model}))
+    return path
+
+
 @pytest.fixture(scope="module")
 def setup(trained_models: dict, tmp_path_factory: pytest.TempPathFactory) -> dict:
     tmp = tmp_path_factory.mktemp("calibrate")
-    report = tmp / "report.json"
-    report.write_text(json.dumps({"summary": {g: {"recommended": m} for g, m in RECOMMENDED.items()}}))
+    report = _metrics_dir(tmp, RECOMMENDED)
     patch = pytest.MonkeyPatch()
     patch.setenv("MLFLOW_TRACKING_URI", f"sqlite:///{tmp / 'mlflow.db'}")
     try:
@@ -177,6 +185,11 @@ def _bad_cases(setup: dict, tmp: Path) -> dict[str, tuple[list[str], str]]:
     truncated.write_bytes(data[: len(data) // 2])
     arms = tmp / "arms.mcap"
     write_log(arms, ("l_arm_ft",), 2.0)
+    mismatch = tmp / "inputs_mismatch"
+    shutil.copytree(setup["export"], mismatch)
+    manifest = json.loads((mismatch / "manifest.json").read_text())
+    manifest["graphs"][LEG]["inputs"][6]["field"] = "variance"
+    (mismatch / "manifest.json").write_text(json.dumps(manifest))
     existing = tmp / "existing.mcap"
     existing.write_bytes(b"keep")
     return {
@@ -195,12 +208,17 @@ def _bad_cases(setup: dict, tmp: Path) -> dict[str, tuple[list[str], str]]:
         "truncated": (_cli(setup, truncated, tmp / "o4.mcap"), "truncated MCAP file"),
         "no modelled sensor": (_cli(setup, arms, tmp / "o5.mcap"), "none of the sensors of"),
         "output exists": (_cli(setup, setup["log"], existing), "existing.mcap: exists (use --force"),
+        "inputs mismatch": (
+            _cli(setup, setup["log"], tmp / "o6.mcap", models=mismatch),
+            f"inputs of {LEG} in {LEG}'s graph are",
+        ),
     }
 
 
 @pytest.mark.parametrize(
     "case",
-    ["models missing", "another robot", "no temperature", "truncated", "no modelled sensor", "output exists"],
+    ["models missing", "another robot", "no temperature", "truncated", "no modelled sensor", "output exists"]
+    + ["inputs mismatch"],
 )
 def test_bad_input_is_one_line_and_writes_nothing(
     setup: dict, tmp_path: Path, case: str, capsys: Any
@@ -221,7 +239,14 @@ def test_attachments_metadata_and_foreign_records_survive(setup: dict, tmp_path:
     from mcap.reader import make_reader
     from mcap.writer import Writer
 
-    from pipeline.logs.rosmsg import _RH, SCHEMAS, TEMPERATURE, WRENCH_STAMPED, _fixed_template, fixed_records
+    from pipeline.logs.cdr import (
+        RECORD_HEADER_SIZE,
+        SCHEMAS,
+        TEMPERATURE,
+        WRENCH_STAMPED,
+        fixed_records,
+        fixed_template,
+    )
 
     src = tmp_path / "foreign.mcap"
     t0 = 1_700_000_000_000_000_000
@@ -239,7 +264,7 @@ def test_attachments_metadata_and_foreign_records_survive(setup: dict, tmp_path:
         for k in range(30):
             stamp = np.array([t0 + k * 10_000_000])
             rec = fixed_records(
-                _fixed_template(TEMPERATURE, b"t"),
+                fixed_template(TEMPERATURE, b"t"),
                 0,
                 np.zeros(1, np.uint32),
                 stamp,
@@ -247,9 +272,15 @@ def test_attachments_metadata_and_foreign_records_survive(setup: dict, tmp_path:
                 stamp,
                 {"temperature": np.array([30.0 + k])},
             )
-            w.add_message(ids[TEMPERATURE], int(stamp[0]), rec[0, _RH:].tobytes(), int(stamp[0]), sequence=k)
+            w.add_message(
+                ids[TEMPERATURE],
+                int(stamp[0]),
+                rec[0, RECORD_HEADER_SIZE:].tobytes(),
+                int(stamp[0]),
+                sequence=k,
+            )
             rec = fixed_records(
-                _fixed_template(WRENCH_STAMPED, b"w"),
+                fixed_template(WRENCH_STAMPED, b"w"),
                 0,
                 np.zeros(1, np.uint32),
                 stamp + 5,
@@ -257,7 +288,12 @@ def test_attachments_metadata_and_foreign_records_survive(setup: dict, tmp_path:
                 stamp + 5,
                 {"wrench": np.full((1, 6), float(k))},
             )
-            w.add_message(ids[WRENCH_STAMPED], int(stamp[0]) + 5, rec[0, _RH:].tobytes(), int(stamp[0]) + 5)
+            w.add_message(
+                ids[WRENCH_STAMPED],
+                int(stamp[0]) + 5,
+                rec[0, RECORD_HEADER_SIZE:].tobytes(),
+                int(stamp[0]) + 5,
+            )
             if k == 10:
                 w.add_attachment(
                     create_time=1, log_time=2, name="notes.txt", media_type="text/plain", data=b"hello"
@@ -266,8 +302,7 @@ def test_attachments_metadata_and_foreign_records_survive(setup: dict, tmp_path:
     out = tmp_path / "out.mcap"
     assert main(_cli(setup, src, out)) == 2  # a 13-input model needs the IMU this log lacks
     models = tmp_path / "leg7"
-    report = tmp_path / "report.json"
-    report.write_text(json.dumps({"summary": {LEG: {"recommended": "nn7"}, PAIR: {"recommended": "nn7"}}}))
+    report = _metrics_dir(tmp_path, {LEG: "nn7", PAIR: "nn7"})
     patch = pytest.MonkeyPatch()
     patch.setenv("MLFLOW_TRACKING_URI", f"sqlite:///{tmp_path / 'm.db'}")
     try:

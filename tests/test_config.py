@@ -76,10 +76,16 @@ def test_repo_root_from_a_subdirectory(monkeypatch: pytest.MonkeyPatch) -> None:
     assert repo_root() == ROOT
 
 
-def test_unknown_top_level_sections_are_kept(tmp_path: Path, real_dict: dict[str, Any]) -> None:
-    data = {**real_dict, "smooth": {"window": 31}}
-    params = load_params(write(tmp_path / "params.yaml", data))
-    assert params.raw["smooth"] == {"window": 31}
+def test_every_section_is_validated_at_load(tmp_path: Path, real_dict: dict[str, Any]) -> None:
+    """A typo in any stage's section (or a misspelt section) is reported when params.yaml is loaded."""
+    cases = [
+        ({**real_dict, "smooth": {"window": 31}}, "missing key smooth.max_gap_s"),
+        ({**real_dict, "evaluate": {**real_dict["evaluate"], "zoom": 1}}, "unknown key evaluate.zoom"),
+        ({**real_dict, "evalute": {}}, "unknown key evalute"),
+    ]
+    for data, message in cases:
+        with pytest.raises(ConfigError, match=rf"params.yaml: {message}"):
+            load_params(write(tmp_path / "params.yaml", data))
 
 
 @pytest.mark.parametrize(
@@ -194,14 +200,16 @@ def test_stage_section_names_the_key(tmp_path: Path) -> None:
             if self.rate_hz <= 0:
                 raise ConfigError(f"demo.rate_hz must be > 0, got {self.rate_hz}")
 
-    base = REPO_PARAMS.read_text()
-    params = load_params(write(tmp_path / "params.yaml", base + "\ndemo: {rate_hz: 100}\n"))
+    params = load_params(REPO_PARAMS)
+    params.raw["demo"] = {"rate_hz": 100}
     assert stage_section(params, "demo", Demo).rate_hz == 100
-    for extra, message in (
-        ("demo: {rate_hz: -1}", "demo.rate_hz must be > 0"),
-        ("demo: {rate: 1}", "unknown key demo.rate"),
-        ("other: 1", "missing section demo"),
+    for section, message in (
+        ({"rate_hz": -1}, "demo.rate_hz must be > 0"),
+        ({"rate": 1}, "unknown key demo.rate"),
+        (None, "missing section demo"),
     ):
-        params = load_params(write(tmp_path / "params.yaml", base + "\n" + extra + "\n"))
+        params.raw.pop("demo", None)
+        if section is not None:
+            params.raw["demo"] = section
         with pytest.raises(ConfigError, match=rf"params.yaml: {message}"):
             stage_section(params, "demo", Demo)

@@ -20,9 +20,14 @@ import yaml
 from pipeline.cli import main
 from pipeline.core.config import load_params, stage_section
 from pipeline.core.errors import ConfigError, DataError
+from pipeline.evaluation import noise as N_
+from pipeline.evaluation import results as R
+from pipeline.evaluation.inputs import load_group
+from pipeline.evaluation.params import EvaluateParams
 from pipeline.logs import schema as S
+from pipeline.logs.schema import prediction_cols
 from pipeline.stages import evaluate as E
-from pipeline.stages.train import prediction_cols
+from pipeline.stages import report as REPORT
 from tests.test_models import TRANSFORMS
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -47,7 +52,7 @@ def flat(d: Any, prefix: str = "") -> dict[str, Any]:
 def test_score_matches_hand_computation() -> None:
     pred = np.array([[1.0, 2, 3, 0.1, 0.2, 0.3], [0, 0, 0, 0, 0, 0], [5, 5, 5, 5, 5, 5]])
     ref = np.array([[0.0, 0, 0, 0, 0, 0], [1, -1, 2, 0.5, 0, 0], [np.nan] * 6])  # row 2: no label
-    s = E.score(pred, ref)
+    s = R.score(pred, ref)
     err = (pred - ref)[:2]
     assert s["samples"] == 2
     assert s["mse"] == pytest.approx(np.mean(err**2))
@@ -57,16 +62,16 @@ def test_score_matches_hand_computation() -> None:
     assert s["mae_torque"] == pytest.approx((0.1 + 0.2 + 0.3 + 0.5) / 6)
     assert s["mse_fz"] == pytest.approx((9 + 4) / 2)
     assert s["rmse_tx"] == pytest.approx(math.sqrt((0.01 + 0.25) / 2))
-    masked = E.score(pred, ref, np.array([True, False, True]))
+    masked = R.score(pred, ref, np.array([True, False, True]))
     assert masked["samples"] == 1 and masked["mse_fy"] == pytest.approx(4.0)
-    assert math.isnan(E.score(pred, ref, np.zeros(3, bool))["rmse"])
+    assert math.isnan(R.score(pred, ref, np.zeros(3, bool))["rmse"])
 
 
 def test_ratio_is_none_when_undefined() -> None:
-    assert E.ratio(10.0, 2.0) == 5.0
-    assert E.ratio(None, 2.0) is None
-    assert E.ratio(1.0, 0.0) is None
-    assert E.ratio(math.nan, 1.0) is None
+    assert R.ratio(10.0, 2.0) == 5.0
+    assert R.ratio(None, 2.0) is None
+    assert R.ratio(1.0, 0.0) is None
+    assert R.ratio(math.nan, 1.0) is None
 
 
 # --- noise ---------------------------------------------------------------------------------------
@@ -86,18 +91,18 @@ def test_noise_ratio_copy_noisier_smoother() -> None:
     seg = np.zeros(n, dtype=np.int64)
     mask = np.ones(n, dtype=bool)
     mask[:50] = mask[-50:] = False  # away from the ends, where the moving average below is biased
-    hf = lambda x: E.highpass(x, seg, FS, 5.0, 4)  # noqa: E731
+    hf = lambda x: N_.highpass(x, seg, FS, 5.0, 4)  # noqa: E731
     raw_hf = hf(raw)
     # a model that copies raw (plus an offset) passes its noise unchanged
-    np.testing.assert_allclose(E.noise_ratio(hf(raw + 30.0), raw_hf, mask), 1.0, rtol=1e-9)
+    np.testing.assert_allclose(N_.noise_ratio(hf(raw + 30.0), raw_hf, mask), 1.0, rtol=1e-9)
     # one adding white noise of the raw's std: sqrt(2) in expectation
     noisy = raw + np.random.default_rng(1).normal(size=(n, 6)) * NOISE
-    r = E.noise_ratio(hf(noisy), raw_hf, mask)
+    r = N_.noise_ratio(hf(noisy), raw_hf, mask)
     assert (r > 1.25).all() and (r < 1.6).all()
     # a smoother (centred 9-sample moving average) removes most of it
     kernel = np.ones(9) / 9
     smooth = np.column_stack([np.convolve(raw[:, k], kernel, mode="same") for k in range(6)])
-    r = E.noise_ratio(hf(smooth), raw_hf, mask)
+    r = N_.noise_ratio(hf(smooth), raw_hf, mask)
     assert (r < 0.5).all()
     # the slow signal itself is not "noise": the high-pass of the clean wrench is tiny
     assert (np.std(hf(w)[100:-100], axis=0) < 0.01 * np.std(raw_hf, axis=0) + 1e-3).all()
@@ -106,7 +111,7 @@ def test_noise_ratio_copy_noisier_smoother() -> None:
 def test_segment_ids_split_at_logs_and_lost_samples() -> None:
     stamp = (np.r_[0, 1, 2, 3, 5, 6, 0, 1, 2] * 10_000_000).astype(np.int64)  # sample 4 of log a lost
     log = np.array(["a"] * 6 + ["b"] * 3)
-    seg, fs = E.segment_ids(log, stamp)
+    seg, fs = N_.segment_ids(log, stamp)
     assert fs == pytest.approx(100.0)
     np.testing.assert_array_equal(seg, [0, 0, 0, 0, 1, 1, 2, 2, 2])
 
@@ -114,7 +119,7 @@ def test_segment_ids_split_at_logs_and_lost_samples() -> None:
 def test_highpass_keeps_stretches_apart_and_marks_short_ones() -> None:
     x = np.r_[np.zeros(200), np.full(10, 50.0), np.zeros(300)][:, None]
     seg = np.r_[np.zeros(200), np.ones(10), np.full(300, 2)].astype(np.int64)
-    out = E.highpass(x, seg, FS, 5.0, 4)
+    out = N_.highpass(x, seg, FS, 5.0, 4)
     assert np.isnan(out[200:210]).all()  # too short for the filter
     np.testing.assert_allclose(out[:200], 0.0, atol=1e-12)  # the step in between does not leak
     np.testing.assert_allclose(out[210:], 0.0, atol=1e-12)
@@ -128,18 +133,18 @@ def test_quasi_static_mask_runs_contacts_guard_edges() -> None:
     guard = np.zeros(n, dtype=bool)
     guard[880:900] = True
     seg = np.zeros(n, dtype=np.int64)
-    mask = E.quasi_static_mask(speed, contacts, guard, seg, FS, max_speed=0.3, min_s=1.0, edge_s=0.2)
+    mask = N_.quasi_static_mask(speed, contacts, guard, seg, FS, max_speed=0.3, min_s=1.0, edge_s=0.2)
     # 20 edge samples out at both ends; runs [20, 400), [450, 700) and [700, 880) are >= 1 s (100 samples);
     # [900, 980) is 80 samples: dropped
     expected = np.zeros(n, dtype=bool)
     expected[20:400] = expected[450:700] = expected[700:880] = True
     np.testing.assert_array_equal(mask, expected)
-    assert not E.quasi_static_mask(speed, contacts, guard, seg, FS, 0.3, 5.0, 0.2).any()
+    assert not N_.quasi_static_mask(speed, contacts, guard, seg, FS, 0.3, 5.0, 0.2).any()
 
 
 def test_recommend_skips_flagged_models() -> None:
-    assert E.recommend(["nn13", "nn7", "raw"], ["nn13"], ["raw", "nn7", "nn13"]) == "nn7"
-    assert E.recommend(["nn13"], ["nn13"], ["nn13"]) is None
+    assert R.recommend(["nn13", "nn7", "raw"], ["nn13"], ["raw", "nn7", "nn13"]) == "nn7"
+    assert R.recommend(["nn13"], ["nn13"], ["nn13"]) is None
 
 
 def test_bad_params_name_the_key(tmp_path: Path) -> None:
@@ -148,11 +153,11 @@ def test_bad_params_name_the_key(tmp_path: Path) -> None:
     path = tmp_path / "params.yaml"
     path.write_text(yaml.safe_dump(data))
     with pytest.raises(ConfigError, match=r"evaluate\.noise_threshold must be a positive number, got -1"):
-        stage_section(load_params(path), "evaluate", E.EvaluateParams)
+        stage_section(load_params(path), "evaluate", EvaluateParams)
 
 
 def test_repo_params_are_valid() -> None:
-    cfg = stage_section(load_params(ROOT / "params.yaml"), "evaluate", E.EvaluateParams)
+    cfg = stage_section(load_params(ROOT / "params.yaml"), "evaluate", EvaluateParams)
     assert cfg.highpass_hz > 0 and cfg.noise_threshold > 1
 
 
@@ -169,7 +174,7 @@ def _write(path: Path, cols: dict[str, Any], kind: str, meta: dict[bytes, Any]) 
     pq.write_table(pa.Table.from_pydict(cols, schema=schema), path)
 
 
-def build_fixture(root: Path, with_history: bool = True) -> dict[str, Path]:
+def build_fixture(root: Path) -> dict[str, Path]:
     """labelled/, ingested/ (truth) and models/<group>/ for a leg sensor and a foot pair.
 
     Per sensor: true wrench w (slow sines), raw = w + offset + white noise, labels = w (NaN where the
@@ -276,10 +281,12 @@ def build_fixture(root: Path, with_history: bool = True) -> dict[str, Path]:
             "nn7": {"trial": 1, "val_rmse_labelled": 0.5},
             "nn13": {"trial": 2, "val_rmse_labelled": 0.4},
         }
-        if with_history:
-            networks["nn7"]["history"] = [
-                {"epoch": e, "loss": 10.0 / (e + 1), "val_rmse": 2.0 / (e + 1)} for e in range(5)
-            ]
+        networks["nn7"]["history"] = [
+            {"epoch": e, "loss": 10.0 / (e + 1), "val_rmse": 2.0 / (e + 1)} for e in range(5)
+        ]
+        networks["nn13"]["history"] = [
+            {"epoch": e, "loss": 8.0 / (e + 1), "val_rmse": 1.6 / (e + 1)} for e in range(3)
+        ]
         metrics = {
             "group": group,
             "sensors": sensors_of,
@@ -305,7 +312,7 @@ def write_params(tmp_path: Path, **evaluate: Any) -> Path:
 
 @pytest.fixture(scope="module")
 def evaluated(tmp_path_factory: pytest.TempPathFactory) -> dict[str, Any]:
-    """One evaluate run on the synthetic fixture, into a real MLflow sqlite store."""
+    """evaluate@<group> of both groups, then the report, on the synthetic fixture, in a real MLflow store."""
     root = tmp_path_factory.mktemp("evaluate")
     dirs = build_fixture(root)
     mp = pytest.MonkeyPatch()
@@ -313,34 +320,42 @@ def evaluated(tmp_path_factory: pytest.TempPathFactory) -> dict[str, Any]:
     try:
         params = load_params(write_params(root))
         out = root / "reports"
-        result = E.run(params, dirs["models"], dirs["labelled"], out, dirs["ingested"], progress=False)
+        results = {
+            g: E.run(params, g, dirs["models"] / g, dirs["labelled"], out, dirs["ingested"], progress=False)
+            for g in (LEG, PAIR)
+        }
+        REPORT.run(params, out)
     finally:
         mp.undo()
-    return {"result": result, "out": out, "dirs": dirs, "root": root}
+    return {"results": results, "out": out, "dirs": dirs, "root": root}
 
 
-def test_metrics_json_has_the_tables_as_flat_numbers(evaluated: dict[str, Any]) -> None:
-    doc = json.loads((evaluated["out"] / "metrics.json").read_text())
-    keys = flat(doc)
+def _report(evaluated: dict[str, Any], group: str) -> dict[str, Any]:
+    return json.loads((evaluated["out"] / "groups" / group / "report.json").read_text())
+
+
+def test_group_report_has_every_table_and_small_metrics(evaluated: dict[str, Any]) -> None:
     for name, group in ((LEG, LEG), (PAIR, PAIR), (FRONT, PAIR), (REAR, PAIR)):
+        tables = _report(evaluated, group)["tables"]
         for ref in ("labels", "truth"):
             for model in ("raw", "affine", "nn7", "nn13", "oracle"):
                 for metric in ("mse", "mae", "rmse"):
                     for suffix in ("", "_force", "_torque", *(f"_{a}" for a in S.WRENCH_AXES)):
-                        value = keys[f"tables.{group}.{name}.{ref}.{model}.{metric}{suffix}"]
+                        value = tables[name][ref][model][f"{metric}{suffix}"]
                         assert isinstance(value, float) and math.isfinite(value)
     for group in (LEG, PAIR):
-        for key in ("raw_over_nn7", "nn7_over_oracle"):
-            for ref in ("labels", "truth"):
-                assert isinstance(keys[f"summary.{group}.{key}.{ref}"], float)
-        assert isinstance(keys[f"noise.{group}.ratio.nn13"], float)
-        assert isinstance(keys[f"by_experiment.{group}.{group}.labels.pole.nn7"], float)
-    # nothing that dvc could not parse: no NaN/inf tokens
-    assert "NaN" not in (evaluated["out"] / "metrics.json").read_text()
+        text = (evaluated["out"] / "metrics" / f"{group}.json").read_text()
+        keys = flat(json.loads(text))
+        assert keys["recommended"] == "nn7" and keys["noise_flagged"] == 1
+        for ref in ("labels", "truth"):
+            for model in ("raw", "recommended", "nn7", "nn13", "oracle"):
+                assert isinstance(keys[f"rmse.{ref}.{model}"], float)
+        assert len(keys) < 20  # one short row of `dvc metrics show`
+        assert "NaN" not in text  # nothing dvc could not parse
 
 
 def test_errors_match_an_independent_computation(evaluated: dict[str, Any]) -> None:
-    doc = evaluated["result"].metrics
+    r_pair, r_leg = evaluated["results"][PAIR], evaluated["results"][LEG]
     dirs = evaluated["dirs"]
     frames = [
         pq.read_table(dirs["ingested"] / f"{log}{S.TRUTH_SUFFIX}.parquet").to_pandas() for log, *_ in LOGS
@@ -356,59 +371,54 @@ def test_errors_match_an_independent_computation(evaluated: dict[str, Any]) -> N
         + truth[S.wrench_cols(S.ORACLE, REAR)].to_numpy() @ TRANSFORMS[1].T
     )
     err = oracle_sum - true_sum
-    assert doc["tables"][PAIR][PAIR]["truth"]["oracle"]["rmse"] == pytest.approx(math.sqrt(np.mean(err**2)))
+    assert r_pair.tables[PAIR]["truth"]["oracle"]["rmse"] == pytest.approx(math.sqrt(np.mean(err**2)))
     nn7 = pred[prediction_cols("nn7", PAIR)].to_numpy()
-    assert doc["tables"][PAIR][PAIR]["truth"]["nn7"]["mae_torque"] == pytest.approx(
+    assert r_pair.tables[PAIR]["truth"]["nn7"]["mae_torque"] == pytest.approx(
         np.mean(np.abs(nn7 - true_sum)[:, 3:])
     )
     # labels: only where the switch is 1 (the walking log has half of them at 0)
     leg = pd.read_parquet(dirs["models"] / LEG / "predictions.parquet")
     m = leg[S.switch_col(LEG)].to_numpy() == 1
     e = leg[prediction_cols("raw", LEG)].to_numpy()[m] - leg[S.wrench_cols(S.EXPECTED, LEG)].to_numpy()[m]
-    assert doc["tables"][LEG][LEG]["labels"]["raw"]["samples"] == m.sum() < len(leg)
-    assert doc["tables"][LEG][LEG]["labels"]["raw"]["mse_fy"] == pytest.approx(np.mean(e[:, 1] ** 2))
-    s = doc["summary"][LEG]
-    assert s["raw_over_nn7"]["labels"] == pytest.approx(
-        s["rmse"]["labels"]["raw"] / s["rmse"]["labels"]["nn7"]
-    )
-    assert s["nn7_over_oracle"]["truth"] == pytest.approx(
-        s["rmse"]["truth"]["nn7"] / s["rmse"]["truth"]["oracle"]
+    assert r_leg.tables[LEG]["labels"]["raw"]["samples"] == m.sum() < len(leg)
+    assert r_leg.tables[LEG]["labels"]["raw"]["mse_fy"] == pytest.approx(np.mean(e[:, 1] ** 2))
+    ratios = r_leg.ratios()
+    assert ratios["raw_over_nn7"]["labels"] == pytest.approx(
+        r_leg.headline_rmse("labels", "raw") / r_leg.headline_rmse("labels", "nn7")
     )
 
 
 def test_noise_check_flags_the_noisy_network_and_recommends_the_next(evaluated: dict[str, Any]) -> None:
-    doc = evaluated["result"].metrics
-    assert doc["flagged"] == [f"{LEG}/nn13", f"{PAIR}/nn13"]
     for group in (LEG, PAIR):
-        noise = doc["noise"][group]
+        r = evaluated["results"][group]
         # only the still pole log is quasi-static (the walking log turns and changes contacts)
-        assert 3.0 < noise["quasi_static_s"] < N / FS
-        assert noise["ratio"]["raw"] == pytest.approx(1.0)
-        assert noise["ratio"]["affine"] == pytest.approx(1.0)
-        assert noise["ratio"]["nn13"] > 2.5
-        assert noise["signal_fraction"] < 0.1
-        s = doc["summary"][group]
-        assert s["best_on_validation"] == "nn13" and s["recommended"] == "nn7"
-        assert s["noise_flagged"] == ["nn13"]
+        assert 3.0 < r.noise.quasi_static_s < N / FS
+        assert r.noise.ratio["raw"] == pytest.approx(1.0)
+        assert r.noise.ratio["affine"] == pytest.approx(1.0)
+        assert r.noise.ratio["nn13"] > 2.5
+        assert r.noise.signal_fraction < 0.1
+        assert r.best_on_validation == "nn13" and r.recommended == "nn7"
+        assert r.noise.flagged == ["nn13"]
 
 
 def test_report_page_and_plots(evaluated: dict[str, Any]) -> None:
     out = evaluated["out"]
     page = (out / "index.html").read_text()
-    pngs = sorted(p.name for p in (out / "plots").glob("*.png"))
-    for name in (LEG, PAIR, FRONT, REAR):
-        for kind in ("timeseries", "zoom", "residuals", "rmse"):
-            assert f"{name}_{kind}.png" in pngs
-    for group in (LEG, PAIR):
-        assert f"{group}_loss.png" in pngs and f"{group}_noise.png" in pngs
-    for png in pngs:
-        assert f'src="plots/{png}"' in page
-        assert (out / "plots" / png).stat().st_size > 5000
+    for group, names in ((LEG, (LEG,)), (PAIR, (PAIR, FRONT, REAR))):
+        plots = out / "groups" / group / "plots"
+        pngs = sorted(p.name for p in plots.glob("*.png"))
+        for name in names:
+            for kind in ("timeseries", "zoom", "residuals", "rmse"):
+                assert f"{name}_{kind}.png" in pngs
+        assert "loss.png" in pngs and "noise.png" in pngs
+        for png in pngs:
+            assert f'src="groups/{group}/plots/{png}"' in page
+            assert (plots / png).stat().st_size > 5000
+    for png in ("rmse_overview.png", "noise_amplification.png"):
+        assert f'src="plots/{png}"' in page and (out / "plots" / png).stat().st_size > 5000
     assert "Noise flags" in page and f"{LEG}/nn13" in page
-    assert page.count("<table") >= 2 + 4 * (
-        2 * 3 + 2
-    )  # summary, noise; per name: 2 refs x 3 metrics + per type
-    loss = (out / "plots_data" / "loss" / f"{LEG}_nn7.csv").read_text().splitlines()
+    assert page.count("<table") >= 2 + 4 * (2 * 3 + 2)  # summary, noise; per name: refs x metrics + per type
+    loss = (out / "plots_data" / "loss" / LEG / "nn7.csv").read_text().splitlines()
     assert loss[0] == "epoch,train_loss,val_rmse" and len(loss) == 6
     for sub in ("rmse_labels", "rmse_truth"):
         rmse = pd.read_csv(out / "plots_data" / sub / f"{PAIR}.csv")
@@ -422,44 +432,14 @@ def test_mlflow_run_has_metrics_tags_and_artifacts(evaluated: dict[str, Any]) ->
     from mlflow import MlflowClient
 
     client = MlflowClient(f"sqlite:///{evaluated['root'] / 'mlflow.db'}")
-    run = client.get_run(evaluated["result"].run_id)
-    assert run.info.status == "FINISHED" and run.data.tags["dvc.stage"] == "evaluate"
-    assert run.data.tags["recommended.r_foot"] == "nn7"
-    assert run.data.tags["flagged"] == f"{LEG}/nn13,{PAIR}/nn13"
-    assert run.data.metrics[f"{PAIR}.{PAIR}.truth.oracle.rmse"] > 0
-    assert run.data.metrics[f"{LEG}.noise_ratio.nn13"] > 2.5
+    run = client.get_run(evaluated["results"][PAIR].run_id)
+    assert run.info.status == "FINISHED" and run.data.tags["dvc.stage"] == f"evaluate@{PAIR}"
+    assert run.data.tags["recommended"] == "nn7" and run.data.tags["flagged"] == "nn13"
+    assert run.data.metrics[f"{PAIR}.truth.oracle.rmse"] > 0
+    assert run.data.metrics["noise_ratio.nn13"] > 2.5
     artifacts = {a.path for a in client.list_artifacts(run.info.run_id)}
-    assert {"index.html", "metrics.json", "plots"} <= artifacts
-    assert len(client.list_artifacts(run.info.run_id, "plots")) >= 18
-
-
-def test_loss_history_and_training_run_are_found_in_mlflow(evaluated: dict[str, Any]) -> None:
-    """Without ``history`` in metrics.json: the best trial's nested run (matched by its best_val_rmse, not
-    only its tags) gives the curves; the training run is the one whose logged test RMSEs match."""
-    from mlflow import MlflowClient
-    from mlflow.entities import Metric
-
-    client = MlflowClient(f"sqlite:///{evaluated['root'] / 'mlflow.db'}")
-    experiment = client.get_experiment_by_name("ftcal").experiment_id
-    tags = {"group": PAIR, "network": "nn13", "trial": "2"}
-    for best in (0.9, 0.4):  # a stale study's run with the same tags, then the right one
-        run = client.create_run(experiment, tags=tags).info.run_id
-        history = [
-            Metric(k, v, 0, e)
-            for e, (loss, val) in enumerate([(3.0, 1.0), (2.0, best)])
-            for k, v in (("loss", loss), ("val_rmse", val))
-        ]
-        client.log_batch(run, metrics=[*history, Metric("best_val_rmse", best, 0, 0)])
-    train = {"networks": {"nn13": {"trial": 2, "val_rmse_labelled": 0.4}}, "test": {"nn7": {"rmse": 1.25}}}
-    found = E.find_histories(client, [experiment], PAIR, train)
-    assert found == {
-        "nn13": [{"epoch": 0.0, "loss": 3.0, "val_rmse": 1.0}, {"epoch": 1.0, "loss": 2.0, "val_rmse": 0.4}]
-    }
-    assert E.find_train_run(client, [experiment], PAIR, train) is None
-    run = client.create_run(experiment, tags={"dvc.stage": f"train@{PAIR}"}).info.run_id
-    client.log_metric(run, "test.nn7.rmse", 1.25)
-    assert E.find_train_run(client, [experiment], PAIR, train) == run
-    assert E.find_train_run(client, [experiment], PAIR, {**train, "mlflow_run": "abc"}) == "abc"
+    assert {"report.json", "plots"} <= artifacts
+    assert len(client.list_artifacts(run.info.run_id, "plots")) >= 14
 
 
 # --- bad input -----------------------------------------------------------------------------------
@@ -467,27 +447,29 @@ def test_loss_history_and_training_run_are_found_in_mlflow(evaluated: dict[str, 
 
 def test_cli_missing_models_dir_is_one_line(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
     params = write_params(tmp_path)
-    code = main(
-        ["evaluate", str(tmp_path / "nope"), str(tmp_path), str(tmp_path / "out"), "--params", str(params)]
-    )
+    args = [LEG, str(tmp_path / "nope"), str(tmp_path), str(tmp_path / "out"), "--params", str(params)]
+    code = main(["evaluate", *args])
     err = capsys.readouterr().err.strip()
     assert code == 2 and err.count("\n") == 0
-    assert err == f"ftcal: error: {tmp_path / 'nope'}: models directory not found (run `dvc repro train`)"
+    assert (
+        err == f"ftcal: error: {tmp_path / 'nope'}: no models for group {LEG} (run `dvc repro train@{LEG}`)"
+    )
 
 
 def test_group_without_predictions_is_a_data_error(
     tmp_path: Path, capsys: pytest.CaptureFixture[str]
 ) -> None:
-    dirs = build_fixture(tmp_path, with_history=False)
+    dirs = build_fixture(tmp_path)
     (dirs["models"] / PAIR / "predictions.parquet").unlink()
     params = write_params(tmp_path)
-    cfg = stage_section(load_params(params), "evaluate", E.EvaluateParams)
+    cfg = stage_section(load_params(params), "evaluate", EvaluateParams)
     with pytest.raises(DataError, match=r"r_foot/predictions\.parquet: group r_foot has no test predictions"):
-        E.load_group(PAIR, dirs["models"], dirs["labelled"], dirs["ingested"], cfg)
+        load_group(PAIR, dirs["models"] / PAIR, dirs["labelled"], dirs["ingested"], cfg)
     code = main(
         [
             "evaluate",
-            str(dirs["models"]),
+            PAIR,
+            str(dirs["models"] / PAIR),
             str(dirs["labelled"]),
             str(tmp_path / "out"),
             "--params",
@@ -500,10 +482,10 @@ def test_group_without_predictions_is_a_data_error(
 
 
 def test_missing_labelled_test_log_is_a_data_error(tmp_path: Path) -> None:
-    dirs = build_fixture(tmp_path, with_history=False)
+    dirs = build_fixture(tmp_path)
     (dirs["labelled"] / "11_walking_test.parquet").unlink()
-    cfg = stage_section(load_params(write_params(tmp_path)), "evaluate", E.EvaluateParams)
+    cfg = stage_section(load_params(write_params(tmp_path)), "evaluate", EvaluateParams)
     with pytest.raises(
         DataError, match=r"11_walking_test\.parquet: labelled table of test log 11_walking_test not found"
     ):
-        E.load_group(LEG, dirs["models"], dirs["labelled"], dirs["ingested"], cfg)
+        load_group(LEG, dirs["models"] / LEG, dirs["labelled"], dirs["ingested"], cfg)

@@ -112,8 +112,11 @@ def _params(trained: dict, tmp_path: Path, **export: Any) -> Path:
 
 
 def _report(tmp_path: Path, recommended: dict[str, Any]) -> Path:
-    path = tmp_path / "report.json"
-    path.write_text(json.dumps({"summary": {g: {"recommended": m} for g, m in recommended.items()}}))
+    """evaluate's reports/metrics directory: <group>.json with the recommended model ("none": flagged)."""
+    path = tmp_path / "metrics"
+    path.mkdir(exist_ok=True)
+    for group, model in recommended.items():
+        (path / f"{group}.json").write_text(json.dumps({"recommended": model or "none", "rmse": {}}))
     return path
 
 
@@ -243,7 +246,7 @@ def test_missing_inputs_are_data_errors(trained_models: dict, tmp_path: Path) ->
     report = _report(tmp_path, {LEG: "nn7", PAIR: "nn7"})
     with pytest.raises(DataError, match="models directory not found"):
         E.run(params, tmp_path / "none", report, trained_models["labelled"], tmp_path / "o")
-    with pytest.raises(DataError, match=r"report\.json: not found|missing\.json: not found"):
+    with pytest.raises(DataError, match=r"r_leg_ft\.json: not found"):
         E.run(
             params,
             trained_models["models"],

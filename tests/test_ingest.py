@@ -14,18 +14,13 @@ import yaml
 from pipeline.cli import main
 from pipeline.core.config import TopicParams, load_params, stage_section
 from pipeline.core.errors import ConfigError, DataError
+from pipeline.logs import mcap_table, tables
 from pipeline.logs import schema as S
+from pipeline.logs.align import align_continuous, align_latest, sort_unique, stamp_steps_back
+from pipeline.logs.mcap_table import ingest_log
 from pipeline.logs.rosmsg import LogWriter
-from pipeline.stages import ingest
-from pipeline.stages.ingest import (
-    IngestParams,
-    align_continuous,
-    align_latest,
-    ingest_log,
-    read_table_metadata,
-    sort_unique,
-    stamp_steps_back,
-)
+from pipeline.logs.tables import LogReport, read_table_metadata
+from pipeline.stages.ingest import IngestParams
 
 ROOT = Path(__file__).resolve().parent.parent
 T0 = 1_700_000_000 * 10**9  # ns
@@ -130,9 +125,7 @@ def write_log(
     return path
 
 
-def run_one(
-    path: Path, out: Path, cfg: IngestParams = CFG, joints: Sequence[str] = JOINTS
-) -> ingest.LogReport:
+def run_one(path: Path, out: Path, cfg: IngestParams = CFG, joints: Sequence[str] = JOINTS) -> LogReport:
     return ingest_log(path, out, path.stem, cfg, TOPICS, joints, SENSORS, ["iCubGenova09"])
 
 
@@ -251,8 +244,8 @@ def test_aligned_table_values_flags_and_truth(tmp_path: Path) -> None:
 def test_streamed_writing_equals_one_pass(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
     path = write_log(tmp_path / "long.mcap", duration=6.0, chunk_size=20_000)  # ~60 chunks
     whole = pd.read_parquet(run_one(path, tmp_path / "a").output)
-    monkeypatch.setattr(ingest, "_EMIT_ROWS", 37)
-    monkeypatch.setattr(ingest, "_ROW_GROUP_ROWS", 100)
+    monkeypatch.setattr(mcap_table, "_EMIT_ROWS", 37)
+    monkeypatch.setattr(tables, "ROW_GROUP_ROWS", 100)
     report = run_one(path, tmp_path / "b")
     assert pq.ParquetFile(report.output).metadata.num_row_groups > 3
     pd.testing.assert_frame_equal(pd.read_parquet(report.output), whole)
@@ -272,7 +265,7 @@ def test_rare_discrete_messages_do_not_stall_or_go_stale(
     path = write_log(
         tmp_path / "rare.mcap", duration=6.0, chunk_size=20_000, skip=["/sim/contacts"], extra=contacts
     )
-    monkeypatch.setattr(ingest, "_EMIT_ROWS", 37)
+    monkeypatch.setattr(mcap_table, "_EMIT_ROWS", 37)
     report = run_one(path, tmp_path / "out")
     truth = pd.read_parquet(report.truth_output)
     t = (truth[S.STAMP].to_numpy() - T0) / 1e9

@@ -7,13 +7,16 @@ from pathlib import Path
 
 import numpy as np
 import pandas as pd
+import pyarrow.parquet as pq
 import pytest
 import yaml
 
 from pipeline.core.config import load_params
 from pipeline.core.errors import ConfigError, DataError, RobotModelError
+from pipeline.labels.contacts import guard_band, hysteresis
 from pipeline.logs import schema as S
-from pipeline.stages.label import guard_band, hysteresis, run
+from pipeline.physics.cuts import pose_wrench_transforms
+from pipeline.stages.label import run
 from tests.idyntree_ref import IDynTreeFT
 
 REPO = Path(__file__).resolve().parents[1]
@@ -96,6 +99,50 @@ def test_walking_contacts_detected(default_run: Path) -> None:
         assert not table.loc[table[S.GUARD], col].any()
 
 
+def cut_sets(path: Path) -> dict[str, dict]:
+    """The cut sets with columns of their own, from a labelled table's ftcal.label metadata."""
+    meta = S.read_metadata(pq.read_schema(path), S.META_LABEL)
+    return {name: c for name, c in meta["cut_sets"].items() if c["label"] == name}
+
+
+def map_sum(table: pd.DataFrame, cut: dict, wrenches: dict[str, np.ndarray]) -> np.ndarray:
+    """A cut set's signed sum of (N, 6) sensor wrenches, mapped as the metadata says (what training does)."""
+    total = np.zeros((len(table), 6))
+    for s in cut["sensors"]:
+        if s in cut["X"]:
+            term = wrenches[s] @ np.array(cut["X"][s]).reshape(6, 6).T
+        else:
+            xs = pose_wrench_transforms(table[cut["pose_columns"][s]].to_numpy())
+            term = np.einsum("nij,nj->ni", xs, wrenches[s])
+        total += cut["signs"][s] * term
+    return total
+
+
+def test_walking_cut_sets_exact_in_double_support(default_run: Path) -> None:
+    """Outside guard bands, > 95% of walking samples have an exact leg-pair and four-foot sum label, double
+    support included, though neither leg sensor alone is exact there."""
+    path = default_run / "labelled" / "03_walking_test.parquet"
+    table = pd.read_parquet(path)
+    cuts = cut_sets(path)
+    legs = S.cut_set_name(["l_leg_ft", "r_leg_ft"])
+    feet = next(n for n, c in cuts.items() if set(c["sensors"]) == set(FEET))
+    outside = ~table[S.GUARD].to_numpy()
+    double = outside & (table[S.CONTACTS].str.count(",") == 3).to_numpy()
+    assert double.mean() > 0.2
+    for name in (legs, feet):
+        on = table[S.cut_switch_col(name)].to_numpy() == 1
+        assert on[outside].mean() > 0.95 and on[double].mean() > 0.95, name
+        nan = table[S.cut_sum_cols(name)].isna().all(axis=1).to_numpy()
+        assert (nan == ~on).all()
+    assert (table.loc[double, S.switch_col("l_leg_ft")] == 0).all()
+    for cut in cuts.values():  # every pose column the metadata names is in the table
+        for cols in cut["pose_columns"].values():
+            assert set(cols) <= set(table.columns)
+
+
+FEET = ("l_foot_front_ft", "l_foot_rear_ft", "r_foot_front_ft", "r_foot_rear_ft")
+
+
 def test_declared_contacts_and_switches(default_run: Path) -> None:
     table, _ = labelled(default_run, "02_half_foot_r_foot_rear_test")
     assert set(table[S.CONTACTS]) == {"r_foot_rear"} and set(table[S.FIXED_LINK]) == {"r_sole"}
@@ -112,8 +159,8 @@ def test_declared_contacts_and_switches(default_run: Path) -> None:
 
 
 def test_ideal_labels_equal_truth(ideal_run: Path) -> None:
-    """No model error, no noise: wherever a switch is 1, expected == true wrench, every sensor and pair
-    (what remains is the Savitzky-Golay smoothing of exact positions)."""
+    """No model error, no noise: wherever a switch is 1, expected == true wrench, every sensor, pair and
+    cut set (true wrenches mapped as the metadata says; what remains is the smoothing of exact positions)."""
     from pipeline.physics.robot import load_robot
 
     robot = load_robot("iCubGenova09")
@@ -132,16 +179,20 @@ def test_ideal_labels_equal_truth(ideal_run: Path) -> None:
         true = {s: truth[S.wrench_cols(S.TRUE, s)].to_numpy() for s in robot.sensors}
         for p in pairs:
             true[p.name] = true[p.front] @ p.sole_X_front.T + true[p.rear] @ p.sole_X_rear.T
+        cut_sets_of = cut_sets(ideal_run / "labelled" / f"{log}.parquet")
+        for name, cut in cut_sets_of.items():
+            true[name] = map_sum(table, cut, true)
         for name, value in true.items():
             on = (table[S.switch_col(name)] == 1).to_numpy() & np.isfinite(value).all(axis=1)
             err = table[S.wrench_cols(S.EXPECTED, name)].to_numpy()[on] - value[on]
-            worst[(log, name)] = float(np.abs(err).max()) if on.any() else 0.0
+            scale = len(cut_sets_of.get(name, {}).get("sensors", [0]))  # a sum adds its members' errors
+            worst[(log, name)] = float(np.abs(err).max()) / scale if on.any() else 0.0
             compared += int(on.sum())
     assert compared > 10_000
     assert max(worst.values()) < IDEAL_TOLERANCE, {k: v for k, v in worst.items() if v >= IDEAL_TOLERANCE}
 
 
-IDEAL_TOLERANCE = 1e-3  # N / Nm
+IDEAL_TOLERANCE = 1e-3  # N / Nm, per sensor (a cut-set sum may be off by its sensor count times this)
 
 
 @pytest.mark.parametrize(
@@ -182,9 +233,61 @@ def test_bad_inputs(tmp_path: Path, default_run: Path, mlflow_store: None) -> No
     path.write_text(yaml.safe_dump(data))
     with pytest.raises(ConfigError, match="label.contact_off and label.contact_on must satisfy"):
         run(load_params(path), default_run / "smoothed", tmp_path / "out")
+    data["label"].update(contact_on=0.04, cut_max_sensors=0)
+    path.write_text(yaml.safe_dump(data))
+    with pytest.raises(ConfigError, match=r"label.cut_max_sensors must be an integer in \[1, 6\], got 0"):
+        run(load_params(path), default_run / "smoothed", tmp_path / "out")
     data = yaml.safe_load(write_params(tmp_path, "p").read_text())
     data["robot"]["foot_pairs"]["l_foot"]["front"] = "l_toe_ft"
     path.write_text(yaml.safe_dump(data))
     with pytest.raises(RobotModelError, match="no force_torque sensor named 'l_toe_ft'"):
         run(load_params(path), default_run / "smoothed", tmp_path / "out")
     assert not (tmp_path / "out").exists()
+
+
+def test_label_stage_on_ergocub(tmp_path: Path, mlflow_store: None) -> None:
+    """Nothing iCub-specific: a smoothed table of ergoCub in declared double support (random kinematics)
+    labels every cut set; the leg-pair and four-foot sums match iDynTree mapped to their frames."""
+    from pipeline.physics.robot import load_robot
+    from tests.conftest import robot_source
+    from tests.idyntree_ref import random_in_limits
+    from tests.test_dynamics_cuts import DOUBLE, _wrench_X
+    from tests.test_dynamics_idyntree import oracle
+
+    robot = load_robot(robot_source("ergoCubSN001"))
+    n, joints, sensors = 40, robot.joint_names, list(robot.sensors)
+    q, dq, ddq = random_in_limits(robot.urdf_path, joints, n, np.random.default_rng(5))
+    cols: dict[str, np.ndarray] = {S.STAMP: np.arange(n) * 10_000_000, S.TIME: np.arange(n) * 0.01}
+    for c in S.ingested_columns(joints, sensors)[2:] + S.smoothed_extra_columns(joints):
+        cols[c] = np.ones(n, dtype=bool) if c.startswith(S.OK + ".") else np.zeros(n)
+    for quantity, values in ((S.QS, q), (S.DQS, dq), (S.DDQS, ddq), (S.Q, q)):
+        for k, c in enumerate(S.joint_cols(quantity, joints)):
+            cols[c] = values[:, k]
+    experiment = {"contacts": ",".join(DOUBLE), "fixed_link": "l_sole"}
+    schema = S.arrow_schema(list(cols), S.KIND_SMOOTHED, {S.META_EXPERIMENT: experiment})
+    (tmp_path / "smoothed").mkdir()
+    pq.write_table(pa_table(cols, schema), tmp_path / "smoothed" / "ergo.parquet")
+    data = yaml.safe_load((REPO / "params.yaml").read_text())
+    data["robot"]["urdf"] = str(robot.urdf_path)
+    (tmp_path / "p.yaml").write_text(yaml.safe_dump(data))
+    run(load_params(tmp_path / "p.yaml"), tmp_path / "smoothed", tmp_path / "labelled")
+    path = tmp_path / "labelled" / "ergo.parquet"
+    table, cuts = pd.read_parquet(path), cut_sets(path)
+    ref = oracle(robot).expected(q, dq, ddq, DOUBLE, "l_sole", np.array([0.0, 0.0, -9.80665]))
+    assert len(cuts) == 6
+    for name, cut in cuts.items():
+        assert (table[S.cut_switch_col(name)] == 1).all(), name
+        theirs = np.zeros((n, 6))
+        for s in cut["sensors"]:
+            xs = np.array([_wrench_X(h) for h in oracle(robot).sensor_poses(q, cut["frame"], s)])
+            theirs += cut["signs"][s] * np.einsum("nij,nj->ni", xs, ref[s])
+        np.testing.assert_allclose(table[S.cut_sum_cols(name)].to_numpy(), theirs, rtol=0, atol=1e-6)
+        np.testing.assert_allclose(map_sum(table, cut, ref), theirs, rtol=0, atol=1e-6)
+
+
+def pa_table(cols: dict[str, np.ndarray], schema):  # noqa: ANN201
+    import pyarrow as pa
+
+    return pa.Table.from_pydict(
+        {k: pa.array(v, type=schema.field(k).type) for k, v in cols.items()}, schema=schema
+    )

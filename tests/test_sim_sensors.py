@@ -11,20 +11,20 @@ import numpy as np
 import pytest
 
 from pipeline.core.errors import ConfigError
-from pipeline.sim.sensors import (
-    DistortionRanges,
-    ImuNoiseParams,
+from pipeline.sim.distortion import (
     SensorDistortion,
-    ThermalParams,
     distort,
     draw_distortion,
-    encoder_readings,
-    encoder_velocity,
     hysteresis_term,
-    imu_readings,
     oracle_inverse,
     play_operator,
     static_distortion,
+)
+from pipeline.sim.params import DistortionRanges, ImuNoiseParams, ThermalParams
+from pipeline.sim.sensors import (
+    encoder_readings,
+    encoder_velocity,
+    imu_readings,
     temperature_profile,
     thermal_response,
 )

@@ -14,7 +14,10 @@ from mcap_ros2.reader import read_ros2_messages
 
 from pipeline.core.config import load_params
 from pipeline.core.errors import ConfigError
-from pipeline.stages.simulate import build_world, make_motion, run, simulate_params
+from pipeline.sim.experiment import make_motion
+from pipeline.sim.params import simulate_params
+from pipeline.sim.world import build_world
+from pipeline.stages.simulate import run
 
 REPO = Path(__file__).resolve().parents[1]
 SHORT_LOGS = [

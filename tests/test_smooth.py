@@ -13,8 +13,8 @@ from scipy.signal import savgol_filter
 from pipeline.cli import main
 from pipeline.core.errors import ConfigError
 from pipeline.logs import schema as S
-from pipeline.stages.ingest import read_table_metadata
-from pipeline.stages.smooth import SmoothParams, segments, smooth_kinematics
+from pipeline.logs.smoothing import SmoothParams, segments, smooth_kinematics
+from pipeline.logs.tables import read_table_metadata
 from tests.test_ingest import JOINTS, ROOT, SENSORS, T0, joint_position, run_one, write_log
 
 RATE = 100.0  # Hz

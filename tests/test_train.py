@@ -16,12 +16,17 @@ import pytest
 import torch
 import yaml
 
+from pipeline.calib import search as calib_search
+from pipeline.calib.data import LogInfo, find_logs, input_cols, load_group_data, resolve_group, split_logs
 from pipeline.calib.models import load_model
+from pipeline.calib.params import TrainParams
+from pipeline.calib.training import train_network
 from pipeline.cli import main
 from pipeline.core.config import load_params, stage_section
 from pipeline.core.errors import ConfigError, DataError
 from pipeline.logs import schema as S
-from pipeline.stages import train as T
+from pipeline.logs.schema import LOG, prediction_cols
+from pipeline.stages.train import train_group  # the stage entry (default studies dir)
 from tests.test_models import TRANSFORMS
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -181,7 +186,7 @@ def mlflow_uri(tmp_path_factory: pytest.TempPathFactory, monkeypatch: pytest.Mon
 
 def _comparable(metrics: dict[str, Any]) -> dict[str, Any]:
     """Metrics without what legitimately differs between runs (timings, run ids, trial bookkeeping)."""
-    m = {k: v for k, v in metrics.items() if k != "seconds"}
+    m = {k: v for k, v in metrics.items() if k not in ("seconds", "mlflow")}
     m["networks"] = {
         name: {k: v for k, v in net.items() if k not in ("trials_run", "trials_reused")}
         for name, net in metrics["networks"].items()
@@ -193,7 +198,7 @@ def _comparable(metrics: dict[str, Any]) -> dict[str, Any]:
 
 
 def test_repo_params_resolve_every_group() -> None:
-    cfg = stage_section(load_params(ROOT / "params.yaml"), "train", T.TrainParams)
+    cfg = stage_section(load_params(ROOT / "params.yaml"), "train", TrainParams)
     for name in cfg.groups:
         gp = cfg.group(name)
         assert (gp.sensor is None) != (gp.pair is None)
@@ -224,16 +229,16 @@ def test_bad_params_name_the_key(tmp_path: Path, change: dict[str, Any], message
             train["defaults"].update(value)
         else:
             train[key] = value
-    params = load_params(write_params(tmp_path, train))
+    path = write_params(tmp_path, train)
     with pytest.raises(ConfigError, match=message.replace("(", r"\(").replace(")", r"\)")):
-        stage_section(params, "train", T.TrainParams)
+        load_params(path)  # every section is validated when params.yaml is loaded
 
 
 # --- split and data ------------------------------------------------------------------------------
 
 
-def _logs(*specs: tuple[str, str, str]) -> list[T.LogInfo]:
-    return [T.LogInfo(name, Path(name), role, kind) for name, kind, role in specs]
+def _logs(*specs: tuple[str, str, str]) -> list[LogInfo]:
+    return [LogInfo(name, Path(name), role, kind) for name, kind, role in specs]
 
 
 def test_split_is_by_whole_logs_one_per_kind_never_a_kinds_last() -> None:
@@ -248,12 +253,12 @@ def test_split_is_by_whole_logs_one_per_kind_never_a_kinds_last() -> None:
         ("t1", "pole", "test"),
     )
     for seed in range(20):
-        split = T.split_logs(logs, val_logs=5, seed=seed)
+        split = split_logs(logs, val_logs=5, seed=seed)
         assert split["test"] == ["t1"]
         assert len(split["val"]) == 2 and {v[0] for v in split["val"]} == {"p", "w"}  # one pole, one walking
         assert sorted(split["train"] + split["val"]) == ["b1", "b2", "p1", "p2", "w1", "w2"]
-        assert split == T.split_logs(logs, val_logs=5, seed=seed)  # seeded
-    picks = {tuple(T.split_logs(logs, val_logs=1, seed=s)["val"]) for s in range(20)}
+        assert split == split_logs(logs, val_logs=5, seed=seed)  # seeded
+    picks = {tuple(split_logs(logs, val_logs=1, seed=s)["val"]) for s in range(20)}
     assert len(picks) > 1  # the seed does choose
 
 
@@ -270,20 +275,20 @@ def test_split_is_by_whole_logs_one_per_kind_never_a_kinds_last() -> None:
 )
 def test_split_errors(specs: list[tuple[str, str, str]], message: str) -> None:
     with pytest.raises(DataError, match=message):
-        T.split_logs(_logs(*specs), val_logs=1, seed=0)
+        split_logs(_logs(*specs), val_logs=1, seed=0)
 
 
 def test_group_data_drops_samples_with_bad_inputs_and_keeps_nan_labels(labelled: Path) -> None:
-    logs = T.find_logs(labelled)
+    logs = find_logs(labelled)
     params = load_params(write_params(labelled.parent))
-    gp = stage_section(params, "train", T.TrainParams).group(PAIR)
-    group = T.resolve_group(gp, params, logs)
+    gp = stage_section(params, "train", TrainParams).group(PAIR)
+    group = resolve_group(gp, params, logs)
     assert group.sensors == (FRONT, REAR)
     np.testing.assert_allclose(group.transforms, TRANSFORMS)
-    data = T.load_group_data(group, logs[:1])
+    data = load_group_data(group, logs[:1])
     assert len(data) == 500 - 6  # 3 bad wrench rows per sensor, both sensors of the pair
     assert np.isfinite(data.x).all()
-    walking = T.load_group_data(group, [log for log in logs if log.kind == "walking"][:1])
+    walking = load_group_data(group, [log for log in logs if log.kind == "walking"][:1])
     assert np.isnan(walking.labels[~walking.switches]).all()
     np.testing.assert_array_equal(walking.alpha_sum, walking.sum_switch & ~walking.switches.all(axis=1))
 
@@ -360,13 +365,13 @@ def test_log_kind_refines_the_type_with_foot_and_part(tmp_path: Path) -> None:
         {"type": "half_foot", "foot": "l_foot", "part": "front", "role": "train"}
     )
     pq.write_table(table.replace_schema_metadata(meta), tmp_path / "a_train.parquet")
-    assert [log.kind for log in T.find_logs(tmp_path)] == ["half_foot/l_foot/front"]
+    assert [log.kind for log in find_logs(tmp_path)] == ["half_foot/l_foot/front"]
 
 
 def test_log_without_role_is_a_data_error(tmp_path: Path) -> None:
     write_labelled_log(tmp_path / "a.parquet", "pole", "", n=50, seed=0)
     with pytest.raises(DataError, match="a.parquet: experiment metadata role must be 'train' or 'test'"):
-        T.find_logs(tmp_path)
+        find_logs(tmp_path)
 
 
 # --- end to end ----------------------------------------------------------------------------------
@@ -381,10 +386,10 @@ def test_end_to_end_resumes_registers_and_repeats(
     out_a, out_b = tmp_path / "a", tmp_path / "b"
 
     # A: a fresh study.
-    a = T.train_group(params, PAIR, labelled, out_a, tmp_path / "studies_a", progress=False)
+    a = train_group(params, PAIR, labelled, out_a, tmp_path / "studies_a", progress=False)
 
     # B: another fresh study, interrupted in the nn7 search's second trial, then resumed.
-    real = T.train_network
+    real = train_network
     calls = {"n": 0}
 
     def interrupted(*args: Any, **kwargs: Any) -> Any:
@@ -393,11 +398,11 @@ def test_end_to_end_resumes_registers_and_repeats(
             raise KeyboardInterrupt
         return real(*args, **kwargs)
 
-    monkeypatch.setattr(T, "train_network", interrupted)
+    monkeypatch.setattr(calib_search, "train_network", interrupted)
     with pytest.raises(KeyboardInterrupt):
-        T.train_group(params, PAIR, labelled, out_b, tmp_path / "studies_b", progress=False)
-    monkeypatch.setattr(T, "train_network", real)
-    b = T.train_group(params, PAIR, labelled, out_b, tmp_path / "studies_b", progress=False)
+        train_group(params, PAIR, labelled, out_b, tmp_path / "studies_b", progress=False)
+    monkeypatch.setattr(calib_search, "train_network", real)
+    b = train_group(params, PAIR, labelled, out_b, tmp_path / "studies_b", progress=False)
     assert b.metrics["networks"]["nn7"]["trials_reused"] == 1
     assert b.metrics["networks"]["nn7"]["trials_run"] == 2
     # Same params, same data: the same metrics, whether or not the search was interrupted.
@@ -408,7 +413,7 @@ def test_end_to_end_resumes_registers_and_repeats(
     )
 
     # A again: the finished study is reused, nothing retrained.
-    again = T.train_group(params, PAIR, labelled, out_a, tmp_path / "studies_a", progress=False)
+    again = train_group(params, PAIR, labelled, out_a, tmp_path / "studies_a", progress=False)
     assert all(n["trials_run"] == 0 and n["trials_reused"] == 3 for n in again.metrics["networks"].values())
     assert _comparable(again.metrics) == _comparable(a.metrics)
 
@@ -426,18 +431,16 @@ def test_end_to_end_resumes_registers_and_repeats(
 
     # Model files: weights-only, and the same predictions as in predictions.parquet.
     pred = pd.read_parquet(out_a / "predictions.parquet")
-    assert set(pred[T.LOG]) == {"05_pole_test", "06_walking_test"}
+    assert set(pred[LOG]) == {"05_pole_test", "06_walking_test"}
     for name, n_inputs in (("nn7", 7), ("nn13", 13)):
         model, info = load_model(out_a / name)
-        cols = [c for sensor in (FRONT, REAR) for c in T.input_cols(sensor, n_inputs)]
+        cols = [c for sensor in (FRONT, REAR) for c in input_cols(sensor, n_inputs)]
         assert info["input_columns"] == cols
-        test = pd.concat(
-            [pd.read_parquet(p).assign(**{T.LOG: p.stem}) for p in labelled.glob("*test.parquet")]
-        )
-        test = pred[[T.LOG, S.STAMP]].merge(test, on=[T.LOG, S.STAMP], how="left")
+        test = pd.concat([pd.read_parquet(p).assign(**{LOG: p.stem}) for p in labelled.glob("*test.parquet")])
+        test = pred[[LOG, S.STAMP]].merge(test, on=[LOG, S.STAMP], how="left")
         with torch.no_grad():
             y = model(torch.tensor(test[cols].to_numpy(), dtype=torch.float32)).numpy()
-        expected = pred[T.prediction_cols(name, FRONT) + T.prediction_cols(name, REAR)].to_numpy()
+        expected = pred[prediction_cols(name, FRONT) + prediction_cols(name, REAR)].to_numpy()
         np.testing.assert_allclose(y, expected, rtol=1e-5, atol=1e-4)
 
     # MLflow: the stage's run tagged with the group, nested trial runs, registered pt2 models.

@@ -53,18 +53,18 @@ import numpy as np
 import torch
 from torch import nn
 
+from pipeline.calib.params import ACTIVATION_NAMES, INPUT_SIZES, NORMALISATIONS
 from pipeline.core.errors import DataError
 
 WRENCH = 6  # fx, fy, fz [N], tx, ty, tz [Nm]
 N_FORCE = 3
-INPUT_SIZES = (7, 13)  # raw wrench + temperature (+ accelerometer + gyroscope)
-NORMALISATIONS = ("max", "standard")
 ACTIVATIONS: dict[str, type[nn.Module]] = {
     "relu": nn.ReLU,
     "leaky_relu": nn.LeakyReLU,
     "tanh": nn.Tanh,
     "elu": nn.ELU,
 }
+assert tuple(ACTIVATIONS) == ACTIVATION_NAMES  # the params check them without importing torch
 MODEL_SUFFIX_CONFIG = ".json"
 MODEL_SUFFIX_WEIGHTS = ".pt"
 _TINY = 1e-9  # a normalisation scale below this (a constant input) is replaced by 1

@@ -159,6 +159,84 @@ class TopicParams:
         return getattr(self, kind).replace("{sensor}", sensor)
 
 
+_MAT_TEMPLATE_KEYS = ("ft", "temperature", "accelerometer", "gyroscope")
+_MAT_PATH_KEYS = ("joint_positions", "joint_velocities", "joint_torques")
+
+
+@dataclass(frozen=True)
+class MatParams:
+    """Section `ingest.mat`: where ingest finds each quantity in a YarpRobotLoggerDevice .mat file.
+
+    Paths are channel names with ``/`` between struct levels (the logger's ``::``), below the file's
+    top-level struct. Per-sensor entries are lists of templates tried in order (the first channel that
+    exists wins), in which ``{sensor}`` stands for the logger's name of a URDF FT sensor: the URDF
+    name itself, or its entry in `sensor_names`.
+    """
+
+    joint_positions: str  # rad, the time base (joint order from the file's description_list)
+    joint_velocities: str  # rad/s, the logger's own (-> dq_enc)
+    joint_torques: str  # Nm (-> tau_enc)
+    ft: tuple[str, ...]  # 6 values: fx fy fz (N), mx my mz (Nm), by position
+    temperature: tuple[str, ...]  # 1 value, deg C
+    accelerometer: tuple[str, ...]  # 3 values, m/s^2
+    gyroscope: tuple[str, ...]  # 3 values, rad/s
+    sensor_names: Mapping[str, str] = field(default_factory=dict)  # URDF sensor -> logger name
+    sidecar_suffix: str = ".yaml"  # experiment metadata file: <log stem><suffix> beside the .mat
+
+    def __post_init__(self) -> None:
+        for key in _MAT_PATH_KEYS:
+            _check_name(getattr(self, key), f"ingest.mat.{key}")
+        for key in _MAT_TEMPLATE_KEYS:
+            value = getattr(self, key)
+            if isinstance(value, str):
+                value = (value,)
+            if not isinstance(value, list | tuple) or not value:
+                raise ConfigError(
+                    f"ingest.mat.{key} must be a non-empty list of channel templates, got {value!r}"
+                )
+            for k, template in enumerate(value):
+                _check_name(template, f"ingest.mat.{key}[{k}]")
+                if "{sensor}" not in template:
+                    raise ConfigError(f"ingest.mat.{key}[{k}] must contain {{sensor}}, got {template!r}")
+            object.__setattr__(self, key, tuple(value))
+        names = self.sensor_names if self.sensor_names is not None else {}
+        if not isinstance(names, Mapping):
+            raise ConfigError(f"ingest.mat.sensor_names must be a mapping, got {names!r}")
+        for urdf_name, logger_name in names.items():
+            _check_name(urdf_name, "ingest.mat.sensor_names key")
+            _check_name(logger_name, f"ingest.mat.sensor_names.{urdf_name}")
+        object.__setattr__(self, "sensor_names", dict(names))
+        suffix = self.sidecar_suffix
+        if not isinstance(suffix, str) or not suffix.startswith(".") or len(suffix) < 2:
+            raise ConfigError(f"ingest.mat.sidecar_suffix must be a file suffix like '.yaml', got {suffix!r}")
+
+    @classmethod
+    def from_mapping(cls, data: Any) -> MatParams:
+        """Build from the parsed `ingest.mat` mapping (exactly the dataclass's keys)."""
+        if isinstance(data, cls):
+            return data
+        data = _mapping(data, "ingest.mat")
+        _section(data, "ingest.mat", set(cls.__dataclass_fields__))
+        return cls(**data)
+
+    def channels(self, key: str, sensor: str) -> tuple[str, ...]:
+        """The candidate channels of per-sensor quantity `key` (e.g. 'ft') for URDF FT sensor `sensor`."""
+        name = self.sensor_names.get(sensor, sensor)
+        return tuple(t.replace("{sensor}", name) for t in getattr(self, key))
+
+
+def mat_section(params: Params) -> MatParams:
+    """`ingest.mat` of params.yaml, validated (errors prefixed with the params file)."""
+    where = params.raw.get("__file__", PARAMS_FILE)
+    try:
+        ingest = _mapping(params.raw.get("ingest"), "ingest")
+        if "mat" not in ingest:
+            raise ConfigError("missing key ingest.mat")
+        return MatParams.from_mapping(ingest["mat"])
+    except ConfigError as exc:
+        raise ConfigError(f"{where}: {exc}") from None
+
+
 @dataclass(frozen=True)
 class Params:
     """The whole of params.yaml: typed shared sections plus the raw dict for the stage sections."""
@@ -172,6 +250,40 @@ class Params:
         s = self.seed
         if isinstance(s, bool) or not isinstance(s, int) or not 0 <= s < _MAX_SEED:
             raise ConfigError(f"seed must be an integer in [0, 2**32), got {s!r}")
+
+
+@dataclass(frozen=True)
+class LabelParams:
+    """Section `label` of params.yaml (stage `label`; see the comments there).
+
+    Thresholds are in robot-weight units (fractions of the URDF's total mass times gravity), so the same
+    values hold for any robot.
+    """
+
+    contact_on: float  # fraction of robot weight: a foot's normal force above this -> touching
+    contact_off: float  # fraction of robot weight: below this -> not touching
+    guard_s: float  # s: half-width of the guard band around every contact change
+    zero_quantile: float  # the foot's zero level is the median of its readings below this quantile
+    cut_max_sensors: int  # cut sets (summed labels) of 2 to this many FT sensors; 1 = none
+
+    def __post_init__(self) -> None:
+        for name in ("contact_on", "contact_off", "guard_s", "zero_quantile"):
+            v = getattr(self, name)
+            if isinstance(v, bool) or not isinstance(v, int | float) or not math.isfinite(v):
+                raise ConfigError(f"label.{name} must be a number, got {v!r}")
+            object.__setattr__(self, name, float(v))
+        if not 0.0 < self.contact_off < self.contact_on < 1.0:
+            raise ConfigError(
+                f"label.contact_off and label.contact_on must satisfy 0 < contact_off < contact_on < 1 "
+                f"(fractions of the robot weight), got {self.contact_off} and {self.contact_on}"
+            )
+        if not 0.0 <= self.guard_s <= 1.0:
+            raise ConfigError(f"label.guard_s must be in [0, 1] s, got {self.guard_s}")
+        if not 0.01 <= self.zero_quantile <= 0.5:
+            raise ConfigError(f"label.zero_quantile must be in [0.01, 0.5], got {self.zero_quantile}")
+        m = self.cut_max_sensors
+        if isinstance(m, bool) or not isinstance(m, int) or not 1 <= m <= 6:
+            raise ConfigError(f"label.cut_max_sensors must be an integer in [1, 6], got {m!r}")
 
 
 @dataclass(frozen=True)
@@ -305,6 +417,44 @@ def stage_section(params: Params, key: str, cls: type[T]) -> T:
         raise ConfigError(f"{where}: {key}: {exc}") from None
 
 
+# Every stage section of params.yaml and the validator that builds it: called when params.yaml is
+# loaded, whichever stage runs, so a typo anywhere is reported at once with its dotted key. A validator
+# is "module:function(params)" or "module:Class" (built with `stage_section`).
+SECTIONS: dict[str, str] = {
+    "simulate": "pipeline.sim.params:simulate_params",
+    "ingest": "pipeline.logs.params:IngestParams",
+    "smooth": "pipeline.logs.smoothing:SmoothParams",
+    "label": "pipeline.core.config:LabelParams",
+    "train": "pipeline.calib.params:TrainParams",
+    "evaluate": "pipeline.evaluation.params:EvaluateParams",
+    "export": "pipeline.core.config:ExportParams",
+}
+SHARED_KEYS = ("seed", "robot", "topics")
+
+
+def validate_sections(params: Params) -> None:
+    """Build every stage section of `params` (ConfigError naming the dotted key if one is invalid).
+
+    A section may be absent (a params file for some stages only); an unknown top-level key is an error.
+    """
+    import importlib
+
+    unknown = sorted(
+        str(k) for k in params.raw if k not in SECTIONS and k not in SHARED_KEYS and k != "__file__"
+    )
+    if unknown:
+        raise ConfigError(f"unknown key {unknown[0]} (allowed: {', '.join([*SHARED_KEYS, *SECTIONS])})")
+    for key, ref in SECTIONS.items():
+        if key not in params.raw:
+            continue
+        module, name = ref.split(":")
+        validator = getattr(importlib.import_module(module), name)
+        if isinstance(validator, type):
+            stage_section(params, key, validator)
+        else:
+            validator(params)
+
+
 def load_params(path: str | Path | None = None) -> Params:
     """Load and validate params.yaml (default: ``<repo_root()>/params.yaml``).
 
@@ -316,6 +466,11 @@ def load_params(path: str | Path | None = None) -> Params:
     try:
         params = _parse(_read_yaml(path))
         params.raw["__file__"] = _display(path)  # type: ignore[index]
-        return params
     except ConfigError as exc:
         raise ConfigError(f"{_display(path)}: {exc}") from None
+    try:
+        validate_sections(params)
+    except ConfigError as exc:  # stage_section already names the file
+        message, where = str(exc), _display(path)
+        raise ConfigError(message if message.startswith(where) else f"{where}: {message}") from None
+    return params

@@ -95,7 +95,7 @@ class GroupModel:
 
 def input_columns(sensor: str, n_inputs: int) -> list[str]:
     """Column names of one sensor's inputs (labelled-table names), in the models' order."""
-    from pipeline.stages.train import input_cols
+    from pipeline.calib.data import input_cols
 
     return input_cols(sensor, n_inputs)
 

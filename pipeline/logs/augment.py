@@ -26,7 +26,8 @@ from typing import Any
 import numpy as np
 
 from pipeline.core.errors import DataError
-from pipeline.logs.rosmsg import _MAGIC, _STANDARD_LAYOUTS, SCHEMAS, LogReader, schema_layout
+from pipeline.logs.cdr import MAGIC, SCHEMAS, STANDARD_LAYOUTS, schema_layout
+from pipeline.logs.mcap_read import LogReader
 
 _FOOTER = 1 + 8 + 20  # opcode, length, summary_start, summary_offset_start, crc
 _DATA_END = 1 + 8 + 4  # opcode, length, data_section_crc
@@ -43,11 +44,18 @@ class LogAugmenter:
         self.path = Path(out_path)
         self.part_path = self.path.with_name(self.path.name + ".part")
         self._compressor = zstandard.ZstdCompressor(level=compression_level)
-        self._src = open(reader.path, "rb")  # noqa: SIM115 (closed in close()/abort())
-        self._data_end = self._find_data_end()
         summary = reader.summary
-        if not summary.chunk_indexes and summary.statistics and summary.statistics.message_count:
-            raise DataError(f"{reader.path}: messages outside chunks (unchunked MCAP) are not supported")
+        if not reader.indexed or summary.statistics is None:
+            raise DataError(
+                f"{reader.path}: MCAP file without chunk indexes or statistics (unchunked or not indexed); "
+                "re-index it with `mcap recover`"
+            )
+        self._src = open(reader.path, "rb")  # noqa: SIM115 (closed in close()/abort())
+        try:
+            self._data_end = self._find_data_end()
+        except BaseException:
+            self._src.close()
+            raise
         self._schemas = dict(summary.schemas)
         self._channels = dict(summary.channels)
         self._new_records: list[Any] = []  # schemas and channels to write before the first chunk
@@ -90,7 +98,7 @@ class LogAugmenter:
                 for sid, s in sorted(self._schemas.items())
                 if s.name == msgtype
                 and s.encoding == "ros2msg"
-                and schema_layout(s.name, s.data.decode("utf-8", "replace")) == _STANDARD_LAYOUTS.get(msgtype)
+                and schema_layout(s.name, s.data.decode("utf-8", "replace")) == STANDARD_LAYOUTS.get(msgtype)
             ),
             None,
         )
@@ -164,9 +172,9 @@ class LogAugmenter:
     def _find_data_end(self) -> int:
         """Offset of the input's DataEnd record (just before the summary section)."""
         f = self._src
-        f.seek(-(len(_MAGIC) + _FOOTER), os.SEEK_END)
+        f.seek(-(len(MAGIC) + _FOOTER), os.SEEK_END)
         op, length, summary_start, _, _ = struct.unpack("<BQQQI", f.read(_FOOTER))
-        end = summary_start if summary_start else f.seek(-(len(_MAGIC) + _FOOTER), os.SEEK_END)
+        end = summary_start if summary_start else f.seek(-(len(MAGIC) + _FOOTER), os.SEEK_END)
         f.seek(end - _DATA_END)
         op2, length2 = struct.unpack("<BQ", f.read(9))
         if op != 0x02 or length != 20 or op2 != 0x0F or length2 != 4:
@@ -329,7 +337,7 @@ class LogAugmenter:
         crc = zlib.crc32(struct.pack("<BQQQ", Opcode.FOOTER, 20, summary_start, summary_offset_start), crc)
         self._out.write(data)
         self._out.write(_record_bytes(Footer(summary_start, summary_offset_start, crc)))
-        self._out.write(_MAGIC)
+        self._out.write(MAGIC)
 
 
 def _record_bytes(record: Any) -> bytes:

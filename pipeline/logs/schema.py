@@ -45,7 +45,21 @@ Labelled table ``data/labelled/<log>.parquet`` (same rows as the smoothed table;
 - ``contacts`` [string]: the contact set used (declared or detected); ``fixed_link`` [string]: the link
   fixed in the world; ``guard`` [bool]: inside a guard band around a contact change.
 
-Its metadata ``ftcal.label`` (JSON) holds the foot pairs with their constant 6x6 wrench transforms
+- ``exp.<cut>.<axis>`` [N, Nm]: a cut set's signed sum ``sum_s sign_s frame_X_s f_s`` of its sensors'
+  expected readings in the cut set's common frame (a URDF link; moment about its origin), see
+  :mod:`pipeline.physics.cuts`; ``<cut>`` is :func:`cut_set_name` (its sensors joined by ``+``, URDF order).
+  NaN where ``sw.<cut>`` is 0. A cut set equal to a foot pair is labelled only under the pair's name.
+- ``sw.<cut>`` [uint8]: 1 iff the part the set isolates touches nothing or is alone in touching, outside
+  guard bands, kinematics ok (exact even where no member's own switch is 1, e.g. the leg sensors in
+  double support).
+- ``pose.<cut>.<sensor>.<r00..r22|px|py|pz>`` [1, m]: for the members whose transform to the common
+  frame depends on the joints, the pose of the sensor frame in the common frame per sample (rotation
+  row-major, then position); the wrench transform is ``[[R, 0], [p^ R, R]]`` (force first). NaN where
+  the kinematics are not ok.
+
+Its metadata ``ftcal.label`` (JSON) holds the cut sets (``cut_sets.<cut>``: sensors, frame, signs, the
+label name, the isolated part's links, and per member either its constant 6x6 ``X`` or its pose columns),
+the foot pairs with their constant 6x6 wrench transforms
 (``pairs.<pair>.sole_X_front`` / ``sole_X_rear``, row-major, force first), the contact-detection
 settings and the per-log summary.
 
@@ -79,6 +93,9 @@ FT, ACC, GYR, TEMP = "ft", "acc", "gyr", "temp"
 TRUE, DISTORTED, ORACLE = "true", "distorted", "oracle"
 EXPECTED, SWITCH = "exp", "sw"  # labelled tables: expected wrench and its exact-label switch
 FIXED_LINK, GUARD = "fixed_link", "guard"
+POSE = "pose"  # labelled tables: pose.<cut>.<sensor>.<axis>, sensor pose in a cut set's common frame
+CUT_JOIN = "+"  # cut-set names: sensor names joined by this
+POSE_AXES = ("r00", "r01", "r02", "r10", "r11", "r12", "r20", "r21", "r22", "px", "py", "pz")  # 1, m
 PRED = "pred"  # predictions tables: pred.<model>.<sensor or pair>.<axis> [N, Nm]
 LOG = "log"  # predictions tables: the log (labelled table stem) of the sample
 QS, DQS, DDQS = "qs", "dqs", "ddqs"
@@ -150,6 +167,28 @@ def switch_col(name: str) -> str:
     return f"{SWITCH}.{name}"
 
 
+def cut_set_name(sensors: Iterable[str]) -> str:
+    """``<sensor>+<sensor>+...``: the name of a cut set (its sensors in URDF order), used as ``<cut>`` in
+    ``exp.<cut>.<axis>`` (:func:`wrench_cols` with EXPECTED) and ``sw.<cut>`` (:func:`switch_col`)."""
+    return CUT_JOIN.join(sensors)
+
+
+def cut_sum_cols(cut: str) -> list[str]:
+    """The 6 columns ``exp.<cut>.<axis>`` [N, Nm] of a cut set's expected signed sum, common frame."""
+    return wrench_cols(EXPECTED, cut)
+
+
+def cut_switch_col(cut: str) -> str:
+    """``sw.<cut>`` [uint8]: the cut set's exact-label switch."""
+    return switch_col(cut)
+
+
+def cut_pose_cols(cut: str, sensor: str) -> list[str]:
+    """The 12 columns ``pose.<cut>.<sensor>.<r00..r22|px|py|pz>``: pose of the sensor frame in the cut
+    set's common frame (rotation row-major [1], position [m])."""
+    return [f"{POSE}.{cut}.{sensor}.{axis}" for axis in POSE_AXES]
+
+
 def temperature_col(sensor: str) -> str:
     return f"{TEMP}.{sensor}"
 
@@ -166,6 +205,8 @@ def unit(column: str) -> str:
     parts = column.split(".")
     if parts[0] in (FT, TRUE, DISTORTED, ORACLE, EXPECTED, PRED):
         return _WRENCH_UNITS.get(parts[-1], "")
+    if parts[0] == POSE:
+        return "m" if parts[-1].startswith("p") else ""
     return _UNITS.get(parts[0], "")
 
 

@@ -60,6 +60,10 @@ class ExpectedWrenches:
     frame and measure direction; NaN where switch[s] is 0. switch[s]: (N,) uint8.
     pair_sum[p]: (N, 6) foot pair p's summed wrench in its sole frame; NaN where pair_switch[p] is 0.
     sole_X_sensor[s]: (6, 6) wrench transform from sensor s's frame to its foot's sole frame.
+    reading[s]: (N, 6) sensor s's reading as if every contact force acted on the root contact link
+    (:func:`rooted_readings`): equal to wrench[s] where switch[s] is 1, and elsewhere still consistent, so
+    that any signed sum over a cut set whose isolated part touches nothing is exact
+    (:mod:`pipeline.physics.cuts`).
     """
 
     wrench: dict[str, np.ndarray]
@@ -67,6 +71,7 @@ class ExpectedWrenches:
     pair_sum: dict[str, np.ndarray]
     pair_switch: dict[str, np.ndarray]
     sole_X_sensor: dict[str, np.ndarray]
+    reading: dict[str, np.ndarray]
 
 
 def sensor_switch(robot: RobotModel, sensor: str, contacts: Iterable[str]) -> bool:
@@ -213,4 +218,4 @@ def expected_wrenches(
         pair_sw[pair.name] = np.full(n, on, dtype=np.uint8)
         total = raw[pair.front] @ pair.sole_X_front.T + raw[pair.rear] @ pair.sole_X_rear.T
         pair_sum[pair.name] = total if on else np.full((n, 6), np.nan)
-    return ExpectedWrenches(wrench, switch, pair_sum, pair_sw, sole_X)
+    return ExpectedWrenches(wrench, switch, pair_sum, pair_sw, sole_X, raw)

@@ -20,7 +20,6 @@ sensor, exactly (see :mod:`pipeline.physics.dynamics`).
 
 from __future__ import annotations
 
-import xml.etree.ElementTree as ET
 from collections import deque
 from collections.abc import Iterable, Mapping
 from dataclasses import dataclass, field, replace
@@ -31,18 +30,19 @@ import numpy as np
 import pinocchio as pin
 
 from pipeline.core.errors import RobotModelError
+from pipeline.physics.urdf import (
+    FTSensor,
+    LinkInertial,
+    URDFJoint,
+    parse_urdf_parts,
+    resolve_urdf,
+    rpy_to_matrix,
+)
 
-_MOVABLE_TYPES = ("revolute", "continuous", "prismatic")
 _UNIT_AXES = {(1.0, 0.0, 0.0): "X", (0.0, 1.0, 0.0): "Y", (0.0, 0.0, 1.0): "Z"}
 
 
-# --------------------------------------------------------------------------- small SE(3) helpers
-def rpy_to_matrix(rpy: Iterable[float]) -> np.ndarray:
-    """URDF roll-pitch-yaw (rad, fixed axes X then Y then Z) -> rotation matrix (3, 3)."""
-    r, p, y = (float(v) for v in rpy)
-    return pin.rpy.rpyToMatrix(r, p, y)
-
-
+# --------------------------------------------------------------------------- SE(3) helper
 def wrench_transform(a_T_b: pin.SE3) -> np.ndarray:
     """The (6, 6) matrix mapping a wrench [f; tau] in frame b (moment about b's origin) to frame a.
 
@@ -51,63 +51,7 @@ def wrench_transform(a_T_b: pin.SE3) -> np.ndarray:
     return np.asarray(a_T_b.toDualActionMatrix())
 
 
-# --------------------------------------------------------------------------- URDF elements
-@dataclass(frozen=True)
-class LinkInertial:
-    """Inertial parameters of one link, in the link frame.
-
-    mass: kg. com: (3,) centre of mass in the link frame, m. inertia: (3, 3) rotational inertia about
-    the centre of mass, axes of the link frame, kg m^2.
-    """
-
-    mass: float
-    com: np.ndarray
-    inertia: np.ndarray
-
-    def to_pinocchio(self) -> pin.Inertia:
-        return pin.Inertia(self.mass, np.asarray(self.com, float), np.asarray(self.inertia, float))
-
-
-@dataclass(frozen=True)
-class URDFJoint:
-    """One URDF joint. origin: pose of the joint frame in the parent link frame. axis: (3,) unit,
-    in the joint frame. Limits in rad (or m), rad/s, Nm; +-inf when the URDF gives none."""
-
-    name: str
-    type: str
-    parent: str
-    child: str
-    origin: pin.SE3
-    axis: np.ndarray
-    lower: float = -np.inf
-    upper: float = np.inf
-    velocity: float = np.inf
-    effort: float = np.inf
-
-    @property
-    def movable(self) -> bool:
-        return self.type in _MOVABLE_TYPES
-
-
-@dataclass(frozen=True)
-class FTSensor:
-    """A 6-axis force/torque sensor as declared by ``<sensor type="force_torque">``.
-
-    joint: the fixed joint it sits on; parent_link / child_link: that joint's links.
-    frame: 'sensor', 'child' or 'parent' (URDF ``<frame>``). direction: 'child_to_parent' or
-    'parent_to_child'. child_T_sensor: pose of the frame its reading is expressed in, relative to the
-    child link frame.
-    """
-
-    name: str
-    joint: str
-    parent_link: str
-    child_link: str
-    frame: str
-    direction: str
-    child_T_sensor: pin.SE3 = field(repr=False)
-
-
+# --------------------------------------------------------------------------- foot pairs
 @dataclass(frozen=True)
 class FootPair:
     """The front and rear FT sensors of one foot and the sole frame their sum is expressed in.
@@ -433,153 +377,17 @@ def _joint_model(joint: URDFJoint) -> tuple[pin.JointModel, float]:
 
 
 # --------------------------------------------------------------------------- loading
-def resolve_urdf(urdf: str | Path) -> Path:
-    """A URDF path, or the name of a robot shipped by the `icub-models` package -> URDF path."""
-    path = Path(urdf).expanduser()
-    if path.is_file():
-        return path.resolve()
-    import icub_models
-
-    names = sorted(icub_models.get_robot_names())
-    if str(urdf) in names:
-        return Path(icub_models.get_model_file(str(urdf)))
-    if path.suffix == ".urdf" or "/" in str(urdf):
-        raise RobotModelError(f"URDF file {path} does not exist")
-    raise RobotModelError(
-        f"robot {urdf!r} is neither a URDF file nor an icub-models robot; icub-models has: {', '.join(names)}"
-    )
-
-
-def _floats(text: str | None, n: int, default: float, where: str) -> np.ndarray:
-    if text is None:
-        return np.full(n, default)
-    try:
-        values = np.array([float(v) for v in text.split()])
-    except ValueError as exc:
-        raise RobotModelError(f"{where}: cannot read numbers from {text!r}") from exc
-    if values.shape != (n,):
-        raise RobotModelError(f"{where}: expected {n} numbers, got {text!r}")
-    return values
-
-
-def _origin(element: ET.Element | None, where: str) -> pin.SE3:
-    if element is None:
-        return pin.SE3.Identity()
-    xyz = _floats(element.get("xyz"), 3, 0.0, where)
-    rpy = _floats(element.get("rpy"), 3, 0.0, where)
-    return pin.SE3(rpy_to_matrix(rpy), xyz)
-
-
-def _inertial(link: ET.Element, where: str) -> LinkInertial | None:
-    element = link.find("inertial")
-    if element is None:
-        return None
-    mass_el = element.find("mass")
-    mass = float(mass_el.get("value", "0")) if mass_el is not None else 0.0
-    origin = _origin(element.find("origin"), where)
-    i = element.find("inertia")
-    names = ("ixx", "ixy", "ixz", "iyy", "iyz", "izz")
-    ixx, ixy, ixz, iyy, iyz, izz = (float(i.get(k, "0")) if i is not None else 0.0 for k in names)
-    inertia_com = np.array([[ixx, ixy, ixz], [ixy, iyy, iyz], [ixz, iyz, izz]])
-    rot = origin.rotation
-    return LinkInertial(mass=mass, com=origin.translation.copy(), inertia=rot @ inertia_com @ rot.T)
-
-
 def parse_urdf(path: Path) -> RobotModel:
-    """Parse links, joints and top-level ``<sensor type="force_torque">`` elements of a URDF."""
-    try:
-        root = ET.parse(path).getroot()
-    except ET.ParseError as exc:
-        raise RobotModelError(f"{path}: not valid XML ({exc})") from exc
-    if root.tag != "robot":
-        raise RobotModelError(f"{path}: root element is <{root.tag}>, expected <robot>")
-
-    links = {}
-    for link in root.findall("link"):
-        links[link.get("name")] = _inertial(link, f"{path}: link {link.get('name')}")
-
-    joints: dict[str, URDFJoint] = {}
-    for el in root.findall("joint"):
-        name, jtype = el.get("name"), el.get("type")
-        where = f"{path}: joint {name}"
-        if jtype not in (*_MOVABLE_TYPES, "fixed"):
-            raise RobotModelError(
-                f"{where}: joint type {jtype!r} is not supported (revolute, continuous, prismatic or fixed)"
-            )
-        parent, child = el.find("parent"), el.find("child")
-        if parent is None or child is None:
-            raise RobotModelError(f"{where}: missing <parent> or <child>")
-        axis_el = el.find("axis")
-        axis = _floats(axis_el.get("xyz") if axis_el is not None else None, 3, 0.0, where)
-        if axis_el is None:
-            axis = np.array([1.0, 0.0, 0.0])
-        if jtype in _MOVABLE_TYPES:
-            norm = np.linalg.norm(axis)
-            if norm == 0.0:
-                raise RobotModelError(f"{where}: zero <axis>")
-            axis = axis / norm
-        limit = el.find("limit")
-        lims = {}
-        if limit is not None and jtype != "continuous":
-            for key in ("lower", "upper", "velocity", "effort"):
-                if limit.get(key) is not None:
-                    lims[key] = float(limit.get(key))
-        joints[name] = URDFJoint(
-            name=name,
-            type=jtype,
-            parent=parent.get("link"),
-            child=child.get("link"),
-            origin=_origin(el.find("origin"), where),
-            axis=axis,
-            **lims,
-        )
-        for end in (joints[name].parent, joints[name].child):
-            if end not in links:
-                raise RobotModelError(f"{where}: refers to link {end!r}, which the URDF does not define")
-
-    sensors: dict[str, FTSensor] = {}
-    for el in root.findall("sensor"):  # top level only: <gazebo> copies are ignored
-        if el.get("type") != "force_torque":
-            continue
-        name = el.get("name")
-        where = f"{path}: sensor {name}"
-        parent = el.find("parent")
-        joint_name = parent.get("joint") if parent is not None else None
-        if joint_name not in joints:
-            raise RobotModelError(f"{where}: parent joint {joint_name!r} does not exist")
-        joint = joints[joint_name]
-        if joint.type != "fixed":
-            raise RobotModelError(f"{where}: its joint {joint_name} is {joint.type}, expected fixed")
-        frame = (el.findtext("force_torque/frame") or "child").strip()
-        direction = (el.findtext("force_torque/measure_direction") or "child_to_parent").strip()
-        if frame not in ("sensor", "child", "parent"):
-            raise RobotModelError(f"{where}: <frame> must be sensor, child or parent, got {frame!r}")
-        if direction not in ("child_to_parent", "parent_to_child"):
-            raise RobotModelError(
-                f"{where}: <measure_direction> must be child_to_parent or parent_to_child, got {direction!r}"
-            )
-        if frame == "sensor":
-            child_T_sensor = _origin(el.find("origin"), where)
-        elif frame == "child":
-            child_T_sensor = pin.SE3.Identity()
-        else:
-            child_T_sensor = joint.origin.inverse()
-        sensors[name] = FTSensor(
-            name, joint_name, joint.parent, joint.child, frame, direction, child_T_sensor
-        )
-
-    model = RobotModel(
+    """Parse a URDF file into a RobotModel (see :func:`pipeline.physics.urdf.parse_urdf_parts`)."""
+    parts = parse_urdf_parts(path)
+    return RobotModel(
         urdf_path=path,
-        name=root.get("name", path.stem),
-        links=links,
-        joints=joints,
-        sensors=sensors,
-        joint_names=[j.name for j in joints.values() if j.movable],
+        name=parts.name,
+        links=parts.links,
+        joints=parts.joints,
+        sensors=parts.sensors,
+        joint_names=[j.name for j in parts.joints.values() if j.movable],
     )
-    children = [j.child for j in joints.values()]
-    if len(set(children)) != len(children) or len([n for n in links if n not in set(children)]) != 1:
-        raise RobotModelError(f"{path}: the links and joints do not form a tree with one root")
-    return model
 
 
 def load_robot(urdf: str | Path) -> RobotModel:
@@ -589,3 +397,19 @@ def load_robot(urdf: str | Path) -> RobotModel:
     if not robot.sensors:
         raise RobotModelError(f'{path}: the URDF declares no <sensor type="force_torque">')
     return robot
+
+
+__all__ = [
+    "FTSensor",
+    "FootPair",
+    "LinkInertial",
+    "RobotModel",
+    "RootedModel",
+    "URDFJoint",
+    "load_robot",
+    "parse_urdf",
+    "resolve_urdf",
+    "rpy_to_matrix",
+    "sensor_frame_name",
+    "wrench_transform",
+]

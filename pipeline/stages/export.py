@@ -1,7 +1,7 @@
 """Stage `export`: the recommended calibration of every sensor group as ONNX graphs a robot can run.
 
-``ftcal export MODELS REPORT_METRICS LABELLED OUT`` takes, per group of ``train.groups``, the model that
-`evaluate` recommends (``summary.<group>.recommended`` of its metrics.json; ``export.models.<group>``
+``ftcal export MODELS METRICS LABELLED OUT`` takes, per group of ``train.groups``, the model that
+`evaluate@<group>` recommends (``recommended`` of ``METRICS/<group>.json``; ``export.models.<group>``
 overrides it), whichever its family (network, polynomial, affine, raw), and writes ``OUT``:
 
 - ``<group>.float32.onnx``, ``<group>.float64.onnx``: the group's graph (`pipeline.export.graph`):
@@ -61,26 +61,27 @@ def group_names(params: Any) -> list[str]:
 
 
 def choose_models(groups: list[str], report: Path, overrides: dict[str, str]) -> dict[str, str]:
-    """group -> model to export: ``export.models`` where given, else evaluate's recommendation."""
+    """group -> model to export: ``export.models`` where given, else evaluate's recommendation
+    (``recommended`` of ``<report>/<group>.json``, the evaluate@<group> metrics)."""
     unknown = sorted(set(overrides) - set(groups))
     if unknown:
         raise ConfigError(f"export.models.{unknown[0]}: not a group of train.groups ({', '.join(groups)})")
-    summary: dict[str, Any] = {}
-    if set(groups) - set(overrides):
-        try:
-            summary = json.loads(report.read_text(encoding="utf-8"))["summary"]
-        except FileNotFoundError:
-            raise DataError(f"{report}: not found (run `dvc repro evaluate`)") from None
-        except (OSError, ValueError, KeyError, TypeError) as exc:
-            raise DataError(f"{report}: not evaluate's metrics.json: {exc}") from None
     chosen = {}
     for group in groups:
-        name = overrides.get(group) or (summary.get(group) or {}).get("recommended")
+        name = overrides.get(group)
         if not name:
-            raise DataError(
-                f"{report}: no recommended model for {group} (not evaluated, or every model flagged); "
-                f"name one in export.models.{group}"
-            )
+            path = report / f"{group}.json"
+            try:
+                name = json.loads(path.read_text(encoding="utf-8")).get("recommended")
+            except FileNotFoundError:
+                raise DataError(f"{path}: not found (run `dvc repro evaluate@{group}`)") from None
+            except (OSError, ValueError, AttributeError) as exc:
+                raise DataError(f"{path}: not evaluate's metrics of {group}: {exc}") from None
+            if not name or name == "none":
+                raise DataError(
+                    f"{path}: no recommended model for {group} (every model flagged); "
+                    f"name one in export.models.{group}"
+                )
         chosen[group] = str(name)
     return chosen
 
@@ -255,7 +256,7 @@ def _cmd(args: argparse.Namespace) -> int:
 
 
 def add_cli(subparsers: Any) -> None:
-    """Add `ftcal export MODELS REPORT LABELLED OUT`."""
+    """Add `ftcal export MODELS METRICS LABELLED OUT`."""
     parser = subparsers.add_parser(
         STAGE,
         help="the recommended models as ONNX graphs with a manifest",

@@ -1,259 +1,32 @@
 """Stage `smooth`: Savitzky-Golay on joint positions -> smoothed positions, velocities, accelerations.
 
-Encoder velocities are too noisy to differentiate, so joint velocities and accelerations come from a
-Savitzky-Golay (SG) filter on the encoder positions: a least-squares polynomial of order ``polyorder``
-over ``window`` samples, evaluated with its derivatives at each sample.
-
-SG assumes uniform sampling, and joint-state stamps jitter and lose messages. The time base is cut into
-segments at every stamp step above ``smooth.max_gap_s`` (nothing is ever smoothed across such a gap);
-each segment is resampled linearly on a uniform grid with its median step, filtered there (derivatives
-scaled by that step, so in rad/s and rad/s^2), and interpolated back to the original stamps. On
-uniformly sampled data this is exactly `scipy.signal.savgol_filter`. Segments shorter than the window
-get NaN and ``ok.kinematics`` False; so do, with their values kept, the first and last ``window // 2``
-samples of every segment, where the fitted polynomial is one-sided and its derivatives extrapolate.
+The method (segments at stamp gaps, uniform resampling, one-sided edges flagged) is in
+`pipeline.logs.smoothing`.
 """
 
 from __future__ import annotations
 
 import argparse
-import math
-import os
 import sys
 import time
-from collections.abc import Iterator
-from contextlib import contextmanager
-from dataclasses import asdict, dataclass, field
 from pathlib import Path
 from typing import Any
 
-import numpy as np
-import pyarrow as pa
-import pyarrow.parquet as pq
-from scipy.signal import savgol_filter
-
-from pipeline.core.config import Params, load_params, stage_section
-from pipeline.core.errors import ConfigError, DataError
-from pipeline.logs import schema as S
+from pipeline.core.errors import DataError
 
 STAGE = "smooth"
 
 
-@dataclass(frozen=True)
-class SmoothParams:
-    """Section `smooth` of params.yaml (see the comments there)."""
-
-    window: int  # samples, odd, > polyorder
-    polyorder: int  # >= 2 (accelerations), < window
-    max_gap_s: float  # s: stamp steps above this split the series into separately smoothed segments
-
-    def __post_init__(self) -> None:
-        w, p, g = self.window, self.polyorder, self.max_gap_s
-        if isinstance(w, bool) or not isinstance(w, int) or w < 3 or w % 2 == 0:
-            raise ConfigError(f"smooth.window must be an odd integer >= 3, got {w!r}")
-        if isinstance(p, bool) or not isinstance(p, int) or not 2 <= p < w:
-            raise ConfigError(f"smooth.polyorder must be an integer in [2, window), got {p!r}")
-        if isinstance(g, bool) or not isinstance(g, int | float) or not math.isfinite(g) or g <= 0:
-            raise ConfigError(f"smooth.max_gap_s must be a positive number of seconds, got {g!r}")
-        object.__setattr__(self, "max_gap_s", float(g))
-
-
-# --- pure functions ------------------------------------------------------------------------------
-
-
-def segments(stamps_ns: np.ndarray, max_gap_ns: int) -> list[tuple[int, int]]:
-    """[start, stop) index ranges of the runs of `stamps_ns` (N,) int64 whose steps are all <= max_gap_ns."""
-    if len(stamps_ns) == 0:
-        return []
-    cuts = np.flatnonzero(np.diff(stamps_ns) > max_gap_ns) + 1
-    bounds = [0, *cuts.tolist(), len(stamps_ns)]
-    return list(zip(bounds[:-1], bounds[1:], strict=True))
-
-
-def _interp_rows(x_new: np.ndarray, x: np.ndarray, y: np.ndarray) -> np.ndarray:
-    """Linear interpolation (extrapolation past the ends) of the rows of y (M, J) at x_new; x increasing."""
-    if len(x) == 1:
-        return np.repeat(y, len(x_new), axis=0)
-    idx = np.clip(np.searchsorted(x, x_new, side="right") - 1, 0, len(x) - 2)
-    w = (x_new - x[idx]) / (x[idx + 1] - x[idx])
-    return y[idx] + w[:, None] * (y[idx + 1] - y[idx])
-
-
-def savgol_uniform(
-    t_s: np.ndarray, q: np.ndarray, window: int, polyorder: int
-) -> tuple[np.ndarray, np.ndarray, np.ndarray] | None:
-    """SG smoothing of one gap-free segment.
-
-    Args:
-        t_s: (M,) s, increasing sample times (any origin).
-        q: (M, J) positions (rad).
-        window, polyorder: SG window (samples, odd) and polynomial order.
-
-    Returns:
-        (q, dq, ddq), each (M, J), in rad, rad/s, rad/s^2, or None if the segment is shorter than the window.
-    """
-    if len(t_s) < 2:
-        return None
-    dt = float(np.median(np.diff(t_s)))
-    n = int(round((t_s[-1] - t_s[0]) / dt)) + 1
-    if n < window or len(t_s) < window:
-        return None
-    grid = t_s[0] + np.arange(n) * dt
-    uniform = _interp_rows(grid, t_s, q)
-    out = []
-    for deriv in (0, 1, 2):
-        g = savgol_filter(uniform, window, polyorder, deriv=deriv, delta=dt, axis=0, mode="interp")
-        out.append(_interp_rows(t_s, grid, g))
-    return out[0], out[1], out[2]
-
-
-@dataclass
-class SmoothResult:
-    """Smoothed kinematics of one log: arrays (N, J) and (N,) ok, plus segment bookkeeping."""
-
-    q: np.ndarray
-    dq: np.ndarray
-    ddq: np.ndarray
-    ok: np.ndarray
-    segments: int = 0
-    short_segments: int = 0  # too short to smooth: NaN, not ok
-    periods_s: list[float] = field(default_factory=list)  # median step per smoothed segment
-
-
-def smooth_kinematics(
-    stamps_ns: np.ndarray, q: np.ndarray, window: int, polyorder: int, max_gap_s: float
-) -> SmoothResult:
-    """Savitzky-Golay positions, velocities, accelerations of joint positions q (N, J) rad at stamps (N,) ns.
-
-    Segments split at stamp steps > max_gap_s (s) are smoothed separately (see the module docstring).
-    """
-    stamps_ns = np.asarray(stamps_ns, dtype=np.int64)
-    q = np.asarray(q, dtype=np.float64)
-    n, j = q.shape
-    res = SmoothResult(
-        np.full((n, j), np.nan), np.full((n, j), np.nan), np.full((n, j), np.nan), np.zeros(n, dtype=bool)
-    )
-    t_s = (stamps_ns - (stamps_ns[0] if n else 0)) / 1e9
-    for start, stop in segments(stamps_ns, round(max_gap_s * 1e9)):
-        res.segments += 1
-        smoothed = savgol_uniform(t_s[start:stop], q[start:stop], window, polyorder)
-        if smoothed is None:
-            res.short_segments += 1
-            continue
-        res.q[start:stop], res.dq[start:stop], res.ddq[start:stop] = smoothed
-        # within half a window of a segment's ends the fit is one-sided (mode "interp"): its derivatives
-        # extrapolate, so those samples keep their values but are not ok for labelling
-        half = window // 2
-        res.ok[start + half : stop - half] = True
-        res.periods_s.append(float(np.median(np.diff(t_s[start:stop]))))
-    return res
-
-
-# --- I/O -----------------------------------------------------------------------------------------
-
-
-@dataclass
-class SmoothReport:
-    source: str
-    output: str
-    samples: int
-    segments: int
-    short_segments: int
-    samples_not_ok: int
-    seconds: float
-
-
-def smooth_table(src: Path, dst: Path, cfg: SmoothParams) -> SmoothReport:
-    """Read an ingested table, add the smoothed kinematics columns, write it atomically to `dst`."""
-    from pipeline.stages.ingest import read_table_metadata
-
-    t0 = time.perf_counter()
-    try:
-        pf = pq.ParquetFile(src)
-        names = pf.schema_arrow.names
-    except (OSError, pa.ArrowException) as exc:
-        raise DataError(f"{src}: cannot read Parquet table: {exc}") from None
-    joints = S.joints_of(names, S.Q)
-    if S.STAMP not in names or not joints:
-        raise DataError(f"{src}: not an ingested table (no {S.STAMP} or {S.Q}.<joint> columns)")
-    base = pf.read(columns=[S.STAMP, *S.joint_cols(S.Q, joints)])
-    stamps = base.column(S.STAMP).to_numpy()
-    if len(stamps) > 1 and not (np.diff(stamps) > 0).all():
-        raise DataError(f"{src}: {S.STAMP} is not strictly increasing")
-    q = (
-        np.column_stack([base.column(c).to_numpy() for c in S.joint_cols(S.Q, joints)])
-        if len(stamps)
-        else np.empty((0, len(joints)))
-    )
-    del base
-    res = smooth_kinematics(stamps, q, cfg.window, cfg.polyorder, cfg.max_gap_s)
-    res.ok &= np.isfinite(q).all(axis=1)
-    extra = S.smoothed_extra_columns(joints)
-    meta = read_table_metadata(src)
-    smooth_meta = {
-        **asdict(cfg),
-        "segments": res.segments,
-        "short_segments": res.short_segments,
-        "samples_not_ok": int((~res.ok).sum()),
-        "median_period_s": float(np.median(res.periods_s)) if res.periods_s else None,
-    }
-    kv = {k.encode(): v for k, v in meta.items() if k != S.META_SCHEMA.decode()}
-    kv[S.META_SMOOTH] = smooth_meta
-    out_schema = S.arrow_schema([*names, *extra], S.KIND_SMOOTHED, kv)
-    tmp = dst.with_name(f".{dst.name}.{os.getpid()}.tmp")
-    dst.parent.mkdir(parents=True, exist_ok=True)
-    row = 0
-    try:
-        with pq.ParquetWriter(tmp, out_schema, compression="zstd") as writer:
-            for batch in pf.iter_batches(batch_size=65_536):
-                k = batch.num_rows
-                cols = {name: batch.column(name) for name in names}
-                sl = slice(row, row + k)
-                for quantity, arr in ((S.QS, res.q), (S.DQS, res.dq), (S.DDQS, res.ddq)):
-                    for jj, name in enumerate(S.joint_cols(quantity, joints)):
-                        cols[name] = pa.array(arr[sl, jj])
-                cols[S.ok_col(S.KINEMATICS_STREAM)] = pa.array(res.ok[sl])
-                writer.write_table(pa.Table.from_pydict(cols, schema=out_schema))
-                row += k
-        os.replace(tmp, dst)
-    except BaseException:
-        tmp.unlink(missing_ok=True)
-        raise
-    return SmoothReport(
-        str(src),
-        str(dst),
-        len(stamps),
-        res.segments,
-        res.short_segments,
-        int((~res.ok).sum()),
-        time.perf_counter() - t0,
-    )
-
-
-def find_tables(in_dir: Path) -> list[Path]:
-    """The ingested tables of a directory (not the truth tables), sorted."""
-    truth = S.TRUTH_SUFFIX + S.PARQUET_SUFFIX
-    return sorted(p for p in in_dir.glob(f"*{S.PARQUET_SUFFIX}") if not p.name.endswith(truth))
-
-
-@contextmanager
-def _progress_bar(enabled: bool, total: int) -> Iterator[Any]:
-    if not enabled:
-        yield None
-        return
-    from rich.console import Console
-    from rich.progress import Progress
-
-    with Progress(console=Console(stderr=True), transient=True) as progress:
-        yield progress, progress.add_task("smooth", total=total)
-
-
-def run(
-    params: Params, in_dir: str | Path, out_dir: str | Path, *, progress: bool | None = None
-) -> list[SmoothReport]:
+def run(params: Any, in_dir: str | Path, out_dir: str | Path, *, progress: bool | None = None) -> list[Any]:
     """Smooth every ingested table of `in_dir` into `out_dir`, in one MLflow run."""
+    from dataclasses import asdict
+
     import mlflow
 
+    from pipeline.core.config import stage_section
+    from pipeline.core.progress import progress_bar
     from pipeline.core.tracking import stage_run
+    from pipeline.logs.smoothing import SmoothParams, find_tables, smooth_table
 
     cfg = stage_section(params, STAGE, SmoothParams)
     src, out = Path(in_dir), Path(out_dir)
@@ -262,15 +35,14 @@ def run(
     tables = find_tables(src)
     if not tables:
         raise DataError(f"{src}: no ingested *.parquet tables")
-    show = sys.stderr.isatty() if progress is None else progress
-    reports: list[SmoothReport] = []
+    reports: list[Any] = []
     t0 = time.perf_counter()
-    with stage_run(STAGE, {"smooth": asdict(cfg)}), _progress_bar(show, len(tables)) as bar:
+    with stage_run(STAGE, {"smooth": asdict(cfg)}), progress_bar(progress) as bar:
+        task = bar.add_task(STAGE, total=len(tables))
         mlflow.set_tags({"in_dir": str(src), "out_dir": str(out), "logs": str(len(tables))})
         for table in tables:
             reports.append(smooth_table(table, out / table.name, cfg))
-            if bar is not None:
-                bar[0].advance(bar[1])
+            bar.advance(task)
         warnings = [
             f"{Path(r.source).name}: {r.short_segments} segment(s) shorter than the window "
             f"({cfg.window} samples): {r.samples_not_ok} samples not smoothed"
@@ -297,6 +69,8 @@ def run(
 
 
 def _cmd(args: argparse.Namespace) -> int:
+    from pipeline.core.config import load_params
+
     params = load_params(args.params)
     reports = run(params, args.inputs, args.out)
     print(f"smoothed {len(reports)} log(s), {sum(r.samples for r in reports)} samples, into {args.out}")

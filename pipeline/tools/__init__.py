@@ -1,1 +1,1 @@
-"""Commands that are not DVC stages (same rules as pipeline/stages: light top-level imports)."""
+"""Commands that are not DVC stages (conversion and inspection tools)."""

@@ -87,14 +87,14 @@ def _records(augmenter: Any, channels: dict[str, int], calibrated: list[Any]) ->
     """MCAP Message records of calibrated wrenches, per (channel, frame_id)."""
     import numpy as np
 
-    from pipeline.logs.rosmsg import WRENCH_STAMPED, _fixed_template, fixed_records
+    from pipeline.logs.cdr import WRENCH_STAMPED, fixed_records, fixed_template
 
     parts = []
     for c in calibrated:
         channel = channels[c.plan.sensor]
         for frame in dict.fromkeys(c.frame_id.tolist()):
             sel = c.frame_id == frame if len(set(c.frame_id.tolist())) > 1 else np.ones(len(c.stamp), bool)
-            template = _fixed_template(WRENCH_STAMPED, str(frame).encode())
+            template = fixed_template(WRENCH_STAMPED, str(frame).encode())
             seq = augmenter.next_sequence(channel, int(sel.sum()))
             rec = fixed_records(
                 template,

@@ -1,0 +1,316 @@
+"""A sensor group's samples: reading the labelled tables, whole-log split, errors against exact labels.
+
+Split: logs whose ``ftcal.experiment`` metadata says ``role: test`` are the test set; ``train.val_logs``
+training logs are held out as validation, whole logs, chosen by a seeded draw that takes at most one log
+per experiment kind (type, foot, part) and never a kind's last training log (the same for every group).
+
+Samples: a sample is used when every input stream of the group's sensors is ok (wrench, temperature, IMU:
+the same samples for every model); training keeps those with at least one switch set (the others
+contribute nothing to the loss). Errors are computed where the label is exact: a sensor's where its switch
+is 1, a foot's sum where ``sw.<pair>`` is 1. ``rmse_labelled`` pools the squared errors of all of a group's
+exact labels (sensor parts and sum) and decides validation; ``rmse`` is the headline (the sensor's, or the
+foot's sum, as the thesis reports).
+"""
+
+from __future__ import annotations
+
+import math
+import zlib
+from collections.abc import Sequence
+from dataclasses import dataclass, fields
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import pyarrow as pa
+import pyarrow.parquet as pq
+
+from pipeline.calib.models import (
+    wrench_errors,
+)
+from pipeline.calib.params import GroupParams
+from pipeline.core.config import Params
+from pipeline.core.errors import ConfigError, DataError
+from pipeline.logs import schema as S
+
+ROLE_TRAIN, ROLE_TEST = "train", "test"
+SPLITS = ("train", "val", "test")
+
+
+@dataclass(frozen=True)
+class Group:
+    """What a group trains: its sensors (1, or a foot's front and rear) and, for a foot, the transforms."""
+
+    name: str
+    sensors: tuple[str, ...]
+    pair: str | None = None
+    transforms: np.ndarray | None = None  # (S, 6, 6) sole_X_sensor, row-major, force first
+
+    @property
+    def headline(self) -> str:
+        """The name whose errors are the group's headline: the sensor, or the foot's sum."""
+        return self.pair if self.pair is not None else self.sensors[0]
+
+
+def input_cols(sensor: str, n_inputs: int = 13) -> list[str]:
+    """Input columns of one sensor's network, in the order of `pipeline.calib.models`."""
+    cols = [*S.wrench_cols(S.FT, sensor), S.temperature_col(sensor)]
+    if n_inputs == 13:
+        cols += S.vector_cols(S.ACC, sensor) + S.vector_cols(S.GYR, sensor)
+    return cols
+
+
+def _ok_cols(sensor: str) -> list[str]:
+    return [S.ok_col(stream, sensor) for stream in (S.WRENCH_STREAM, S.TEMPERATURE_STREAM, S.IMU_STREAM)]
+
+
+@dataclass
+class GroupData:
+    """Samples of a group whose inputs are all ok: arrays over N samples and S sensors.
+
+    x (N, S, 13) raw inputs; labels (N, S, 6) N/Nm, NaN where the switch is 0; switches (N, S) bool;
+    sum_label (N, 6) and sum_switch (N,) bool (``sw.<pair>``) for a foot, else None; log (N,) index into
+    the log names; stamp (N,) ns; time (N,) s.
+    """
+
+    log: np.ndarray
+    stamp: np.ndarray
+    time: np.ndarray
+    x: np.ndarray
+    labels: np.ndarray
+    switches: np.ndarray
+    sum_label: np.ndarray | None = None
+    sum_switch: np.ndarray | None = None
+
+    def __len__(self) -> int:
+        return len(self.log)
+
+    def subset(self, mask: np.ndarray) -> GroupData:
+        return GroupData(
+            **{
+                f.name: (None if getattr(self, f.name) is None else getattr(self, f.name)[mask])
+                for f in fields(self)
+            }
+        )
+
+    @property
+    def alpha_sum(self) -> np.ndarray | None:
+        """Switch of the sum term, eq. 5.12: sw_pair (1 - prod_s sw_s)."""
+        if self.sum_switch is None:
+            return None
+        return self.sum_switch & ~self.switches.all(axis=1)
+
+    def labelled(self) -> np.ndarray:
+        """(N,) bool: samples with at least one term in the loss."""
+        mask = self.switches.any(axis=1)
+        return mask | self.alpha_sum if self.sum_switch is not None else mask
+
+
+@dataclass(frozen=True)
+class LogInfo:
+    name: str  # the table's file name without .parquet
+    path: Path
+    role: str  # train | test
+    kind: str  # experiment type[/foot[/part]], e.g. half_foot/l_foot/front
+
+
+def find_logs(in_dir: Path) -> list[LogInfo]:
+    """The labelled tables of `in_dir` with their role and experiment type, sorted by name."""
+    if not in_dir.is_dir():
+        raise DataError(f"{in_dir}: labelled directory not found")
+    paths = sorted(in_dir.glob(f"*{S.PARQUET_SUFFIX}"))
+    if not paths:
+        raise DataError(f"{in_dir}: no labelled *.parquet tables")
+    logs = []
+    for path in paths:
+        try:
+            schema = pq.read_schema(path)
+        except (OSError, pa.ArrowException) as exc:
+            raise DataError(f"{path}: cannot read Parquet table: {exc}") from None
+        experiment = S.read_metadata(schema, S.META_EXPERIMENT) or {}
+        role = str(experiment.get("role", "")).strip()
+        if role not in (ROLE_TRAIN, ROLE_TEST):
+            raise DataError(
+                f"{path}: experiment metadata role must be {ROLE_TRAIN!r} or {ROLE_TEST!r}, got {role!r}"
+            )
+        # The experiment's kind: its type refined by the supporting foot and part where the metadata has
+        # them (balancing on the left foot covers other loads than on the right one).
+        kind = "/".join(
+            str(experiment[k]) for k in ("type", "foot", "part") if str(experiment.get(k, "")).strip()
+        )
+        logs.append(LogInfo(path.name[: -len(S.PARQUET_SUFFIX)], path, role, kind))
+    return logs
+
+
+def resolve_group(gp: GroupParams, params: Params, logs: Sequence[LogInfo]) -> Group:
+    """The sensors (and transforms) of a group, checked against robot.foot_pairs and the tables."""
+    first = pq.read_schema(logs[0].path)
+    names = set(first.names)
+    key = f"train.groups.{gp.name}"
+    if gp.sensor is not None:
+        if S.wrench_cols(S.FT, gp.sensor)[0] not in names:
+            have = ", ".join(S.sensors_of(first.names)) or "none"
+            raise ConfigError(
+                f"{key}.sensor: {gp.sensor!r} is not an FT sensor of the labelled tables (have: {have})"
+            )
+        return Group(gp.name, (gp.sensor,))
+    pairs = {p.name: p for p in params.robot.foot_pairs}
+    if gp.pair not in pairs:
+        raise ConfigError(
+            f"{key}.pair: {gp.pair!r} is not in robot.foot_pairs (have: {', '.join(pairs) or 'none'})"
+        )
+    pair = pairs[gp.pair]
+    transforms = None
+    for log in logs:
+        meta = S.read_metadata(pq.read_schema(log.path), S.META_LABEL) or {}
+        entry = (meta.get("pairs") or {}).get(pair.name)
+        try:
+            t = np.array([entry["sole_X_front"], entry["sole_X_rear"]], dtype=np.float64).reshape(2, 6, 6)
+        except (TypeError, KeyError, ValueError):
+            raise DataError(
+                f"{log.path}: metadata ftcal.label has no 6x6 pairs.{pair.name}.sole_X_front/rear"
+            ) from None
+        if transforms is not None and not np.allclose(t, transforms, rtol=1e-9, atol=1e-12):
+            raise DataError(f"{log.path}: pairs.{pair.name} transforms differ from {logs[0].name}'s")
+        transforms = t
+    return Group(gp.name, pair.sensors, pair.name, transforms)
+
+
+def _read_log(log: LogInfo, group: Group, index: int) -> GroupData:
+    wanted = [S.STAMP, S.TIME]
+    for sensor in group.sensors:
+        wanted += input_cols(sensor) + _ok_cols(sensor) + S.wrench_cols(S.EXPECTED, sensor)
+        wanted.append(S.switch_col(sensor))
+    if group.pair is not None:
+        wanted += S.wrench_cols(S.EXPECTED, group.pair) + [S.switch_col(group.pair)]
+    try:
+        table = pq.read_table(log.path, columns=wanted)
+    except (OSError, pa.ArrowException) as exc:
+        names = set(pq.read_schema(log.path).names)
+        missing = [c for c in wanted if c not in names]
+        detail = f"missing column {missing[0]}" if missing else str(exc)
+        raise DataError(f"{log.path}: not a labelled table for {group.name}: {detail}") from None
+
+    def col(name: str) -> np.ndarray:
+        return table.column(name).to_numpy(zero_copy_only=False)
+
+    def block(names: Sequence[str]) -> np.ndarray:
+        return (
+            np.column_stack([col(c).astype(np.float64) for c in names])
+            if table.num_rows
+            else np.empty((0, len(names)))
+        )
+
+    n = table.num_rows
+    ok = np.ones(n, dtype=bool)
+    x, labels, switches = [], [], []
+    for sensor in group.sensors:
+        for c in _ok_cols(sensor):
+            ok &= col(c).astype(bool)
+        x.append(block(input_cols(sensor)))
+        labels.append(block(S.wrench_cols(S.EXPECTED, sensor)))
+        switches.append(col(S.switch_col(sensor)).astype(bool))
+    data = GroupData(
+        log=np.full(n, index, dtype=np.int64),
+        stamp=col(S.STAMP).astype(np.int64),
+        time=col(S.TIME).astype(np.float64),
+        x=np.stack(x, axis=1),
+        labels=np.stack(labels, axis=1),
+        switches=np.stack(switches, axis=1),
+    )
+    if group.pair is not None:
+        data.sum_label = block(S.wrench_cols(S.EXPECTED, group.pair))
+        data.sum_switch = col(S.switch_col(group.pair)).astype(bool)
+    ok &= np.isfinite(data.x).all(axis=(1, 2))
+    data = data.subset(ok)
+    for s, sensor in enumerate(group.sensors):
+        if not np.isfinite(data.labels[data.switches[:, s], s]).all():
+            raise DataError(
+                f"{log.path}: {S.EXPECTED}.{sensor} is not finite where {S.switch_col(sensor)} is 1"
+            )
+    if data.sum_switch is not None and not np.isfinite(data.sum_label[data.sum_switch]).all():
+        raise DataError(
+            f"{log.path}: {S.EXPECTED}.{group.pair} is not finite where {S.switch_col(group.pair)} is 1"
+        )
+    return data
+
+
+def concat(parts: Sequence[GroupData]) -> GroupData:
+    first = parts[0]
+    return GroupData(
+        **{
+            f.name: (
+                None
+                if getattr(first, f.name) is None
+                else np.concatenate([getattr(p, f.name) for p in parts])
+            )
+            for f in fields(GroupData)
+        }
+    )
+
+
+def derive_seed(seed: int, *parts: str | int) -> int:
+    """A 32-bit seed from the master seed and names/numbers (stable across runs and platforms)."""
+    words = [seed] + [zlib.crc32(p.encode()) if isinstance(p, str) else int(p) for p in parts]
+    return int(np.random.SeedSequence(words).generate_state(1)[0])
+
+
+def split_logs(logs: Sequence[LogInfo], val_logs: int, seed: int) -> dict[str, list[str]]:
+    """Whole-log split: test = role test; validation = `val_logs` training logs; train = the rest.
+
+    Validation takes at most one log per experiment kind (type, supporting foot and part), never a
+    kind's only training log, drawn with a generator seeded from `seed` (kinds in a seeded order, then a
+    seeded log of each): every kind of experiment stays in the training set.
+
+    Raises:
+        DataError: no training or no test logs, or too few training logs for a validation set.
+    """
+    train = [log for log in logs if log.role == ROLE_TRAIN]
+    test = [log.name for log in logs if log.role == ROLE_TEST]
+    if not train:
+        raise DataError("no training logs (role 'train' in the experiment metadata)")
+    if not test:
+        raise DataError("no test logs (role 'test' in the experiment metadata)")
+    rng = np.random.default_rng(derive_seed(seed, "validation"))
+    by_kind: dict[str, list[str]] = {}
+    for log in train:
+        by_kind.setdefault(log.kind, []).append(log.name)
+    candidates = sorted(k for k, names in by_kind.items() if len(names) >= 2)
+    order = [candidates[i] for i in rng.permutation(len(candidates))]
+    val = [sorted(by_kind[k])[int(rng.integers(len(by_kind[k])))] for k in order[:val_logs]]
+    if not val:
+        raise DataError(
+            f"cannot hold out a validation log: no experiment kind has 2 or more training logs "
+            f"(training logs: {', '.join(log.name for log in train)})"
+        )
+    return {
+        "train": sorted(n.name for n in train if n.name not in val),
+        "val": sorted(val),
+        "test": sorted(test),
+    }
+
+
+def load_group_data(group: Group, logs: Sequence[LogInfo]) -> GroupData:
+    return concat([_read_log(log, group, i) for i, log in enumerate(logs)])
+
+
+# --- errors --------------------------------------------------------------------------------------
+
+
+def group_errors(group: Group, data: GroupData, pred: np.ndarray) -> dict[str, Any]:
+    """Errors of predictions (N, S, 6) against the exact labels of `data` (see the module docstring)."""
+    out: dict[str, Any] = {}
+    squares = []
+    for s, sensor in enumerate(group.sensors):
+        m = data.switches[:, s]
+        out[sensor] = wrench_errors(pred[m, s], data.labels[m, s])
+        squares.append(((pred[m, s] - data.labels[m, s]) ** 2).ravel())
+    if group.pair is not None:
+        m = data.sum_switch
+        total = np.einsum("sij,nsj->ni", group.transforms, pred[m])
+        out[group.pair] = wrench_errors(total, data.sum_label[m])
+        squares.append(((total - data.sum_label[m]) ** 2).ravel())
+    pooled = np.concatenate(squares)
+    out["rmse_labelled"] = math.sqrt(float(pooled.mean())) if pooled.size else math.nan
+    out["rmse"] = out[group.headline]["rmse"]
+    return out

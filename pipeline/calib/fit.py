@@ -1,0 +1,157 @@
+"""A group's fit: prepared data, baselines, scores and the model to deploy."""
+
+from __future__ import annotations
+
+from collections.abc import Mapping
+from dataclasses import asdict, dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from pipeline.calib.data import (
+    Group,
+    GroupData,
+    find_logs,
+    group_errors,
+    input_cols,
+    load_group_data,
+    resolve_group,
+    split_logs,
+)
+from pipeline.calib.models import (
+    LinearBaseline,
+    fit_linear_baseline,
+)
+from pipeline.calib.params import AFFINE, GroupParams, TrainParams, poly_name
+from pipeline.calib.records import flatten_metrics
+from pipeline.calib.search import NetResult
+from pipeline.calib.training import NetSetting
+from pipeline.core.config import Params, stage_section
+from pipeline.core.errors import DataError
+from pipeline.logs import schema as S
+
+
+@dataclass
+class Prepared:
+    """A group's data, split by whole logs, ready to fit (see `prepare`)."""
+
+    cfg: TrainParams
+    gp: GroupParams
+    group: Group
+    split: dict[str, list[str]]  # train/val/test -> log names
+    log_names: list[str]  # every log, in the order `GroupData.log` indexes
+    train: GroupData  # training samples with at least one loss term
+    val: GroupData  # every validation sample with ok inputs
+    test: GroupData  # every test sample with ok inputs
+
+
+def prepare(params: Params, group_name: str, in_dir: Path) -> Prepared:
+    """Read the group's samples from the labelled tables of `in_dir` and split them (module docstring).
+
+    Raises:
+        ConfigError: unknown group, or a group naming a sensor or pair the data does not have.
+        DataError: missing directory or tables, no train/test logs, no exact label to train or validate on.
+    """
+    cfg = stage_section(params, "train", TrainParams)
+    gp = cfg.group(group_name)
+    logs = find_logs(in_dir)
+    group = resolve_group(gp, params, logs)
+    split = split_logs(logs, cfg.val_logs, params.seed)
+    log_names = [log.name for log in logs]
+    data = {}
+    for k, names in split.items():
+        part = load_group_data(group, [logs[log_names.index(n)] for n in names])
+        part.log = np.array([log_names.index(n) for n in names])[part.log]  # split-local -> global index
+        data[k] = part
+    train = data["train"].subset(data["train"].labelled())
+    if len(train) == 0:
+        names = (*group.sensors, *([group.pair] if group.pair else []))
+        switch = " or ".join(S.switch_col(n) for n in names)
+        raise DataError(f"{group.name}: no training sample with an exact label ({switch} = 1) in {in_dir}")
+    val = data["val"]
+    if not (val.switches.any() or (val.sum_switch is not None and val.sum_switch.any())):
+        raise DataError(f"{group.name}: the validation logs ({', '.join(split['val'])}) have no exact label")
+    return Prepared(cfg, gp, group, split, log_names, train, val, data["test"])
+
+
+def fit_baselines(gp: GroupParams, group: Group, train: GroupData) -> dict[str, LinearBaseline]:
+    """The affine (least squares) and polynomial (ridge) baselines on the switched loss of the networks."""
+    args = {
+        "x": train.x,
+        "labels": train.labels,
+        "switches": train.switches,
+        "lambdas": NetSetting.of(gp, 7).lambdas,
+        "sum_label": train.sum_label,
+        "alpha_sum": train.alpha_sum,
+        "transforms": group.transforms,
+        "lambda_sum": gp.lambda_sum,
+    }
+    out = {AFFINE: fit_linear_baseline(AFFINE, order=1, ridge=0.0, **args)}
+    for order in gp.poly_orders:
+        out[poly_name(order)] = fit_linear_baseline(poly_name(order), order=order, ridge=gp.ridge, **args)
+    return out
+
+
+def score(
+    prep: Prepared, preds: Mapping[str, Mapping[str, np.ndarray]], nets: Mapping[str, NetResult]
+) -> dict[str, Any]:
+    """metrics.json: validation and test errors of every model, the model to deploy, the chosen networks."""
+    group = prep.group
+    metrics: dict[str, Any] = {
+        "group": group.name,
+        "kind": "sensor" if group.pair is None else "pair",
+        "sensors": list(group.sensors),
+        "pair": group.pair,
+        "headline": group.headline,
+        "logs": prep.split,
+        "samples": {"train": len(prep.train), "val": len(prep.val), "test": len(prep.test)},
+        "selection": "lowest validation rmse_labelled",
+    }
+    for k, data in (("val", prep.val), ("test", prep.test)):
+        metrics[k] = {name: group_errors(group, data, pred) for name, pred in preds[k].items()}
+    ranked = sorted(metrics["val"], key=lambda m: metrics["val"][m]["rmse_labelled"])
+    metrics["best_on_validation"] = ranked[0]
+    metrics["validation_ranking"] = ranked
+    metrics["networks"] = {
+        name: {
+            "trial": r.trial,
+            "hyperparameters": asdict(NetSetting.of(prep.gp, r.model.config.n_inputs, r.values)),
+            "seed": r.seed,
+            "best_epoch": r.best_epoch,
+            "val_rmse_labelled": r.val_rmse,
+            "study": r.study,
+            "trials_run": r.trials_run,
+            "trials_reused": r.trials_reused,
+            "trials_pruned": r.trials_pruned,
+            "history": r.history,
+        }
+        for name, r in nets.items()
+    }
+    return metrics
+
+
+def network_info(prep: Prepared, r: NetResult, metrics: Mapping[str, Any], name: str) -> dict[str, Any]:
+    n_inputs = r.model.config.n_inputs
+    sensors = prep.group.sensors
+    return {
+        "group": prep.group.name,
+        "sensors": list(sensors),
+        "input_columns": [c for sensor in sensors for c in input_cols(sensor, n_inputs)],
+        "output_columns": [c for sensor in sensors for c in S.wrench_cols(S.FT, sensor)],
+        "hyperparameters": metrics["networks"][name]["hyperparameters"],
+        "study": r.study,
+        "trial": r.trial,
+    }
+
+
+def mlflow_metrics(group: Group, metrics: Mapping[str, Any]) -> dict[str, float]:
+    """The headline errors as flat MLflow metric names, e.g. ``test.nn7.r_leg_ft.rmse_force``."""
+    flat: dict[str, float] = {}
+    for k in ("val", "test"):
+        for name, errors in metrics[k].items():
+            keep = {"rmse": errors["rmse"], "rmse_labelled": errors["rmse_labelled"]}
+            keep.update({s: errors[s] for s in (*group.sensors, group.headline)})
+            flat.update(flatten_metrics(f"{k}.{name}", keep))
+    flat.update({f"seconds.{k}": v for k, v in metrics["seconds"].items()})
+    return flat

@@ -1,0 +1,218 @@
+"""Params of the train stage: `train.defaults` and `train.groups.<name>` resolved and validated.
+
+Light on purpose (no torch): params.yaml is validated section by section when it is loaded, whichever
+stage runs, so a typo under `train:` surfaces at once.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Mapping
+from dataclasses import dataclass, fields, replace
+from typing import Any
+
+from pipeline.core.errors import ConfigError
+
+INPUT_SIZES = (7, 13)  # raw wrench + temperature (+ accelerometer + gyroscope)
+NORMALISATIONS = ("max", "standard")
+ACTIVATION_NAMES = ("relu", "leaky_relu", "tanh", "elu")
+RAW, AFFINE = "raw", "affine"
+
+
+def nn_name(n_inputs: int) -> str:
+    """Model name of the network with `n_inputs` inputs per sensor: nn7, nn13."""
+    return f"nn{n_inputs}"
+
+
+def poly_name(order: int) -> str:
+    """Model name of the polynomial baseline of `order`: poly2, ..."""
+    return f"poly{order}"
+
+
+# Keys an Optuna search may vary (their type), and which group params are integers.
+SEARCHABLE = {
+    "lr": float,
+    "weight_decay": float,
+    "hidden": int,
+    "batch_size": int,
+    "epochs": int,
+    "normalisation": str,
+    "lambda_front": float,
+    "lambda_rear": float,
+    "lambda_sum": float,
+}
+
+
+def _is_int(v: Any) -> bool:
+    return isinstance(v, int) and not isinstance(v, bool)
+
+
+def _is_number(v: Any) -> bool:
+    return isinstance(v, int | float) and not isinstance(v, bool) and math.isfinite(v)
+
+
+@dataclass(frozen=True)
+class GroupParams:
+    """One group's training params: `train.defaults` updated by `train.groups.<name>` (see params.yaml)."""
+
+    name: str  # group name (the key under train.groups)
+    sensor: str | None  # a single FT sensor ...
+    pair: str | None  # ... or a foot pair of robot.foot_pairs
+    inputs: tuple[int, ...]  # network sizes trained: 7 and/or 13
+    hidden: int  # neurons per hidden layer
+    activations: tuple[str, ...]  # one per hidden layer
+    normalisation: str  # max | standard
+    batch_size: int  # samples per Adam step
+    epochs: int  # passes over the training samples
+    lr: float  # Adam learning rate
+    weight_decay: float  # Adam weight decay
+    lambda_expected: float  # single sensor: lambda of eq. 5.4
+    lambda_front: float  # foot: lambdas of eqs. 5.6-5.7
+    lambda_rear: float
+    lambda_sum: float
+    n_trials: int  # Optuna trials per network (the first: these params)
+    search: Mapping[str, Any]  # key -> [choices] or {low, high, log}
+    tpe_startup_trials: int  # random trials before TPE
+    prune_startup_trials: int  # MedianPruner: complete trials before pruning
+    prune_warmup_epochs: int  # MedianPruner: epochs never pruned
+    poly_orders: tuple[int, ...]  # polynomial baselines
+    ridge: float  # ridge penalty per sample (standardised features)
+
+    def __post_init__(self) -> None:
+        key = f"train.groups.{self.name}"
+        if (self.sensor is None) == (self.pair is None):
+            raise ConfigError(f"{key} must have exactly one of 'sensor' or 'pair'")
+        for attr in ("sensor", "pair"):
+            value = getattr(self, attr)
+            if value is not None and (not isinstance(value, str) or not value.strip()):
+                raise ConfigError(f"{key}.{attr} must be a non-empty string, got {value!r}")
+        inputs = self.inputs
+        if not isinstance(inputs, list | tuple) or not inputs or any(i not in INPUT_SIZES for i in inputs):
+            raise ConfigError(f"{key}.inputs must be a non-empty list of {INPUT_SIZES}, got {inputs!r}")
+        object.__setattr__(self, "inputs", tuple(sorted(set(inputs))))
+        acts = self.activations
+        if not isinstance(acts, list | tuple) or not acts or any(a not in ACTIVATION_NAMES for a in acts):
+            raise ConfigError(
+                f"{key}.activations must be a non-empty list of {list(ACTIVATION_NAMES)}, got {acts!r}"
+            )
+        object.__setattr__(self, "activations", tuple(acts))
+        for attr, low in (
+            ("hidden", 1),
+            ("batch_size", 1),
+            ("epochs", 1),
+            ("n_trials", 1),
+            ("tpe_startup_trials", 0),
+            ("prune_startup_trials", 0),
+            ("prune_warmup_epochs", 0),
+        ):
+            value = getattr(self, attr)
+            if not _is_int(value) or value < low:
+                raise ConfigError(f"{key}.{attr} must be an integer >= {low}, got {value!r}")
+        if self.normalisation not in NORMALISATIONS:
+            raise ConfigError(
+                f"{key}.normalisation must be one of {NORMALISATIONS}, got {self.normalisation!r}"
+            )
+        if not _is_number(self.lr) or self.lr <= 0:
+            raise ConfigError(f"{key}.lr must be a positive number, got {self.lr!r}")
+        for attr in ("weight_decay", "lambda_expected", "lambda_front", "lambda_rear", "lambda_sum", "ridge"):
+            value = getattr(self, attr)
+            if not _is_number(value) or value < 0:
+                raise ConfigError(f"{key}.{attr} must be a number >= 0, got {value!r}")
+            object.__setattr__(self, attr, float(value))
+        object.__setattr__(self, "lr", float(self.lr))
+        orders = self.poly_orders
+        if not isinstance(orders, list | tuple) or any(not _is_int(o) or not 1 <= o <= 4 for o in orders):
+            raise ConfigError(f"{key}.poly_orders must be a list of integers in [1, 4], got {orders!r}")
+        object.__setattr__(self, "poly_orders", tuple(sorted(set(orders))))
+        self._check_search(key)
+
+    def _check_search(self, key: str) -> None:
+        if not isinstance(self.search, Mapping):
+            raise ConfigError(f"{key}.search must be a mapping, got {self.search!r}")
+        for name, spec in self.search.items():
+            where = f"{key}.search.{name}"
+            if name not in SEARCHABLE:
+                raise ConfigError(f"unknown key {where} (searchable: {', '.join(sorted(SEARCHABLE))})")
+            default = getattr(self, name)
+            kind = SEARCHABLE[name]
+            if isinstance(spec, list):
+                if not spec or len(set(map(str, spec))) != len(spec):
+                    raise ConfigError(f"{where} must be a non-empty list of distinct choices, got {spec!r}")
+                for choice in spec:  # each choice must be a valid value of the param
+                    try:
+                        replace(self, **{name: choice}, search={})
+                    except ConfigError:
+                        raise ConfigError(f"{where}: invalid choice {choice!r}") from None
+                if default not in spec:
+                    raise ConfigError(f"{where} must include the group's own value {default!r}, got {spec!r}")
+            elif isinstance(spec, Mapping):
+                if set(spec) - {"low", "high", "log"} or not {"low", "high"} <= set(spec) or kind is str:
+                    raise ConfigError(
+                        f"{where} must be a list of choices or {{low, high, log}}, got {spec!r}"
+                    )
+                low, high = spec["low"], spec["high"]
+                ok = _is_int if kind is int else _is_number
+                if not (ok(low) and ok(high)) or not low < high or (spec.get("log") and low <= 0):
+                    raise ConfigError(f"{where} needs low < high ({kind.__name__}, > 0 if log), got {spec!r}")
+                if not low <= default <= high:
+                    raise ConfigError(f"{where} must contain the group's own value {default!r}, got {spec!r}")
+            else:
+                raise ConfigError(f"{where} must be a list of choices or {{low, high, log}}, got {spec!r}")
+
+    @property
+    def label(self) -> str:
+        """The sensor or pair name the group trains."""
+        return self.sensor if self.sensor is not None else str(self.pair)
+
+    def hyperparameters(self) -> dict[str, Any]:
+        """The searchable values of these params."""
+        return {k: getattr(self, k) for k in SEARCHABLE}
+
+
+_GROUP_KEYS = {f.name for f in fields(GroupParams)} - {"name"}
+_DEFAULT_KEYS = _GROUP_KEYS - {"sensor", "pair"}
+
+
+@dataclass(frozen=True)
+class TrainParams:
+    """Section `train` of params.yaml (see the comments there)."""
+
+    val_logs: int  # training logs held out as validation
+    threads: int  # torch CPU threads
+    defaults: Mapping[str, Any]  # every group's params ...
+    groups: Mapping[str, Any]  # ... updated per group: name -> {sensor | pair, overrides}
+
+    def __post_init__(self) -> None:
+        if not _is_int(self.val_logs) or self.val_logs < 1:
+            raise ConfigError(f"train.val_logs must be an integer >= 1, got {self.val_logs!r}")
+        if not _is_int(self.threads) or self.threads < 1:
+            raise ConfigError(f"train.threads must be an integer >= 1, got {self.threads!r}")
+        if not isinstance(self.defaults, Mapping):
+            raise ConfigError(f"train.defaults must be a mapping, got {self.defaults!r}")
+        unknown = sorted(set(self.defaults) - _DEFAULT_KEYS)
+        if unknown:
+            raise ConfigError(
+                f"unknown key train.defaults.{unknown[0]} (allowed: {', '.join(sorted(_DEFAULT_KEYS))})"
+            )
+        missing = sorted(_DEFAULT_KEYS - set(self.defaults))
+        if missing:
+            raise ConfigError(f"missing key train.defaults.{missing[0]}")
+        if not isinstance(self.groups, Mapping) or not self.groups:
+            raise ConfigError(f"train.groups must be a non-empty mapping, got {self.groups!r}")
+        for name in self.groups:
+            self.group(name)  # validate every group now
+
+    def group(self, name: str) -> GroupParams:
+        """The resolved params of group `name` (ConfigError if there is no such group)."""
+        if name not in self.groups:
+            raise ConfigError(f"train.groups has no group {name!r} (groups: {', '.join(self.groups)})")
+        own = self.groups[name]
+        if not isinstance(own, Mapping):
+            raise ConfigError(f"train.groups.{name} must be a mapping, got {own!r}")
+        unknown = sorted(set(own) - _GROUP_KEYS)
+        if unknown:
+            raise ConfigError(
+                f"unknown key train.groups.{name}.{unknown[0]} (allowed: {', '.join(sorted(_GROUP_KEYS))})"
+            )
+        merged = {"sensor": None, "pair": None, **self.defaults, **own}
+        return GroupParams(name=name, **merged)

@@ -1,0 +1,153 @@
+"""One group's training run: fit the baselines, search the networks, score, write outputs, log to MLflow.
+
+What the outputs hold is the train -> evaluate contract (`pipeline.calib.records`, README "Models").
+"""
+
+from __future__ import annotations
+
+import time
+from dataclasses import asdict, dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import torch
+
+from pipeline.calib.fit import Prepared, fit_baselines, mlflow_metrics, network_info, prepare, score
+from pipeline.calib.models import WRENCH, LinearBaseline, save_model
+from pipeline.calib.params import RAW, nn_name
+from pipeline.calib.records import TrainResult, log_network, log_trial_run, write_predictions
+from pipeline.calib.search import NetResult, code_digest, data_digest, search_network
+from pipeline.calib.training import flat_inputs, predict
+from pipeline.core.config import Params
+from pipeline.core.io import write_json
+from pipeline.core.progress import ProgressLog
+
+
+@dataclass
+class Fitted:
+    """Every model of a group with its validation and test predictions (N, S, 6) and timings (s)."""
+
+    baselines: dict[str, LinearBaseline]
+    nets: dict[str, NetResult]
+    preds: dict[str, dict[str, np.ndarray]]  # split (val, test) -> model -> predictions
+    timings: dict[str, float] = field(default_factory=dict)
+
+
+def _identity(params: Params, prep: Prepared) -> dict[str, Any]:
+    """Everything a study's result depends on, but n_trials (more trials extend a study)."""
+    return {
+        "group": {k: v for k, v in asdict(prep.gp).items() if k != "n_trials"},
+        "seed": params.seed,
+        "threads": prep.cfg.threads,
+        "split": prep.split,
+        "data": data_digest(prep.train, prep.val),
+        "code": code_digest(),
+        "torch": torch.__version__,
+    }
+
+
+def fit_models(params: Params, prep: Prepared, studies: Path, ui: ProgressLog) -> Fitted:
+    """The baselines and the Optuna search of every network size of the group."""
+    gp, group = prep.gp, prep.group
+    data = {"val": prep.val, "test": prep.test}
+    fitted = Fitted({}, {}, {k: {RAW: d.x[:, :, :WRENCH].copy()} for k, d in data.items()})
+    t = time.perf_counter()
+    fitted.baselines = fit_baselines(gp, group, prep.train)
+    for name, model in fitted.baselines.items():
+        for k, d in data.items():
+            fitted.preds[k][name] = model.predict(d.x)
+    fitted.timings["baselines"] = seconds = time.perf_counter() - t
+    ui.line(f"{group.name}: baselines fitted on {len(prep.train)} samples in {seconds:.1f} s")
+    identity = _identity(params, prep)
+    for n_inputs in gp.inputs:
+        name = nn_name(n_inputs)
+        t = time.perf_counter()
+        fitted.nets[name] = search_network(
+            gp,
+            group,
+            prep.train,
+            prep.val,
+            n_inputs,
+            params.seed,
+            studies,
+            identity,
+            ui,
+            log_trial_run(group.name, name),
+        )
+        for k, d in data.items():
+            fitted.preds[k][name] = predict(fitted.nets[name].model, d)
+        fitted.timings[name] = time.perf_counter() - t
+    return fitted
+
+
+def write_outputs(prep: Prepared, fitted: Fitted, out: Path, run_id: str, t0: float) -> TrainResult:
+    """Write `out` (metrics.json, networks, baselines.json, predictions.parquet) and log to MLflow."""
+    import mlflow
+
+    group, timings = prep.group, fitted.timings
+    metrics = score(prep, fitted.preds, fitted.nets)
+    out.mkdir(parents=True, exist_ok=True)
+    files = ["metrics.json", "baselines.json", "predictions.parquet"]
+    example = prep.test.subset(np.arange(min(5, len(prep.test))))
+    versions: dict[str, dict[str, str]] = {}
+    for name, r in fitted.nets.items():
+        info = network_info(prep, r, metrics, name)
+        save_model(out / name, r.model, info)
+        files += [f"{name}.json", f"{name}.pt"]
+        t = time.perf_counter()
+        columns = {k: info[k] for k in ("group", "sensors", "input_columns", "output_columns")}
+        x = flat_inputs(example, r.model.config.n_inputs)
+        versions[name] = log_network(group, name, r.model, x, columns)
+        timings[f"log_{name}"] = time.perf_counter() - t
+    write_json(out / "baselines.json", {name: b.to_dict() for name, b in fitted.baselines.items()})
+    write_predictions(out / "predictions.parquet", group, prep.test, prep.log_names, fitted.preds["test"])
+    timings["total"] = time.perf_counter() - t0
+    metrics["seconds"] = timings
+    # how evaluate finds this run and the registered networks (by id, never by matching values)
+    metrics["mlflow"] = {"run_id": run_id, "models": versions}
+    write_json(out / "metrics.json", metrics)
+    mlflow.log_metrics(mlflow_metrics(group, metrics))
+    mlflow.set_tag("best_on_validation", metrics["best_on_validation"])
+    for name in ("metrics.json", "baselines.json"):
+        mlflow.log_artifact(str(out / name))
+    return TrainResult(group.name, metrics, time.perf_counter() - t0, run_id, files)
+
+
+def train_group(
+    params: Params,
+    group_name: str,
+    in_dir: str | Path,
+    out_dir: str | Path,
+    studies: str | Path,
+    *,
+    progress: bool | None = None,
+) -> TrainResult:
+    """Run the stage for one group: read, split, fit, search, score, write `out_dir`, log to MLflow."""
+    import mlflow
+
+    from pipeline.core.tracking import stage_run
+
+    t0 = time.perf_counter()
+    src, out = Path(in_dir), Path(out_dir)
+    prep = prepare(params, group_name, src)
+    torch.set_num_threads(prep.cfg.threads)
+    torch.use_deterministic_algorithms(True)
+    ui = ProgressLog(progress)
+    own = {k: v for k, v in asdict(prep.gp).items() if k != "name"}
+    stage_params = {
+        "train": {"group": group_name, "val_logs": prep.cfg.val_logs, "threads": prep.cfg.threads, **own},
+        "seed": params.seed,
+    }
+    with stage_run(f"train@{group_name}", stage_params) as run, ui.running():
+        mlflow.set_tags(
+            {
+                "group": group_name,
+                "in_dir": str(src),
+                "out_dir": str(out),
+                "val_logs": ",".join(prep.split["val"]),
+                "test_logs": ",".join(prep.split["test"]),
+            }
+        )
+        fitted = fit_models(params, prep, Path(studies), ui)
+        return write_outputs(prep, fitted, out, run.info.run_id, t0)

@@ -1,0 +1,254 @@
+"""Optuna search of one group network.
+
+One study per network size, stored in a journal file under ``--studies`` and named after a hash of
+everything that determines its result (group params except n_trials, seed, threads, validation logs, data,
+this code): a rerun after an interruption resumes it, a rerun with more trials extends it. Trial k is
+seeded from (seed, group, inputs, k) and its sampler is a TPE sampler seeded the same way, so the search is
+reproducible whether or not it was resumed. The first trial is the group's own params (the thesis's
+defaults); a MedianPruner stops trials whose validation error lags.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import time
+import warnings
+from collections.abc import Callable, Mapping
+from dataclasses import dataclass, fields
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from pipeline.calib.data import Group, GroupData, derive_seed
+from pipeline.calib.models import (
+    GroupNet,
+    save_model,
+)
+from pipeline.calib.params import SEARCHABLE, GroupParams, nn_name
+from pipeline.calib.training import NetSetting, train_network
+from pipeline.core.errors import DataError
+from pipeline.core.progress import ProgressLog
+
+_PACKAGE = Path(__file__).resolve().parent
+# the bytes of the calib package are part of a study's identity
+
+
+@dataclass
+class NetResult:
+    model: GroupNet
+    trial: int  # 1-based, in the order trials finished (the same whether or not the search was resumed)
+    values: dict[str, Any]
+    seed: int
+    best_epoch: int
+    val_rmse: float
+    study: str
+    trials_run: int
+    trials_reused: int
+    trials_pruned: int
+    history: list[dict[str, float]]  # the best trial's epochs: {epoch, loss, val_rmse}
+
+
+def code_digest() -> str:
+    h = hashlib.sha256()
+    for path in sorted(_PACKAGE.glob("*.py")):
+        h.update(path.read_bytes())
+    return h.hexdigest()
+
+
+def data_digest(*datas: GroupData) -> str:
+    h = hashlib.sha256()
+    for data in datas:
+        for f in fields(data):
+            value = getattr(data, f.name)
+            if value is not None:
+                h.update(np.ascontiguousarray(np.nan_to_num(value, nan=0.0)).tobytes())
+    return h.hexdigest()
+
+
+def _suggest(trial: Any, search: Mapping[str, Any]) -> dict[str, Any]:
+    values: dict[str, Any] = {}
+    for name, spec in search.items():
+        if isinstance(spec, list):
+            values[name] = trial.suggest_categorical(name, spec)
+        elif SEARCHABLE[name] is int:
+            values[name] = trial.suggest_int(name, spec["low"], spec["high"], log=bool(spec.get("log")))
+        else:
+            values[name] = trial.suggest_float(name, spec["low"], spec["high"], log=bool(spec.get("log")))
+    return values
+
+
+TrialLog = Callable[[int, dict[str, Any], list[dict[str, float]], str, float], None]
+_DONE = ("COMPLETE", "PRUNED")  # TrialState names of finished trials
+
+
+class _Search:
+    """One network's Optuna study: opened (or resumed), run to n_trials, its best trial's model loaded."""
+
+    def __init__(
+        self,
+        gp: GroupParams,
+        group: Group,
+        data: tuple[GroupData, GroupData],
+        n_inputs: int,
+        seed: int,
+        studies: Path,
+        identity: Mapping[str, Any],
+        progress: ProgressLog,
+        log_trial: TrialLog | None,
+    ) -> None:
+        self.gp, self.group, (self.train, self.val) = gp, group, data
+        self.n_inputs, self.seed, self.studies = n_inputs, seed, studies
+        self.progress, self.log_trial = progress, log_trial
+        self.name = nn_name(n_inputs)
+        digest = json.dumps({**identity, "inputs": n_inputs}, sort_keys=True).encode()
+        self.study_name = f"{group.name}-{self.name}-{hashlib.sha256(digest).hexdigest()[:16]}"
+        self.trial_dir = studies / self.study_name
+
+    def open(self) -> None:
+        """Create or load the study; trials left running by an interrupted run are marked failed."""
+        import optuna
+        from optuna.storages import JournalStorage
+        from optuna.storages.journal import JournalFileBackend
+        from optuna.trial import TrialState
+
+        optuna.logging.set_verbosity(optuna.logging.WARNING)
+        warnings.filterwarnings("ignore", category=optuna.exceptions.ExperimentalWarning)
+        self.studies.mkdir(parents=True, exist_ok=True)
+        storage = JournalStorage(JournalFileBackend(str(self.studies / "optuna.journal")))
+        pruner = optuna.pruners.MedianPruner(
+            n_startup_trials=self.gp.prune_startup_trials, n_warmup_steps=self.gp.prune_warmup_epochs
+        )
+        self.study = optuna.create_study(
+            study_name=self.study_name,
+            storage=storage,
+            direction="minimize",
+            pruner=pruner,
+            load_if_exists=True,
+        )
+        study_id = storage.get_study_id_from_name(self.study_name)
+        for t in self.study.get_trials(deepcopy=False, states=(TrialState.RUNNING,)):
+            trial_id = storage.get_trial_id_from_study_id_trial_number(study_id, t.number)
+            storage.set_trial_state_values(trial_id, TrialState.FAIL)
+        if not self.finished() and not self.study.get_trials(deepcopy=False, states=(TrialState.WAITING,)):
+            self.study.enqueue_trial({k: getattr(self.gp, k) for k in self.gp.search})  # trial 0: own params
+
+    def finished(self) -> list[Any]:
+        """Complete and pruned trials, in the order they were created."""
+        done = [t for t in self.study.get_trials(deepcopy=False) if t.state.name in _DONE]
+        return sorted(done, key=lambda t: t.number)
+
+    def objective(self, trial: Any) -> float:
+        """Train one trial's network; its validation error (the best epoch's)."""
+        import optuna
+
+        gp, ui, index = self.gp, self.progress, len(self.finished())
+        values = _suggest(trial, gp.search)
+        setting = NetSetting.of(gp, self.n_inputs, values)
+        trial_seed = derive_seed(self.seed, self.group.name, self.n_inputs, index)
+        where = f"{self.group.name} {self.name} trial {index + 1}/{gp.n_trials}"
+        epochs = ui.task(f"  trial {index + 1}/{gp.n_trials} epochs", setting.epochs)
+        t0 = time.perf_counter()
+        history: list[dict[str, float]] = []
+
+        def on_epoch(epoch: int, loss: float, err: float) -> None:
+            ui.update(epochs, advance=1, description=f"  trial {index + 1}/{gp.n_trials} val RMSE {err:.3g}")
+            history.append({"epoch": epoch, "loss": loss, "val_rmse": err})
+            trial.report(err, epoch)
+            if trial.should_prune():
+                raise optuna.TrialPruned()
+
+        try:
+            model, history = train_network(self.group, self.train, self.val, setting, trial_seed, on_epoch)
+        except optuna.TrialPruned:
+            last = history[-1]["val_rmse"]
+            ui.line(f"{where}: pruned at epoch {len(history)} (val RMSE {last:.4g}) {_fmt(values)}")
+            if self.log_trial is not None:
+                self.log_trial(index, values, history, "PRUNED", time.perf_counter() - t0)
+            raise
+        finally:
+            ui.remove(epochs)
+        best = min(history, key=lambda h: h["val_rmse"])
+        file = f"trial_{trial.number:04d}"
+        save_model(self.trial_dir / file, model, {"values": values, "seed": trial_seed, "history": history})
+        for key, value in (("index", index), ("seed", trial_seed), ("best_epoch", int(best["epoch"]))):
+            trial.set_user_attr(key, value)
+        trial.set_user_attr("file", file)
+        seconds = time.perf_counter() - t0
+        ui.line(
+            f"{where}: val RMSE {best['val_rmse']:.4g} (epoch {int(best['epoch']) + 1}) {_fmt(values)} "
+            f"{seconds:.1f} s"
+        )
+        if self.log_trial is not None:
+            self.log_trial(index, values, history, "COMPLETE", seconds)
+        return float(best["val_rmse"])
+
+    def run(self) -> tuple[int, int]:
+        """Run trials until n_trials have finished; (trials run now, trials reused from before)."""
+        import optuna
+
+        gp, ui = self.gp, self.progress
+        reused = min(len(self.finished()), gp.n_trials)
+        bar = ui.task(f"{self.group.name} {self.name} trials", gp.n_trials)
+        ui.update(bar, completed=reused)
+        run = 0
+        while len(self.finished()) < gp.n_trials:
+            index = len(self.finished())
+            tpe_seed = derive_seed(self.seed, self.group.name, self.n_inputs, index, "tpe")
+            self.study.sampler = optuna.samplers.TPESampler(
+                seed=tpe_seed, n_startup_trials=gp.tpe_startup_trials
+            )
+            self.study.optimize(self.objective, n_trials=1)
+            run += 1
+            ui.update(bar, completed=min(len(self.finished()), gp.n_trials))
+        ui.remove(bar)
+        return run, reused
+
+    def best(self, run: int, reused: int) -> NetResult:
+        """The lowest-validation-error complete trial among the first n_trials, with its model."""
+        from pipeline.calib.models import load_model
+
+        considered = self.finished()[: self.gp.n_trials]
+        complete = [t for t in considered if t.state.name == "COMPLETE"]
+        best = min(complete, key=lambda t: (t.value, t.number))
+        try:
+            model, info = load_model(self.trial_dir / best.user_attrs["file"])
+        except DataError as exc:
+            lost = f"the Optuna study {self.study_name} lost its weights: delete {self.studies}"
+            raise DataError(f"{exc} ({lost})") from None
+        return NetResult(
+            model=model,
+            trial=int(best.user_attrs["index"]) + 1,
+            values=dict(info.get("values", {})),
+            seed=int(best.user_attrs["seed"]),
+            best_epoch=int(best.user_attrs["best_epoch"]),
+            val_rmse=float(best.value),
+            study=self.study_name,
+            trials_run=run,
+            trials_reused=reused,
+            trials_pruned=sum(t.state.name == "PRUNED" for t in considered),
+            history=list(info.get("history", [])),
+        )
+
+
+def search_network(
+    gp: GroupParams,
+    group: Group,
+    train: GroupData,
+    val: GroupData,
+    n_inputs: int,
+    seed: int,
+    studies: Path,
+    identity: Mapping[str, Any],
+    progress: ProgressLog,
+    log_trial: TrialLog | None = None,
+) -> NetResult:
+    """Optuna search of one network (see the module docstring); returns the best trial's model."""
+    search = _Search(gp, group, (train, val), n_inputs, seed, studies, identity, progress, log_trial)
+    search.open()
+    return search.best(*search.run())
+
+
+def _fmt(values: Mapping[str, Any]) -> str:
+    return " ".join(f"{k}={v:.3g}" if isinstance(v, float) else f"{k}={v}" for k, v in values.items())

@@ -1,0 +1,155 @@
+"""Training one group network: Adam on the switched losses, the epoch of lowest validation error kept."""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Callable, Mapping
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+import torch
+
+from pipeline.calib.data import Group, GroupData, group_errors
+from pipeline.calib.models import (
+    WRENCH,
+    GroupNet,
+    NetConfig,
+    normalisation_constants,
+    switched_loss,
+)
+from pipeline.calib.params import GroupParams
+
+
+@dataclass(frozen=True)
+class NetSetting:
+    """Everything one network training depends on (a group's params with one trial's values)."""
+
+    n_inputs: int
+    hidden: int
+    activations: tuple[str, ...]
+    normalisation: str
+    batch_size: int
+    epochs: int
+    lr: float
+    weight_decay: float
+    lambdas: tuple[float, ...]  # per sensor
+    lambda_sum: float
+
+    @classmethod
+    def of(cls, gp: GroupParams, n_inputs: int, values: Mapping[str, Any] | None = None) -> NetSetting:
+        v = {**gp.hyperparameters(), **(values or {})}
+        lambdas = (gp.lambda_expected,) if gp.sensor is not None else (v["lambda_front"], v["lambda_rear"])
+        return cls(
+            n_inputs,
+            int(v["hidden"]),
+            gp.activations,
+            str(v["normalisation"]),
+            int(v["batch_size"]),
+            int(v["epochs"]),
+            float(v["lr"]),
+            float(v["weight_decay"]),
+            tuple(map(float, lambdas)),
+            float(v["lambda_sum"]),
+        )
+
+
+@dataclass
+class Tensors:
+    x: torch.Tensor  # (N, S * n_inputs) float32
+    labels: torch.Tensor  # (N, S, 6)
+    switches: torch.Tensor  # (N, S) bool
+    sum_label: torch.Tensor | None
+    alpha_sum: torch.Tensor | None
+
+
+def flat_inputs(data: GroupData, n_inputs: int) -> np.ndarray:
+    return data.x[:, :, :n_inputs].reshape(len(data), -1)
+
+
+def to_tensors(data: GroupData, n_inputs: int) -> Tensors:
+    f32 = torch.float32
+    return Tensors(
+        x=torch.as_tensor(flat_inputs(data, n_inputs), dtype=f32),
+        labels=torch.as_tensor(data.labels, dtype=f32),
+        switches=torch.as_tensor(data.switches),
+        sum_label=None if data.sum_label is None else torch.as_tensor(data.sum_label, dtype=f32),
+        alpha_sum=None if data.sum_switch is None else torch.as_tensor(data.alpha_sum),
+    )
+
+
+def predict(model: GroupNet, data: GroupData) -> np.ndarray:
+    """(N, S, 6) float64 calibrated wrenches of a network on `data`."""
+    with torch.no_grad():
+        x = torch.as_tensor(flat_inputs(data, model.config.n_inputs), dtype=torch.float32)
+        out = model.eval()(x).numpy().astype(np.float64)
+    return out.reshape(len(data), model.n_sensors, WRENCH)
+
+
+EpochCallback = Callable[[int, float, float], None]  # (epoch, mean training loss, validation error)
+
+
+def train_network(
+    group: Group,
+    train: GroupData,
+    val: GroupData,
+    setting: NetSetting,
+    seed: int,
+    on_epoch: EpochCallback | None = None,
+) -> tuple[GroupNet, list[dict[str, float]]]:
+    """Train one group network with Adam on the switched loss; keep the epoch of lowest validation error.
+
+    `train` holds only samples with at least one term in the loss. Weight init and batch order come from
+    `seed`. `on_epoch` may raise (e.g. optuna.TrialPruned) to stop. Returns the model at its best epoch
+    (eval mode) and the per-epoch history [{epoch, loss, val_rmse}].
+    """
+    torch.manual_seed(seed)
+    generator = torch.Generator().manual_seed(seed)
+    n_sensors = len(group.sensors)
+    model = GroupNet(NetConfig(setting.n_inputs, setting.hidden, setting.activations), n_sensors)
+    model.reset_parameters()
+    for s, net in enumerate(model.nets):
+        x = train.x[:, s, : setting.n_inputs]
+        offset, scale = normalisation_constants(x, setting.normalisation)
+        out_scale = normalisation_constants(x[:, :WRENCH], "standard")[1]
+        net.set_constants(offset, scale, out_scale)
+    t = to_tensors(train, setting.n_inputs)
+    lambdas = torch.tensor(setting.lambdas, dtype=torch.float32)
+    transforms = None if group.transforms is None else torch.as_tensor(group.transforms, dtype=torch.float32)
+    optimiser = torch.optim.Adam(model.parameters(), lr=setting.lr, weight_decay=setting.weight_decay)
+    history: list[dict[str, float]] = []
+    best_state, best_err = None, math.inf
+    n = len(train)
+    for epoch in range(setting.epochs):
+        model.train()
+        order = torch.randperm(n, generator=generator)
+        total, batches = 0.0, 0
+        for start in range(0, n, setting.batch_size):
+            idx = order[start : start + setting.batch_size]
+            pred = model(t.x[idx]).view(-1, n_sensors, WRENCH)
+            loss, _ = switched_loss(
+                pred,
+                t.labels[idx],
+                t.switches[idx],
+                lambdas,
+                None if t.sum_label is None else t.sum_label[idx],
+                None if t.alpha_sum is None else t.alpha_sum[idx],
+                transforms,
+                setting.lambda_sum,
+            )
+            optimiser.zero_grad(set_to_none=True)
+            loss.backward()
+            optimiser.step()
+            total += float(loss.detach())
+            batches += 1
+        err = group_errors(group, val, predict(model, val))["rmse_labelled"]
+        err = err if math.isfinite(err) else math.inf  # a diverged network: the worst, not NaN
+        history.append({"epoch": epoch, "loss": total / max(batches, 1), "val_rmse": err})
+        if err < best_err:
+            best_err = err
+            best_state = {k: v.detach().clone() for k, v in model.state_dict().items()}
+        if on_epoch is not None:
+            on_epoch(epoch, history[-1]["loss"], err)
+    if best_state is not None:
+        model.load_state_dict(best_state)
+    return model.eval(), history

@@ -1,0 +1,322 @@
+"""The report page index.html: summary, noise check, one section per group (images by relative path)."""
+
+from __future__ import annotations
+
+import html
+import math
+import subprocess
+from collections.abc import Mapping, Sequence
+from datetime import datetime, timezone
+from pathlib import Path
+from typing import TYPE_CHECKING, Any
+
+from pipeline.core.io import write_text
+from pipeline.evaluation.params import (
+    LABELS,
+    NN7,
+    NN13,
+    ORACLE,
+    PLOTS_DIR,
+    REFERENCE_TITLES,
+    REFERENCES,
+    REPORT_FILE,
+)
+from pipeline.logs import schema as S
+
+if TYPE_CHECKING:
+    from pipeline.evaluation.params import EvaluateParams
+    from pipeline.evaluation.results import GroupReport
+
+
+# --- the page ------------------------------------------------------------------------------------
+
+
+def fmt(value: Any) -> str:
+    """A table number: 2 decimals from 1 up (as the thesis), 3 significant digits below; n/a if missing."""
+    if value is None or (isinstance(value, float) and not math.isfinite(value)):
+        return "n/a"
+    if isinstance(value, bool):
+        return "yes" if value else "no"
+    if isinstance(value, int):
+        return str(value)
+    v = float(value)
+    if abs(v) >= 1e5:
+        return f"{v:.3e}"
+    if abs(v) >= 1:
+        return f"{v:.2f}"
+    return f"{v:.3g}"
+
+
+def _e(text: Any) -> str:
+    return html.escape(str(text))
+
+
+def _table(
+    header: Sequence[str], rows: Sequence[Sequence[str]], cls: str = "", raw_html: bool = False
+) -> str:
+    """An HTML table; cells are escaped unless `raw_html` (then the caller escaped them)."""
+    cell = (lambda c: c) if raw_html else _e
+    head = "".join(f"<th>{_e(h)}</th>" for h in header)
+    body = "".join("<tr>" + "".join(f"<td>{cell(c)}</td>" for c in row) + "</tr>" for row in rows)
+    return f'<table class="{cls}"><thead><tr>{head}</tr></thead><tbody>{body}</tbody></table>'
+
+
+_METRIC_ROWS = [("global", ""), ("force", "_force"), ("torque", "_torque")] + [
+    (a, f"_{a}") for a in S.WRENCH_AXES
+]
+
+
+def thesis_table(tables: Mapping[str, Mapping[str, float]], models: Sequence[str], metric: str) -> str:
+    """Thesis layout (tables 5.1-5.24): rows = MSE/MAE/RMSE global, force, torque, axes; columns = models.
+    The lowest value of each row (oracle excluded) is bold."""
+
+    rows = []
+    for label, suffix in _METRIC_ROWS:
+        values = [tables[m].get(f"{metric}{suffix}") for m in models]
+        finite = [
+            v
+            for m, v in zip(models, values, strict=True)
+            if m != ORACLE and v is not None and math.isfinite(v)
+        ]
+        best = min(finite) if finite else None
+        cells = [f"{metric.upper()} {label}"]
+        for v in values:
+            text = _e(fmt(v))
+            cells.append(f"<b>{text}</b>" if best is not None and v == best else text)
+        rows.append(cells)
+    rows.append(["samples"] + [_e(fmt(_count(tables[m].get("samples")))) for m in models])
+    return _table([metric.upper(), *models], rows, "num", raw_html=True)
+
+
+def _count(value: Any) -> int | None:
+    return None if value is None or not math.isfinite(value) else int(value)
+
+
+def _img(src: str, alt: str) -> str:
+    src, alt = _e(src), _e(alt)
+    return (
+        f'<figure><a href="{src}"><img src="{src}" alt="{alt}" loading="lazy"></a>'
+        f"<figcaption>{alt}</figcaption></figure>"
+    )
+
+
+def _git_commit() -> str:
+    try:
+        out = subprocess.run(
+            ["git", "rev-parse", "--short", "HEAD"], capture_output=True, text=True, timeout=5, check=False
+        )
+        return out.stdout.strip() or "unknown"
+    except (OSError, subprocess.SubprocessError):
+        return "unknown"
+
+
+_CSS = """
+body{font-family:system-ui,-apple-system,Segoe UI,Roboto,sans-serif;margin:0 auto;max-width:1500px;
+ padding:0 24px 60px;color:#222}
+h1{margin-bottom:4px} h2{border-bottom:2px solid #ddd;padding-bottom:4px;margin-top:48px}
+h3{margin-top:28px} h4{margin:18px 0 6px}
+.meta{color:#666;font-size:13px}
+table{border-collapse:collapse;margin:6px 0 14px;font-size:13px}
+th,td{border:1px solid #ccc;padding:3px 8px;text-align:right;white-space:nowrap}
+th{background:#f2f2f2;white-space:normal;text-align:center}
+td:first-child,th:first-child{text-align:left} td.deploy{text-align:left}
+table.num td{font-variant-numeric:tabular-nums}
+.ok{background:#e3f4e3} .bad{background:#fbe0e0}
+.flags{border:2px solid #c62828;background:#fdecea;padding:10px 16px;border-radius:6px;margin:14px 0}
+.flags.none{border-color:#2e7d32;background:#edf7ed}
+.tables{display:flex;flex-wrap:wrap;gap:22px;align-items:flex-start}
+figure{margin:10px 0 18px} figure img{max-width:100%;border:1px solid #ddd}
+figcaption{font-size:12px;color:#555}
+nav{font-size:13px;columns:3;background:#fafafa;border:1px solid #eee;padding:8px 16px}
+nav a{display:block} .note{font-size:13px;color:#444;max-width:1100px}
+"""
+
+
+def _cell(value: Any, good: bool | None = None, bold: bool = False) -> str:
+    """A <td> with a number, green/red when `good` says whether it meets its target."""
+    text = _e(fmt(value))
+    text = f"<b>{text}</b>" if bold else text
+    cls = "" if good is None else (' class="ok"' if good else ' class="bad"')
+    return f"<td{cls}>{text}</td>"
+
+
+def summary_table(results: Sequence[GroupReport], cfg: EvaluateParams) -> str:
+    """One row per group: headline RMSE of raw, the best-on-validation model, NN7 and the oracle against
+    labels and truth; the acceptance ratios; the networks' noise ratios; the model to deploy."""
+
+    refs = [ref for ref in REFERENCES if any(ref in r.tables[r.headline] for r in results)]
+    head1 = "<tr><th rowspan=2>group</th><th rowspan=2>sensor / sum</th>"
+    head2 = "<tr>"
+    for ref in refs:
+        head1 += f"<th colspan=4>RMSE against {REFERENCE_TITLES[ref]}</th>"
+        head2 += "<th>raw</th><th>best on val.</th><th>NN7</th><th>oracle</th>"
+    for ref in refs:
+        head1 += f"<th colspan=2>ratios, {REFERENCE_TITLES[ref]}</th>"
+        head2 += "<th>raw / NN7</th><th>NN7 / oracle</th>"
+    head1 += (
+        "<th colspan=2>noise ratio</th><th rowspan=2>best on validation</th><th rowspan=2>deploy</th></tr>"
+    )
+    head2 += "<th>NN7</th><th>NN13</th></tr>"
+    body = []
+    for r in results:
+        ratios = r.ratios()
+        best = r.best_on_validation
+        row = f"<tr><td>{_e(r.group)}</td><td>{_e(r.headline)}</td>"
+        for ref in refs:
+            row += _cell(r.headline_rmse(ref, "raw")) + _cell(r.headline_rmse(ref, best) if best else None)
+            row += _cell(r.headline_rmse(ref, NN7)) + _cell(r.headline_rmse(ref, ORACLE))
+        for ref in refs:
+            a, b = ratios["raw_over_nn7"][ref], ratios["nn7_over_oracle"][ref]
+            row += _cell(a, None if a is None else a >= cfg.target_raw_over_nn7)
+            row += _cell(b, None if b is None else b <= cfg.target_nn7_over_oracle)
+        for m in (NN7, NN13):
+            v = r.noise.ratio.get(m)
+            row += _cell(v, None if v is None else v <= cfg.noise_threshold)
+        rec = r.recommended or "none"
+        notes = ["best on validation is noisy"] if rec != best else []
+        rec_rmse, raw_rmse = r.headline_rmse(LABELS, rec), r.headline_rmse(LABELS, "raw")
+        worse = rec_rmse is not None and raw_rmse is not None and rec_rmse > raw_rmse
+        if worse:
+            notes.append("worse than raw on the test logs: validation does not cover them")
+        note = f" <small>({'; '.join(notes)})</small>" if notes else ""
+        cls = "deploy bad" if worse else "deploy"
+        row += f"<td>{_e(best)}</td><td class='{cls}'><b>{_e(rec)}</b>{note}</td></tr>"
+        body.append(row)
+    return f'<table class="num summary"><thead>{head1}{head2}</thead><tbody>{"".join(body)}</tbody></table>'
+
+
+def _flags_box(results: Sequence[GroupReport], cfg: EvaluateParams) -> str:
+    flagged = [(r.group, m, r.noise.ratio.get(m)) for r in results for m in r.noise.flagged]
+    if not flagged:
+        return (
+            "<div class='flags none'><b>Noise flags:</b> none (no model's output noise above "
+            f"{cfg.noise_threshold:g}x raw's on quasi-static stretches).</div>"
+        )
+    items = ", ".join(f"<b>{_e(g)}/{_e(m)}</b> (x{_e(fmt(v))})" for g, m, v in flagged)
+    return (
+        f"<div class='flags'><b>Noise flags:</b> {items}: output noise above "
+        f"{cfg.noise_threshold:g}x raw's on quasi-static stretches (thesis chapter 6, Test A: the "
+        "13-input network passed the IMU noise through and was unusable on the robot). "
+        "Not recommended for deployment.</div>"
+    )
+
+
+_SUMMARY_NOTE = (
+    "<p class='note'>Accuracy targets: raw/NN7 &ge; {a:g} and NN7/oracle &le; {b:g}, "
+    "against the labels and against the truth (green: met, red: not). The oracle inverts each simulated "
+    "sensor's static distortion exactly: its error is the noise floor. <i>deploy</i>: the model with the "
+    "lowest validation error unless noise-flagged, else the next of the validation ranking. Labels exist "
+    "only where a sensor's switch is 1 (a foot sum: where the contacts are all on the foot or all off it). "
+    "Against the truth (simulated logs) every model is scored twice: on the labelled samples (like for "
+    "like with the labels) and on all test samples, double support included, where no label exists and "
+    "a model interpolates without supervision.</p>"
+)
+
+_NOISE_NOTE = (
+    "<p class='note'>On quasi-static stretches (the group's FT boards turning slower than {speed:g} "
+    "rad/s, a constant contact set, outside guard bands, at least {min_s:g} s), the ratio "
+    "std(model output above {hz:g} Hz) / std(raw above {hz:g} Hz) per axis; a model's ratio is its worst "
+    "axis (of every part and the sum). 1 = raw's noise passed unchanged, &gt; 1 = noise added, &lt; 1 = "
+    "smoothed. <i>signal share</i>: the largest ratio of the true wrench's content above {hz:g} Hz to "
+    "raw's (simulated logs); near 0 means the ratio measures noise only.</p>"
+)
+
+
+def _group_section(r: GroupReport) -> list[str]:
+
+    g = r
+    links = [f"training run {_e(r.train_run)}"] if r.train_run else ["no MLflow training run found"]
+    for network, mv in sorted(r.model_versions.items()):
+        links.append(f"{_e(network)} = registered model {_e(mv['name'])} v{_e(mv['version'])}")
+    pair = f" · foot sum: {_e(g.pair)} (sole frame)" if g.pair else ""
+    ranking = _e(" < ".join(r.validation_ranking))
+    parts = [
+        f"<h2 id='{_e(g.group)}'>{_e(g.group)}</h2>",
+        f"<p class='note'>sensors: {_e(', '.join(g.sensors))}{pair} · test samples: {g.samples_test} · "
+        f"best on validation: <b>{_e(r.best_on_validation)}</b> (ranking: {ranking}) · "
+        f"deploy: <b>{_e(r.recommended)}</b> · {' · '.join(links)}</p>",
+        _img(r.figures["loss"], f"{g.group}: training loss and validation RMSE per epoch"),
+        _img(r.figures["noise"], f"{g.group}: output noise on a quasi-static stretch"),
+    ]
+    for name in g.names:
+        if name == g.pair:
+            what = "sum of front and rear in the sole frame"
+        else:
+            what = "part of the foot" if g.pair else "sensor"
+        # ids: the group's heading may already be called like its sensor or pair
+        parts.append(f"<h3 id='sensor-{_e(name)}'>{_e(name)} <small>({what})</small></h3>")
+        for ref in REFERENCES:
+            if ref in r.tables[name]:
+                tables = [thesis_table(r.tables[name][ref], g.models, m) for m in ("rmse", "mae", "mse")]
+                title = REFERENCE_TITLES[ref]
+                parts.append(f"<h4>against {title}</h4><div class='tables'>{''.join(tables)}</div>")
+        parts.append("<h4>RMSE (global) per experiment type</h4><div class='tables'>")
+        for ref, by_kind in r.by_experiment[name].items():
+            rows = [[f"{kind} ({ref})"] + [fmt(by_kind[kind].get(m)) for m in g.models] for kind in by_kind]
+            parts.append(_table(["experiment", *g.models], rows, "num"))
+        parts.append("</div>")
+        fig = r.figures["names"][name]
+        parts += [
+            _img(fig["rmse"], f"{name}: RMSE per axis of every model (thesis fig. 5.8)"),
+            _img(
+                fig["timeseries"], f"{name}: calibrated vs expected vs raw on the test logs (figs 5.3, 5.6)"
+            ),
+            _img(fig["zoom"], f"{name}: zoom per experiment type"),
+            _img(fig["residuals"], f"{name}: residuals against the labels (thesis fig. 5.4)"),
+        ]
+    return parts
+
+
+def render_html(results: Sequence[GroupReport], cfg: EvaluateParams, figures: Mapping[str, Any]) -> str:
+    """The report page: summary, flags and overview figures, the noise check, then one section per group."""
+    now = datetime.now(timezone.utc).strftime("%Y-%m-%d %H:%M UTC")
+    groups = ", ".join(r.group for r in results)
+    nav = "".join(f"<a href='#{_e(r.group)}'>{_e(r.group)}</a>" for r in results)
+    models = list(dict.fromkeys(m for r in results for m in r.models))
+    noise_rows = []
+    for r in results:
+        row = f"<tr><td>{_e(r.group)}</td>" + _cell(r.noise.quasi_static_s) + _cell(r.noise.windows)
+        row += _cell(r.noise.signal_fraction)
+        for m in models:
+            v = r.noise.ratio.get(m)
+            row += _cell(v, False, bold=True) if m in r.noise.flagged else _cell(v)
+        noise_rows.append(row + "</tr>")
+    head = "".join(
+        f"<th>{_e(h)}</th>" for h in ["group", "quasi-static s", "stretches", "signal share", *models]
+    )
+    parts = [
+        "<!DOCTYPE html><html lang='en'><head><meta charset='utf-8'>",
+        f"<title>ftcal evaluation report</title><style>{_CSS}</style></head><body>",
+        "<h1>FT sensor calibration: evaluation on the test logs</h1>",
+        f"<p class='meta'>generated {now} · git {_e(_git_commit())} · groups: {_e(groups)} · "
+        "errors in N and Nm; global = the 6 components pooled, as in the thesis</p>",
+        "<nav><a href='#summary'>Summary and recommendation</a><a href='#noise'>Deployment noise check</a>"
+        f"{nav}</nav>",
+        "<h2 id='summary'>Summary and recommendation</h2>",
+        _flags_box(results, cfg),
+        summary_table(results, cfg),
+        _SUMMARY_NOTE.format(a=cfg.target_raw_over_nn7, b=cfg.target_nn7_over_oracle),
+        _img(figures["overview"], "Headline test RMSE (6 axes pooled) of every model per group, log scale"),
+        "<h2 id='noise'>Deployment noise check</h2>",
+        _NOISE_NOTE.format(speed=cfg.still_gyro_rad_s, min_s=cfg.still_min_s, hz=cfg.highpass_hz),
+        f'<table class="num"><thead><tr>{head}</tr></thead><tbody>{"".join(noise_rows)}</tbody></table>',
+        _img(
+            figures["noise"], "Noise amplification ratio per model and group (worst axis); threshold dashed"
+        ),
+    ]
+    for r in results:
+        parts += _group_section(r)
+    parts.append("</body></html>")
+    return "\n".join(parts)
+
+
+def write_page(out: Path, reports: Sequence[GroupReport], cfg: EvaluateParams) -> list[str]:
+    """The two overview figures and index.html into `out` (group figures are already under groups/)."""
+    from pipeline.evaluation.figures import plot_noise_summary, plot_overview
+
+    overview, noise = f"{PLOTS_DIR}/rmse_overview.png", f"{PLOTS_DIR}/noise_amplification.png"
+    (out / PLOTS_DIR).mkdir(parents=True, exist_ok=True)
+    plot_overview(reports, out / overview)
+    plot_noise_summary(reports, cfg, out / noise)
+    write_text(out / REPORT_FILE, render_html(reports, cfg, {"overview": overview, "noise": noise}))
+    return [overview, noise, REPORT_FILE]

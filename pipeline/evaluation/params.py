@@ -1,0 +1,75 @@
+"""Params and names of the evaluation: section `evaluate` of params.yaml, references, output files."""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+from pipeline.calib.params import nn_name
+from pipeline.core.errors import ConfigError
+
+STAGE = "evaluate"
+ORACLE = "oracle"  # the simulator's oracle calibration, an extra model in the tables (truth tables only)
+LABELS, TRUTH = "labels", "truth"  # references the errors are computed against
+# truth scored on the labelled samples only: like for like with LABELS (TRUTH also covers the samples
+# without labels, e.g. double support, where a model interpolates without supervision)
+TRUTH_LABELLED = "truth_labelled"
+REFERENCES = (LABELS, TRUTH_LABELLED, TRUTH)
+REFERENCE_TITLES = {
+    LABELS: "labels",
+    TRUTH_LABELLED: "truth (labelled samples)",
+    TRUTH: "truth (all samples)",
+}
+NN7, NN13 = nn_name(7), nn_name(13)
+# Outputs, under the reports directory: evaluate@<group> writes GROUPS_DIR/<group>/ (GROUP_REPORT and
+# PLOTS_DIR), METRICS_DIR/<group>.json (for `dvc metrics`) and PLOTS_DATA_DIR/*/<group>*.csv (for
+# `dvc plots`); the report stage writes REPORT_FILE and PLOTS_DIR (the overview figures).
+GROUPS_DIR = "groups"
+GROUP_REPORT = "report.json"
+METRICS_DIR = "metrics"
+REPORT_FILE = "index.html"
+PLOTS_DIR = "plots"
+PLOTS_DATA_DIR = "plots_data"
+TRAIN_METRICS = "metrics.json"  # in models/<group>/
+PREDICTIONS = "predictions.parquet"
+# In-memory columns that evaluate adds to a group's prediction table (never written to Parquet).
+EXPERIMENT = "experiment"  # experiment type of the sample's log (pole, balancing, ...)
+SPEED = "speed"  # rad/s: angular speed of the group's FT boards (gyroscope norm, low-passed; max over boards)
+MAX_STEP = 1.5  # a stamp step above this many nominal periods splits a contiguous stretch
+
+
+@dataclass(frozen=True)
+class EvaluateParams:
+    """Section `evaluate` of params.yaml (see the comments there)."""
+
+    highpass_hz: float  # Hz: noise = what a high-pass at this cutoff keeps
+    highpass_order: int  # Butterworth order (applied forward and backward)
+    still_gyro_rad_s: float  # rad/s: quasi-static below this angular speed of the FT boards
+    still_min_s: float  # s: shortest quasi-static run
+    noise_threshold: float  # noise amplification above this (worst axis) flags a model
+    zoom_s: float  # s: length of the per-experiment zoom of the time-series plots
+    target_raw_over_nn7: float  # acceptance: raw RMSE / NN7 RMSE at least this
+    target_nn7_over_oracle: float  # acceptance: NN7 RMSE / oracle RMSE at most this
+
+    def __post_init__(self) -> None:
+        for name in (
+            "highpass_hz",
+            "still_gyro_rad_s",
+            "still_min_s",
+            "noise_threshold",
+            "zoom_s",
+            "target_raw_over_nn7",
+            "target_nn7_over_oracle",
+        ):
+            value = getattr(self, name)
+            if (
+                isinstance(value, bool)
+                or not isinstance(value, int | float)
+                or not math.isfinite(value)
+                or value <= 0
+            ):
+                raise ConfigError(f"evaluate.{name} must be a positive number, got {value!r}")
+            object.__setattr__(self, name, float(value))
+        order = self.highpass_order
+        if isinstance(order, bool) or not isinstance(order, int) or not 1 <= order <= 8:
+            raise ConfigError(f"evaluate.highpass_order must be an integer in [1, 8], got {order!r}")

@@ -1,0 +1,309 @@
+"""A group's evaluation: error tables against labels and truth, noise check, the model to deploy."""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Iterable, Mapping, Sequence
+from dataclasses import dataclass, field, fields
+from typing import Any
+
+import numpy as np
+
+from pipeline.calib.models import wrench_errors
+from pipeline.calib.params import RAW
+from pipeline.evaluation.inputs import GroupInputs, wrench_of
+from pipeline.evaluation.noise import highpass, noise_ratio, quasi_static_mask
+from pipeline.evaluation.params import (
+    EXPERIMENT,
+    LABELS,
+    NN7,
+    NN13,
+    ORACLE,
+    REFERENCES,
+    SPEED,
+    TRUTH,
+    TRUTH_LABELLED,
+    EvaluateParams,
+)
+from pipeline.logs import schema as S
+from pipeline.logs.schema import PRED
+
+# --- errors --------------------------------------------------------------------------------------
+
+
+def score(pred: np.ndarray, ref: np.ndarray, mask: np.ndarray | None = None) -> dict[str, float]:
+    """Thesis tables 5.1-5.3 of predictions (N, 6) against references (N, 6), N and Nm, on `mask` (N,).
+
+    Keys ``mse``/``mae``/``rmse`` (global: the 6 components pooled, mixed units as in the thesis), with
+    suffixes ``_force``, ``_torque``, ``_<axis>``, and ``samples``; NaN where no sample is left. Samples
+    where either side is not finite are left out (a label is NaN where its switch is 0).
+    """
+    pred = np.asarray(pred, dtype=np.float64)
+    ref = np.asarray(ref, dtype=np.float64)
+    keep = np.isfinite(pred).all(axis=1) & np.isfinite(ref).all(axis=1)
+    if mask is not None:
+        keep &= np.asarray(mask, dtype=bool)
+    return wrench_errors(pred[keep], ref[keep])
+
+
+def ratio(numerator: float | None, denominator: float | None) -> float | None:
+    """numerator / denominator, or None when either is missing, not finite, or the denominator is 0."""
+    if numerator is None or denominator is None:
+        return None
+    if not (math.isfinite(numerator) and math.isfinite(denominator)) or denominator == 0:
+        return None
+    return numerator / denominator
+
+
+# --- one group -----------------------------------------------------------------------------------
+
+
+@dataclass
+class NoiseResult:
+    """Noise amplification of every model of a group on its quasi-static samples."""
+
+    quasi_static_s: float  # s of quasi-static samples
+    windows: int  # quasi-static runs
+    ratio: dict[str, float | None]  # model -> worst channel's ratio
+    ratio_rms: dict[str, float | None]  # model -> root mean square over channels
+    per_channel: dict[str, dict[str, float | None]]  # model -> "<name>.<axis>" -> ratio
+    worst_channel: dict[str, str | None]  # model -> its worst "<name>.<axis>"
+    signal_fraction: float | None  # max over channels of std(HF truth) / std(HF raw); None without truth
+    flagged: list[str]
+    mask: np.ndarray = field(repr=False, default_factory=lambda: np.zeros(0, bool))
+
+
+@dataclass
+class GroupReport:
+    """What evaluate@<group> writes (``report.json``) and the report page reads: everything but the samples.
+
+    tables: name -> reference -> model -> errors (`score`); by_experiment: name -> reference -> experiment
+    -> model -> global RMSE; names: the sensor, or the pair's sum then front and rear; figures: kind ->
+    path relative to the reports directory.
+    """
+
+    group: str
+    sensors: list[str]
+    pair: str | None
+    headline: str
+    names: list[str]
+    models: list[str]
+    samples_test: int
+    tables: dict[str, Any]
+    by_experiment: dict[str, Any]
+    noise: NoiseResult
+    best_on_validation: str | None
+    validation_ranking: list[str]
+    recommended: str | None
+    histories: dict[str, list[dict[str, float]]] = field(default_factory=dict)  # network -> epochs
+    history_source: str = "none"
+    train_run: str | None = None  # MLflow run id of train@<group>
+    model_versions: dict[str, dict[str, str]] = field(
+        default_factory=dict
+    )  # network -> {name, version, model_id}
+    figures: dict[str, Any] = field(default_factory=dict)
+
+    def headline_rmse(self, ref: str, model: str | None, key: str = "rmse") -> float | None:
+        value = self.tables.get(self.headline, {}).get(ref, {}).get(model, {}).get(key)
+        return None if value is None or not math.isfinite(value) else float(value)
+
+    def ratios(self) -> dict[str, dict[str, float | None]]:
+        """raw / nn7 and nn7 / oracle of the headline's global RMSE, per reference."""
+        out: dict[str, dict[str, float | None]] = {"raw_over_nn7": {}, "nn7_over_oracle": {}}
+        for ref in REFERENCES:
+            nn7 = self.headline_rmse(ref, NN7)
+            out["raw_over_nn7"][ref] = ratio(self.headline_rmse(ref, RAW), nn7)
+            out["nn7_over_oracle"][ref] = ratio(nn7, self.headline_rmse(ref, ORACLE))
+        return out
+
+    def to_dict(self) -> dict[str, Any]:
+        """JSON-ready (strict JSON after `pipeline.core.io.jsonable`)."""
+        out = {f.name: getattr(self, f.name) for f in fields(self)}
+        out["noise"] = {f.name: getattr(self.noise, f.name) for f in fields(self.noise) if f.name != "mask"}
+        return out
+
+    @classmethod
+    def from_dict(cls, data: Mapping[str, Any]) -> GroupReport:
+        """Inverse of `to_dict` (None for NaN: tables hold None where a model has no sample)."""
+        values = dict(data)
+        values["noise"] = NoiseResult(**values["noise"])
+        return cls(**values)
+
+
+@dataclass
+class GroupResult(GroupReport):
+    """A `GroupReport` with the group's samples (`GroupInputs`), for the figures of evaluate@<group>."""
+
+    inputs: GroupInputs | None = None
+    seconds: float = 0.0  # the stage's wall time
+    run_id: str | None = None  # the stage's MLflow run
+    files: list[str] = field(default_factory=list)
+
+    def report(self) -> GroupReport:
+        """The record without the samples."""
+        return GroupReport(**{f.name: getattr(self, f.name) for f in fields(GroupReport)})
+
+
+def _masks(g: GroupInputs, name: str) -> dict[str, np.ndarray]:
+    f = g.frame
+    out = {LABELS: f[S.switch_col(name)].to_numpy() == 1}
+    if g.has_truth:
+        out[TRUTH] = np.isfinite(wrench_of(f, S.TRUE, name)).all(axis=1)
+        out[TRUTH_LABELLED] = out[TRUTH] & out[LABELS]
+    return out
+
+
+def error_tables(g: GroupInputs) -> tuple[dict, dict]:
+    """(tables, by_experiment) of a group: see GroupResult. The oracle is scored where it exists."""
+    f = g.frame
+    tables: dict[str, dict[str, dict[str, dict[str, float]]]] = {}
+    by_exp: dict[str, dict[str, dict[str, dict[str, float]]]] = {}
+    experiments = f[EXPERIMENT].to_numpy()
+    for name in g.names:
+        refs = {LABELS: wrench_of(f, S.EXPECTED, name)}
+        if g.has_truth:
+            refs[TRUTH_LABELLED] = refs[TRUTH] = wrench_of(f, S.TRUE, name)
+        masks = _masks(g, name)
+        tables[name], by_exp[name] = {}, {}
+        for ref, target in refs.items():
+            tables[name][ref], by_exp[name][ref] = {}, {}
+            preds = {m: wrench_of(f, f"{PRED}.{m}", name) for m in g.models}
+            for model, pred in preds.items():
+                tables[name][ref][model] = score(pred, target, masks[ref])
+            for kind in g.experiments:
+                in_kind = masks[ref] & (experiments == kind)
+                by_exp[name][ref][kind] = {m: score(p, target, in_kind)["rmse"] for m, p in preds.items()}
+    return tables, by_exp
+
+
+def noise_check(g: GroupInputs, cfg: EvaluateParams) -> NoiseResult:
+    """Noise amplification ratios of every model of a group (module docstring)."""
+    f = g.frame
+    mask = quasi_static_mask(
+        f[SPEED].to_numpy(),
+        f[S.CONTACTS].fillna("").to_numpy(dtype=object),
+        f[S.GUARD].to_numpy(bool),
+        g.segments,
+        g.fs,
+        cfg.still_gyro_rad_s,
+        cfg.still_min_s,
+        edge_s=1.0 / cfg.highpass_hz,
+    )
+
+    def hf(quantity: str) -> np.ndarray:
+        x = np.concatenate([wrench_of(f, quantity, name) for name in g.names], axis=1)
+        return highpass(x, g.segments, g.fs, cfg.highpass_hz, cfg.highpass_order)
+
+    channels = [f"{name}.{axis}" for name in g.names for axis in S.WRENCH_AXES]
+    raw_hf = hf(f"{PRED}.{RAW}")
+    result = NoiseResult(
+        quasi_static_s=float(mask.sum() / g.fs) if math.isfinite(g.fs) else 0.0,
+        windows=int(np.sum(np.diff(np.r_[0, mask.astype(np.int8)]) == 1)),  # rising edges
+        ratio={},
+        ratio_rms={},
+        per_channel={},
+        worst_channel={},
+        signal_fraction=None,
+        flagged=[],
+        mask=mask,
+    )
+    for model in g.models:
+        r = noise_ratio(hf(f"{PRED}.{model}"), raw_hf, mask)
+        finite = np.isfinite(r)
+        result.per_channel[model] = {
+            c: (float(v) if np.isfinite(v) else None) for c, v in zip(channels, r, strict=True)
+        }
+        if finite.any():
+            worst = int(np.nanargmax(np.where(finite, r, -np.inf)))
+            result.ratio[model] = float(r[worst])
+            result.worst_channel[model] = channels[worst]
+            result.ratio_rms[model] = float(np.sqrt(np.mean(r[finite] ** 2)))
+        else:
+            result.ratio[model] = result.ratio_rms[model] = result.worst_channel[model] = None
+        if model != ORACLE and result.ratio[model] is not None and result.ratio[model] > cfg.noise_threshold:
+            result.flagged.append(model)
+    if g.has_truth:
+        sig = noise_ratio(hf(S.TRUE), raw_hf, mask)
+        if np.isfinite(sig).any():
+            result.signal_fraction = float(np.nanmax(sig))
+    return result
+
+
+def recommend(ranking: Sequence[str], flagged: Iterable[str], available: Iterable[str]) -> str | None:
+    """The first model of the validation ranking that is not flagged and was evaluated (None if none)."""
+    flagged, available = set(flagged), set(available)
+    return next((m for m in ranking if m not in flagged and m in available), None)
+
+
+def evaluate_group(g: GroupInputs, cfg: EvaluateParams) -> GroupResult:
+    """Tables, per-experiment RMSE, noise check and recommendation of one group (pure: no I/O)."""
+    tables, by_exp = error_tables(g)
+    noise = noise_check(g, cfg)
+    ranking = [str(m) for m in (g.train.get("validation_ranking") or [])]
+    best = g.train.get("best_on_validation")
+    if best is not None and best not in ranking:
+        ranking.insert(0, str(best))
+    return GroupResult(
+        group=g.group,
+        sensors=list(g.sensors),
+        pair=g.pair,
+        headline=g.headline,
+        names=list(g.names),
+        models=list(g.models),
+        samples_test=len(g.frame),
+        tables=tables,
+        by_experiment=by_exp,
+        noise=noise,
+        best_on_validation=None if best is None else str(best),
+        validation_ranking=ranking,
+        recommended=recommend(ranking, noise.flagged, g.models),
+        inputs=g,
+    )
+
+
+# --- metrics.json --------------------------------------------------------------------------------
+
+
+def group_metrics(r: GroupReport) -> dict[str, Any]:
+    """The few numbers a user compares between runs (reports/metrics/<group>.json, one `dvc metrics` row).
+
+    Headline RMSE (global, N and Nm pooled) of raw, the recommended model, NN7, NN13 and the oracle
+    against the labels and, on simulated logs, the truth on every test sample; the noise ratios of the
+    networks and the flagged models.
+    """
+    shown = {"raw": RAW, "recommended": r.recommended, "nn7": NN7, "nn13": NN13, "oracle": ORACLE}
+    rmse = {}
+    for ref in (LABELS, TRUTH):
+        row = {k: r.headline_rmse(ref, m) for k, m in shown.items() if m is not None}
+        row = {k: round(v, 6) for k, v in row.items() if v is not None}
+        if row:
+            rmse[ref] = row
+    return {
+        "recommended": r.recommended or "none",
+        "rmse": rmse,
+        "noise_ratio": {m: round(v, 4) for m in (NN7, NN13) if (v := r.noise.ratio.get(m)) is not None},
+        "noise_flagged": len(r.noise.flagged),
+    }
+
+
+def mlflow_metrics(r: GroupReport) -> dict[str, float]:
+    """Metrics of the evaluate@<group> run: ratios, noise ratios, and per sensor (or sum), reference and
+    model the global/force/torque MSE, MAE and RMSE (the full tables are the report.json artifact)."""
+    out: dict[str, float] = {}
+
+    def put(key: str, value: Any) -> None:
+        if isinstance(value, int | float) and not isinstance(value, bool) and math.isfinite(value):
+            out[key] = float(value)
+
+    for key, by_ref in r.ratios().items():
+        for ref, v in by_ref.items():
+            put(f"{key}.{ref}", v)
+    for model, v in r.noise.ratio.items():
+        put(f"noise_ratio.{model}", v)
+    put("quasi_static_s", r.noise.quasi_static_s)
+    for name, refs in r.tables.items():
+        for ref, models in refs.items():
+            for model, errors in models.items():
+                for key in ("rmse", "rmse_force", "rmse_torque", "mae", "mse"):
+                    put(f"{name}.{ref}.{model}.{key}", errors.get(key))
+    return out

@@ -1,0 +1,1 @@
+"""Label library of the `label` stage: contact sets (:mod:`.contacts`) and labelled tables (:mod:`.table`)."""

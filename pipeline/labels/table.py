@@ -1,0 +1,319 @@
+"""Labelling one smoothed table: expected wrenches, switches, foot-pair and cut-set sums (thesis 4.2, 5.4).
+
+Per log: the contact set of every sample (:mod:`pipeline.labels.contacts`), the link fixed in the world
+(a sole of a foot in contact, or root_link on the pole as declared) with gravity in its frame; then,
+from the smoothed joint kinematics and the URDF (:mod:`pipeline.physics.dynamics`), every sensor's
+expected wrench and switch, each foot pair's sum in its sole frame and each cut set's signed sum in its
+common frame (:mod:`pipeline.physics.cuts`), with the per-sample poses the trainer needs to map
+predictions into that frame. Columns and metadata: :mod:`pipeline.logs.schema`.
+"""
+
+from __future__ import annotations
+
+import time
+from dataclasses import asdict, dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import pandas as pd
+import pyarrow as pa
+
+from pipeline.core.config import LabelParams
+from pipeline.core.errors import DataError
+from pipeline.core.io import write_parquet
+from pipeline.labels.contacts import Contacts, declared_contacts, detect_contacts
+from pipeline.logs import schema as S
+from pipeline.physics.cuts import CutSet, cut_poses, cut_sums
+from pipeline.physics.dynamics import ContactCase, expected_wrenches
+from pipeline.physics.robot import FootPair, RobotModel
+
+
+@dataclass
+class Labeller:
+    """What labelling needs besides a table: the robot, its foot pairs and cut sets, the settings."""
+
+    robot: RobotModel
+    pairs: list[FootPair]
+    cuts: list[CutSet]
+    cfg: LabelParams
+    gravity: float  # m/s^2, magnitude
+
+    @property
+    def cut_labels(self) -> list[CutSet]:
+        """The cut sets with columns of their own (those equal to a foot pair use the pair's)."""
+        return [c for c in self.cuts if c.pair is None]
+
+    @property
+    def names(self) -> list[str]:
+        """Every label name: sensors, foot pairs, cut sets."""
+        return [*self.robot.sensors, *(p.name for p in self.pairs), *(c.label for c in self.cut_labels)]
+
+
+def label_arrays(
+    lab: Labeller,
+    contacts: Contacts,
+    q: np.ndarray,
+    dq: np.ndarray,
+    ddq: np.ndarray,
+    ok: np.ndarray,
+    gravity_fixed: np.ndarray,
+) -> dict[str, np.ndarray]:
+    """Expected wrenches, switches and poses of every sensor, pair and cut set, as labelled-table columns.
+
+    q, dq, ddq: (N, n_joints) smoothed kinematics; ok: (N,) samples whose kinematics are usable;
+    gravity_fixed: (3,) gravity in the fixed link frame, m/s^2.
+    """
+    robot, n = lab.robot, q.shape[0]
+    exp = {name: np.full((n, 6), np.nan) for name in lab.names}
+    sw = {name: np.zeros(n, dtype=np.uint8) for name in lab.names}
+    reading = {s: np.full((n, 6), np.nan) for s in robot.sensors}
+    usable = ok & (contacts.index >= 0) & ~contacts.guard
+    keys = sorted(
+        {(int(i), str(f)) for i, f in zip(contacts.index[usable], contacts.fixed[usable], strict=True)}
+    )
+    for set_id, fixed in keys:
+        rows = np.flatnonzero(usable & (contacts.index == set_id) & (contacts.fixed == fixed))
+        case = ContactCase.make(contacts.sets[set_id], fixed, gravity_fixed)
+        out = expected_wrenches(robot, q[rows], dq[rows], ddq[rows], case, lab.pairs)
+        for s in robot.sensors:
+            exp[s][rows], sw[s][rows], reading[s][rows] = out.wrench[s], out.switch[s], out.reading[s]
+        for p in lab.pairs:
+            exp[p.name][rows], sw[p.name][rows] = out.pair_sum[p.name], out.pair_switch[p.name]
+        for cut in lab.cut_labels:
+            sw[cut.label][rows] = cut.switch(case.contacts)
+    columns: dict[str, np.ndarray] = {}
+    q_ok, cache = np.where(ok[:, None], q, 0.0), {}
+    for cut in lab.cut_labels:
+        poses = cut_poses(robot, cut, q_ok, cache)
+        on = sw[cut.label] == 1
+        if on.any():
+            exp[cut.label][on] = cut_sums(
+                cut, {s: reading[s][on] for s in cut.sensors}, {s: p[on] for s, p in poses.items()}
+            )
+        for sensor, pose in poses.items():
+            pose[~ok] = np.nan
+            for axis, col in enumerate(S.cut_pose_cols(cut.label, sensor)):
+                columns[col] = pose[:, axis]
+    for name in lab.names:
+        for axis, col in enumerate(S.wrench_cols(S.EXPECTED, name)):
+            columns[col] = exp[name][:, axis]
+        columns[S.switch_col(name)] = sw[name]
+    return columns
+
+
+def cut_set_metadata(cut: CutSet) -> dict[str, Any]:
+    """The ``ftcal.label`` entry of a cut set (see :mod:`pipeline.logs.schema`): its label sum is
+    ``sum_s signs[s] * X_s f_s`` with ``X_s`` = ``X[s]`` (6x6 row-major, constant) or built per sample
+    from ``pose_columns[s]`` (:func:`pipeline.physics.cuts.pose_wrench_transforms`)."""
+    return {
+        "label": cut.label,
+        "sensors": list(cut.sensors),
+        "frame": cut.frame,
+        "signs": dict(zip(cut.sensors, cut.signs, strict=True)),
+        "on_part": cut.on_part,
+        "part": sorted(cut.part),
+        "X": {s: x.ravel().tolist() for s, x in cut.fixed_X.items()},
+        "pose_columns": {s: S.cut_pose_cols(cut.label, s) for s in cut.moving},
+    }
+
+
+# --- per log -------------------------------------------------------------------------------------
+
+
+@dataclass
+class LogSummary:
+    """What labelling one log found (logged to MLflow; also in the table's ftcal.label metadata)."""
+
+    log: str
+    samples: int
+    detected: bool
+    exact_fraction: dict[str, float]
+    contact_phases: dict[str, dict[str, float]]
+    guard_fraction: float
+    zero_levels: dict[str, float]
+    seconds: float
+    truth_agreement: float | None = None  # simulated logs: detected == true contact set, outside guards
+    label_rmse: dict[str, dict[str, float]] = field(default_factory=dict)  # vs true wrench, switch 1
+
+
+def contact_strings(contacts: Contacts) -> np.ndarray:
+    """(N,) the contact set of every sample, links sorted and comma-joined ('' where none)."""
+    names = [",".join(sorted(s)) for s in contacts.sets]
+    return np.array([names[i] if i >= 0 else "" for i in contacts.index], dtype=object)
+
+
+def _phases(time_s: np.ndarray, contacts: Contacts) -> dict[str, dict[str, float]]:
+    out: dict[str, dict[str, float]] = {}
+    if time_s.size == 0:
+        return out
+    dt = float(np.median(np.diff(time_s))) if time_s.size > 1 else 0.0
+    starts = np.flatnonzero(np.r_[True, contacts.index[1:] != contacts.index[:-1]])
+    ends = np.r_[starts[1:], contacts.index.size]
+    for a, b in zip(starts, ends, strict=True):
+        i = contacts.index[a]
+        key = ",".join(sorted(contacts.sets[i])) if i >= 0 else "(none)"
+        entry = out.setdefault(key, {"segments": 0, "total_s": 0.0})
+        entry["segments"] += 1
+        entry["total_s"] += float(time_s[b - 1] - time_s[a]) + dt
+    for entry in out.values():
+        entry["mean_s"] = entry["total_s"] / entry["segments"]
+    return out
+
+
+def _true_labels(lab: Labeller, truth: pd.DataFrame, labels: dict[str, np.ndarray]) -> dict[str, np.ndarray]:
+    """True value of every label name the truth table allows: sensors, pair sums, cut-set sums (mapped
+    with the labels' own per-sample poses)."""
+    true: dict[str, np.ndarray] = {}
+    for s in lab.robot.sensors:
+        if set(S.wrench_cols(S.TRUE, s)) <= set(truth.columns):
+            true[s] = truth[S.wrench_cols(S.TRUE, s)].to_numpy()
+    for p in lab.pairs:
+        if p.front in true and p.rear in true:
+            true[p.name] = true[p.front] @ p.sole_X_front.T + true[p.rear] @ p.sole_X_rear.T
+    for cut in lab.cut_labels:
+        if all(s in true for s in cut.sensors):
+            poses = {
+                s: np.column_stack([labels[c] for c in S.cut_pose_cols(cut.label, s)]) for s in cut.moving
+            }
+            true[cut.label] = cut_sums(cut, true, poses)
+    return true
+
+
+def _truth_checks(
+    truth_path: Path, stamps: np.ndarray, lab: Labeller, contacts: Contacts, labels: dict[str, np.ndarray]
+) -> tuple[float | None, dict]:
+    """Contact agreement and label error against a simulated log's truth table."""
+    truth = pd.read_parquet(truth_path).set_index(S.STAMP).reindex(stamps)
+    agreement = None
+    if S.CONTACTS in truth:
+        true_sets = truth[S.CONTACTS].fillna("").to_numpy()
+        valid = ~contacts.guard & (true_sets != "")
+        ours = contact_strings(contacts)
+        agreement = float(np.mean(ours[valid] == true_sets[valid])) if valid.any() else None
+    rmse: dict[str, dict[str, float]] = {}
+    for name, value in _true_labels(lab, truth, labels).items():
+        on = labels[S.switch_col(name)] == 1
+        err = np.column_stack([labels[c] for c in S.wrench_cols(S.EXPECTED, name)])[on] - value[on]
+        err = err[np.isfinite(err).all(axis=1)]
+        if err.size:
+            rmse[name] = {
+                "force": float(np.sqrt(np.mean(err[:, :3] ** 2))),
+                "torque": float(np.sqrt(np.mean(err[:, 3:] ** 2))),
+                "samples": int(err.shape[0]),
+            }
+    return agreement, rmse
+
+
+def _read_smoothed(src: Path, robot: RobotModel) -> tuple[pd.DataFrame, dict[str, Any]]:
+    """The smoothed table and its ftcal metadata; DataError if unreadable or missing columns."""
+    from pipeline.logs.tables import read_table_metadata
+
+    try:
+        table = pd.read_parquet(src)
+        meta = read_table_metadata(src)
+    except (OSError, pa.ArrowException, ValueError) as exc:
+        raise DataError(f"{src}: cannot read the smoothed table: {exc}") from None
+    missing_joints = [j for j in robot.joint_names if S.joint_col(S.QS, j) not in table]
+    if missing_joints:
+        raise DataError(
+            f"{src}: no smoothed kinematics for joints {', '.join(missing_joints[:5])} "
+            "(run the smooth stage, with the same URDF)"
+        )
+    missing = [s for s in robot.sensors if S.wrench_cols(S.FT, s)[0] not in table]
+    if missing:
+        raise DataError(f"{src}: no raw wrench columns for sensors {', '.join(missing)}")
+    return table, meta
+
+
+def _gravity_fixed(src: Path, experiment: dict[str, str], gravity: float) -> np.ndarray:
+    """(3,) gravity in the fixed link frame (m/s^2): the experiment's, else (0, 0, -gravity)."""
+    text = experiment.get("gravity", "")
+    try:
+        value = np.array([float(v) for v in text.split()]) if text else None
+    except ValueError:
+        raise DataError(f"{src}: experiment metadata gravity {text!r} is not three numbers") from None
+    return value if value is not None and value.shape == (3,) else np.array([0.0, 0.0, -gravity])
+
+
+def _passthrough(table: pd.DataFrame, robot: RobotModel) -> dict[str, np.ndarray]:
+    """The time base and every model input of the smoothed table, with their ok flags."""
+    out = {S.STAMP: table[S.STAMP].to_numpy(), S.TIME: table[S.TIME].to_numpy()}
+    streams = (S.WRENCH_STREAM, S.IMU_STREAM, S.TEMPERATURE_STREAM)
+    for s in robot.sensors:
+        cols = [*S.wrench_cols(S.FT, s), *S.vector_cols(S.ACC, s), *S.vector_cols(S.GYR, s)]
+        cols += [S.temperature_col(s), *(S.ok_col(stream, s) for stream in streams)]
+        for c in cols:
+            out[c] = table[c].to_numpy()
+    return out
+
+
+def _label_metadata(lab: Labeller) -> dict[str, Any]:
+    return {
+        "pairs": {
+            p.name: {
+                "front": p.front,
+                "rear": p.rear,
+                "sole": p.sole,
+                "sole_X_front": p.sole_X_front.ravel().tolist(),
+                "sole_X_rear": p.sole_X_rear.ravel().tolist(),
+            }
+            for p in lab.pairs
+        },
+        "cut_sets": {c.name: cut_set_metadata(c) for c in lab.cuts},
+        "params": asdict(lab.cfg),
+        "urdf": str(lab.robot.urdf_path),
+    }
+
+
+def label_table(src: Path, dst: Path, lab: Labeller, truth_dir: Path | None = None) -> LogSummary:
+    """Label one smoothed table into `dst` (written atomically)."""
+    start = time.perf_counter()
+    robot = lab.robot
+    table, meta = _read_smoothed(src, robot)
+    experiment = meta.get(S.META_EXPERIMENT.decode()) or {}
+    n = len(table)
+    q, dq, ddq = (table[S.joint_cols(k, robot.joint_names)].to_numpy() for k in (S.QS, S.DQS, S.DDQS))
+    ok = table[S.ok_col(S.KINEMATICS_STREAM)].to_numpy(bool) & np.isfinite(np.c_[q, dq, ddq]).all(axis=1)
+    time_s = table[S.TIME].to_numpy()
+    contacts = declared_contacts(robot, experiment, n)
+    if contacts is None:
+        raw = {s: table[S.wrench_cols(S.FT, s)].to_numpy() for p in lab.pairs for s in (p.front, p.rear)}
+        contacts = detect_contacts(robot, lab.pairs, raw, time_s, lab.cfg, lab.gravity, str(src))
+    gravity_fixed = _gravity_fixed(src, experiment, lab.gravity)
+    columns = label_arrays(lab, contacts, q, dq, ddq, ok, gravity_fixed)
+
+    out = _passthrough(table, robot)
+    out.update(columns)
+    out[S.CONTACTS] = contact_strings(contacts)
+    out[S.FIXED_LINK] = contacts.fixed.astype(object)
+    out[S.GUARD] = contacts.guard
+    summary = LogSummary(
+        log=src.stem,
+        samples=n,
+        detected=contacts.detected,
+        exact_fraction={m: float(np.mean(columns[S.switch_col(m)])) if n else 0.0 for m in lab.names},
+        contact_phases=_phases(time_s, contacts),
+        guard_fraction=float(np.mean(contacts.guard)) if n else 0.0,
+        zero_levels=contacts.zero_levels,
+        seconds=0.0,
+    )
+    truth_path = truth_dir / f"{src.stem}{S.TRUTH_SUFFIX}{S.PARQUET_SUFFIX}" if truth_dir else None
+    if truth_path is not None and truth_path.is_file():
+        summary.truth_agreement, summary.label_rmse = _truth_checks(
+            truth_path, out[S.STAMP], lab, contacts, columns
+        )
+    kv = {S.META_EXPERIMENT: experiment, S.META_LABEL: _label_metadata(lab)}
+    for key in (S.META_INGEST, S.META_SMOOTH):
+        if key.decode() in meta:
+            kv[key] = meta[key.decode()]
+    schema = S.arrow_schema(list(out), S.KIND_LABELLED, kv)
+    arrow = pa.Table.from_pydict(
+        {k: pa.array(v, type=schema.field(k).type) for k, v in out.items()}, schema=schema
+    )
+    write_parquet(dst, arrow)
+    summary.seconds = time.perf_counter() - start
+    return summary
+
+
+__all__ = ["Labeller", "LogSummary", "cut_set_metadata", "label_arrays", "label_table"]

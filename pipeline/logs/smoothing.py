@@ -1,0 +1,222 @@
+"""Savitzky-Golay on joint positions on joint positions -> smoothed positions, velocities, accelerations.
+
+Encoder velocities are too noisy to differentiate, so joint velocities and accelerations come from a
+Savitzky-Golay (SG) filter on the encoder positions: a least-squares polynomial of order ``polyorder``
+over ``window`` samples, evaluated with its derivatives at each sample.
+
+SG assumes uniform sampling, and joint-state stamps jitter and lose messages. The time base is cut into
+segments at every stamp step above ``smooth.max_gap_s`` (nothing is ever smoothed across such a gap);
+each segment is resampled linearly on a uniform grid with its median step, filtered there (derivatives
+scaled by that step, so in rad/s and rad/s^2), and interpolated back to the original stamps. On
+uniformly sampled data this is exactly `scipy.signal.savgol_filter`. Segments shorter than the window
+get NaN and ``ok.kinematics`` False; so do, with their values kept, the first and last ``window // 2``
+samples of every segment, where the fitted polynomial is one-sided and its derivatives extrapolate.
+"""
+
+from __future__ import annotations
+
+import math
+import time
+from dataclasses import asdict, dataclass, field
+from pathlib import Path
+
+import numpy as np
+import pyarrow as pa
+import pyarrow.parquet as pq
+from scipy.signal import savgol_filter
+
+from pipeline.core.errors import ConfigError, DataError
+from pipeline.logs import schema as S
+
+STAGE = "smooth"
+
+
+@dataclass(frozen=True)
+class SmoothParams:
+    """Section `smooth` of params.yaml (see the comments there)."""
+
+    window: int  # samples, odd, > polyorder
+    polyorder: int  # >= 2 (accelerations), < window
+    max_gap_s: float  # s: stamp steps above this split the series into separately smoothed segments
+
+    def __post_init__(self) -> None:
+        w, p, g = self.window, self.polyorder, self.max_gap_s
+        if isinstance(w, bool) or not isinstance(w, int) or w < 3 or w % 2 == 0:
+            raise ConfigError(f"smooth.window must be an odd integer >= 3, got {w!r}")
+        if isinstance(p, bool) or not isinstance(p, int) or not 2 <= p < w:
+            raise ConfigError(f"smooth.polyorder must be an integer in [2, window), got {p!r}")
+        if isinstance(g, bool) or not isinstance(g, int | float) or not math.isfinite(g) or g <= 0:
+            raise ConfigError(f"smooth.max_gap_s must be a positive number of seconds, got {g!r}")
+        object.__setattr__(self, "max_gap_s", float(g))
+
+
+# --- pure functions ------------------------------------------------------------------------------
+
+
+def segments(stamps_ns: np.ndarray, max_gap_ns: int) -> list[tuple[int, int]]:
+    """[start, stop) index ranges of the runs of `stamps_ns` (N,) int64 whose steps are all <= max_gap_ns."""
+    if len(stamps_ns) == 0:
+        return []
+    cuts = np.flatnonzero(np.diff(stamps_ns) > max_gap_ns) + 1
+    bounds = [0, *cuts.tolist(), len(stamps_ns)]
+    return list(zip(bounds[:-1], bounds[1:], strict=True))
+
+
+def _interp_rows(x_new: np.ndarray, x: np.ndarray, y: np.ndarray) -> np.ndarray:
+    """Linear interpolation (extrapolation past the ends) of the rows of y (M, J) at x_new; x increasing."""
+    if len(x) == 1:
+        return np.repeat(y, len(x_new), axis=0)
+    idx = np.clip(np.searchsorted(x, x_new, side="right") - 1, 0, len(x) - 2)
+    w = (x_new - x[idx]) / (x[idx + 1] - x[idx])
+    return y[idx] + w[:, None] * (y[idx + 1] - y[idx])
+
+
+def savgol_uniform(
+    t_s: np.ndarray, q: np.ndarray, window: int, polyorder: int
+) -> tuple[np.ndarray, np.ndarray, np.ndarray] | None:
+    """SG smoothing of one gap-free segment.
+
+    Args:
+        t_s: (M,) s, increasing sample times (any origin).
+        q: (M, J) positions (rad).
+        window, polyorder: SG window (samples, odd) and polynomial order.
+
+    Returns:
+        (q, dq, ddq), each (M, J), in rad, rad/s, rad/s^2, or None if the segment is shorter than the window.
+    """
+    if len(t_s) < 2:
+        return None
+    dt = float(np.median(np.diff(t_s)))
+    n = int(round((t_s[-1] - t_s[0]) / dt)) + 1
+    if n < window or len(t_s) < window:
+        return None
+    grid = t_s[0] + np.arange(n) * dt
+    uniform = _interp_rows(grid, t_s, q)
+    out = []
+    for deriv in (0, 1, 2):
+        g = savgol_filter(uniform, window, polyorder, deriv=deriv, delta=dt, axis=0, mode="interp")
+        out.append(_interp_rows(t_s, grid, g))
+    return out[0], out[1], out[2]
+
+
+@dataclass
+class SmoothResult:
+    """Smoothed kinematics of one log: arrays (N, J) and (N,) ok, plus segment bookkeeping."""
+
+    q: np.ndarray
+    dq: np.ndarray
+    ddq: np.ndarray
+    ok: np.ndarray
+    segments: int = 0
+    short_segments: int = 0  # too short to smooth: NaN, not ok
+    periods_s: list[float] = field(default_factory=list)  # median step per smoothed segment
+
+
+def smooth_kinematics(
+    stamps_ns: np.ndarray, q: np.ndarray, window: int, polyorder: int, max_gap_s: float
+) -> SmoothResult:
+    """Savitzky-Golay positions, velocities, accelerations of joint positions q (N, J) rad at stamps (N,) ns.
+
+    Segments split at stamp steps > max_gap_s (s) are smoothed separately (see the module docstring).
+    """
+    stamps_ns = np.asarray(stamps_ns, dtype=np.int64)
+    q = np.asarray(q, dtype=np.float64)
+    n, j = q.shape
+    res = SmoothResult(
+        np.full((n, j), np.nan), np.full((n, j), np.nan), np.full((n, j), np.nan), np.zeros(n, dtype=bool)
+    )
+    t_s = (stamps_ns - (stamps_ns[0] if n else 0)) / 1e9
+    for start, stop in segments(stamps_ns, round(max_gap_s * 1e9)):
+        res.segments += 1
+        smoothed = savgol_uniform(t_s[start:stop], q[start:stop], window, polyorder)
+        if smoothed is None:
+            res.short_segments += 1
+            continue
+        res.q[start:stop], res.dq[start:stop], res.ddq[start:stop] = smoothed
+        # within half a window of a segment's ends the fit is one-sided (mode "interp"): its derivatives
+        # extrapolate, so those samples keep their values but are not ok for labelling
+        half = window // 2
+        res.ok[start + half : stop - half] = True
+        res.periods_s.append(float(np.median(np.diff(t_s[start:stop]))))
+    return res
+
+
+# --- I/O -----------------------------------------------------------------------------------------
+
+
+@dataclass
+class SmoothReport:
+    source: str
+    output: str
+    samples: int
+    segments: int
+    short_segments: int
+    samples_not_ok: int
+    seconds: float
+
+
+def smooth_table(src: Path, dst: Path, cfg: SmoothParams) -> SmoothReport:
+    """Read an ingested table, add the smoothed kinematics columns, write it atomically to `dst`."""
+    from pipeline.core.io import atomic_path
+    from pipeline.logs.tables import read_table_metadata
+
+    t0 = time.perf_counter()
+    try:
+        pf = pq.ParquetFile(src)
+        names = pf.schema_arrow.names
+    except (OSError, pa.ArrowException) as exc:
+        raise DataError(f"{src}: cannot read Parquet table: {exc}") from None
+    joints = S.joints_of(names, S.Q)
+    if S.STAMP not in names or not joints:
+        raise DataError(f"{src}: not an ingested table (no {S.STAMP} or {S.Q}.<joint> columns)")
+    base = pf.read(columns=[S.STAMP, *S.joint_cols(S.Q, joints)])
+    stamps = base.column(S.STAMP).to_numpy()
+    if len(stamps) > 1 and not (np.diff(stamps) > 0).all():
+        raise DataError(f"{src}: {S.STAMP} is not strictly increasing")
+    q = (
+        np.column_stack([base.column(c).to_numpy() for c in S.joint_cols(S.Q, joints)])
+        if len(stamps)
+        else np.empty((0, len(joints)))
+    )
+    del base
+    res = smooth_kinematics(stamps, q, cfg.window, cfg.polyorder, cfg.max_gap_s)
+    res.ok &= np.isfinite(q).all(axis=1)
+    extra = S.smoothed_extra_columns(joints)
+    meta = read_table_metadata(src)
+    smooth_meta = {
+        **asdict(cfg),
+        "segments": res.segments,
+        "short_segments": res.short_segments,
+        "samples_not_ok": int((~res.ok).sum()),
+        "median_period_s": float(np.median(res.periods_s)) if res.periods_s else None,
+    }
+    kv = {k.encode(): v for k, v in meta.items() if k != S.META_SCHEMA.decode()}
+    kv[S.META_SMOOTH] = smooth_meta
+    out_schema = S.arrow_schema([*names, *extra], S.KIND_SMOOTHED, kv)
+    row = 0
+    with atomic_path(dst) as tmp, pq.ParquetWriter(tmp, out_schema, compression="zstd") as writer:
+        for batch in pf.iter_batches(batch_size=65_536):
+            k = batch.num_rows
+            cols = {name: batch.column(name) for name in names}
+            sl = slice(row, row + k)
+            for quantity, arr in ((S.QS, res.q), (S.DQS, res.dq), (S.DDQS, res.ddq)):
+                for jj, name in enumerate(S.joint_cols(quantity, joints)):
+                    cols[name] = pa.array(arr[sl, jj])
+            cols[S.ok_col(S.KINEMATICS_STREAM)] = pa.array(res.ok[sl])
+            writer.write_table(pa.Table.from_pydict(cols, schema=out_schema))
+            row += k
+    return SmoothReport(
+        str(src),
+        str(dst),
+        len(stamps),
+        res.segments,
+        res.short_segments,
+        int((~res.ok).sum()),
+        time.perf_counter() - t0,
+    )
+
+
+def find_tables(in_dir: Path) -> list[Path]:
+    """The ingested tables of a directory (not the truth tables), sorted."""
+    truth = S.TRUTH_SUFFIX + S.PARQUET_SUFFIX
+    return sorted(p for p in in_dir.glob(f"*{S.PARQUET_SUFFIX}") if not p.name.endswith(truth))

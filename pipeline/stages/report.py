@@ -1,0 +1,87 @@
+"""Stage `report`: the page a researcher opens, assembled from every group's evaluation.
+
+``ftcal report REPORTS`` reads ``REPORTS/groups/<group>/report.json`` of every group of ``train.groups``
+(written by evaluate@<group>) and writes ``REPORTS/index.html`` (summary with the model to deploy per
+group, noise check, one section per group with every table and figure) and the two overview figures in
+``REPORTS/plots/``. Nothing is recomputed: a change to one group re-runs its train and evaluate stages and
+this light assembly only.
+"""
+
+from __future__ import annotations
+
+import argparse
+import time
+from pathlib import Path
+from typing import Any
+
+from pipeline.core.errors import DataError
+
+STAGE = "report"
+
+
+def read_reports(reports_dir: Path, groups: list[str]) -> list[Any]:
+    """The `GroupReport` of each group, in `groups` order.
+
+    Raises:
+        DataError: a group's report.json is missing or not a group report.
+    """
+    import json
+
+    from pipeline.evaluation.params import GROUP_REPORT, GROUPS_DIR
+    from pipeline.evaluation.results import GroupReport
+
+    out = []
+    for group in groups:
+        path = reports_dir / GROUPS_DIR / group / GROUP_REPORT
+        try:
+            out.append(GroupReport.from_dict(json.loads(path.read_text(encoding="utf-8"))))
+        except FileNotFoundError:
+            raise DataError(f"{path}: missing (run `dvc repro evaluate@{group}`)") from None
+        except (OSError, ValueError, TypeError, KeyError) as exc:
+            raise DataError(f"{path}: not a group report ({exc}); rerun evaluate@{group}") from None
+    return out
+
+
+def run(params: Any, reports_dir: str | Path) -> tuple[list[Any], list[str], float]:
+    """Assemble the page (module docstring) in one MLflow run ``report``; returns (reports, files, s)."""
+    import mlflow
+
+    from pipeline.calib.params import TrainParams
+    from pipeline.core.config import stage_section
+    from pipeline.core.tracking import stage_run
+    from pipeline.evaluation.page import write_page
+    from pipeline.evaluation.params import REPORT_FILE, EvaluateParams
+
+    t0 = time.perf_counter()
+    cfg = stage_section(params, "evaluate", EvaluateParams)
+    groups = list(stage_section(params, "train", TrainParams).groups)
+    out = Path(reports_dir)
+    reports = read_reports(out, groups)
+    with stage_run(STAGE, {"groups": ",".join(groups)}):
+        files = write_page(out, reports, cfg)
+        mlflow.set_tags({f"recommended.{r.group}": r.recommended or "none" for r in reports})
+        mlflow.log_artifact(str(out / REPORT_FILE))
+        mlflow.log_metric("seconds", time.perf_counter() - t0)
+    return reports, files, time.perf_counter() - t0
+
+
+def _cmd(args: argparse.Namespace) -> int:
+    from pipeline.core.config import load_params
+
+    reports, _, seconds = run(load_params(args.params), args.reports)
+    for r in reports:
+        print(f"{r.group}: deploy {r.recommended}")
+    print(f"report: {Path(args.reports) / 'index.html'} ({seconds:.1f} s)")
+    return 0
+
+
+def add_cli(subparsers: Any) -> None:
+    """Add `ftcal report REPORTS`."""
+    parser = subparsers.add_parser(
+        STAGE,
+        help="assemble the report page of every group's evaluation",
+        description=(__doc__ or "").split("\n\n")[0],
+    )
+    parser.add_argument("reports", type=Path, help="reports directory (groups/<group>/report.json inside)")
+    parser.add_argument("--params", type=Path, default=None, help="params file (default: repo params.yaml)")
+    parser.set_defaults(func=_cmd)

@@ -1,0 +1,129 @@
+"""The layout rules of pipeline/: module and function sizes, no import circle, dvc.yaml deps that cover
+every module a stage imports, and a command line that imports no heavy library to list its commands."""
+
+from __future__ import annotations
+
+import ast
+import subprocess
+import sys
+from pathlib import Path
+
+import yaml
+
+ROOT = Path(__file__).resolve().parents[1]
+PACKAGE = ROOT / "pipeline"
+MAX_MODULE_LINES = 500
+MAX_FUNCTION_LINES = 80
+
+
+def _modules() -> dict[str, Path]:
+    """Dotted module name -> file, for every module of the package."""
+    out = {}
+    for path in sorted(PACKAGE.rglob("*.py")):
+        parts = path.relative_to(ROOT).with_suffix("").parts
+        name = ".".join(parts[:-1] if parts[-1] == "__init__" else parts)
+        out[name] = path
+    return out
+
+
+MODULES = _modules()
+
+
+def _imports(path: Path) -> set[str]:
+    """The pipeline modules `path` imports anywhere (top level or inside functions)."""
+    out: set[str] = set()
+    for node in ast.walk(ast.parse(path.read_text(encoding="utf-8"))):
+        if isinstance(node, ast.Import):
+            names = [a.name for a in node.names]
+        elif isinstance(node, ast.ImportFrom) and node.module and node.level == 0:
+            names = [node.module] + [f"{node.module}.{a.name}" for a in node.names]
+        else:
+            continue
+        out |= {n for n in names if n in MODULES}
+    return out
+
+
+GRAPH = {name: _imports(path) - {name} for name, path in MODULES.items()}
+
+
+def _closure(start: str) -> set[str]:
+    seen, todo = set(), [start]
+    while todo:
+        module = todo.pop()
+        if module not in seen:
+            seen.add(module)
+            todo += GRAPH[module]
+    return seen
+
+
+def test_modules_and_functions_are_small() -> None:
+    too_long = []
+    for name, path in MODULES.items():
+        text = path.read_text(encoding="utf-8")
+        if text.count("\n") > MAX_MODULE_LINES:
+            too_long.append(f"{name}: {text.count(chr(10))} lines")
+        for node in ast.walk(ast.parse(text)):
+            if isinstance(node, ast.FunctionDef | ast.AsyncFunctionDef):
+                length = node.end_lineno - node.lineno + 1
+                if length > MAX_FUNCTION_LINES:
+                    too_long.append(f"{name}.{node.name}: {length} lines")
+    assert not too_long, too_long
+
+
+def test_no_import_circle() -> None:
+    """Depth-first search for a back edge in the import graph (package __init__ modules are empty)."""
+    state: dict[str, int] = {}
+    stack: list[str] = []
+
+    def visit(module: str) -> list[str] | None:
+        state[module] = 1
+        stack.append(module)
+        for dep in sorted(GRAPH[module]):
+            if state.get(dep) == 1:
+                return stack[stack.index(dep) :] + [dep]
+            if dep not in state and (cycle := visit(dep)):
+                return cycle
+        state[module] = 2
+        stack.pop()
+        return None
+
+    for module in MODULES:
+        if module not in state:
+            cycle = visit(module)
+            assert cycle is None, " -> ".join(cycle)
+
+
+def test_dvc_deps_cover_every_module_a_stage_imports() -> None:
+    """A code change can never leave a stage stale: each stage depends on every file its module reaches."""
+    stages = yaml.safe_load((ROOT / "dvc.yaml").read_text())["stages"]
+    checked = 0
+    for name, stage in stages.items():
+        body = stage.get("do", stage)
+        command = body["cmd"].split()[1]
+        from pipeline.cli import COMMANDS
+
+        module = COMMANDS[command][0]
+        deps = [d for d in body["deps"] if d.startswith("pipeline")]
+        missing = []
+        for reached in sorted(_closure(module)):
+            rel = MODULES[reached].relative_to(ROOT).as_posix()
+            if reached.count(".") > 0 and not any(
+                rel == d or rel.startswith(d.rstrip("/") + "/") for d in deps
+            ):
+                missing.append(rel)
+        missing = [m for m in missing if m not in ("pipeline/__init__.py",)]
+        assert not missing, f"dvc.yaml stage {name} does not depend on {missing}"
+        checked += 1
+    assert checked >= 7
+
+
+def test_listing_the_commands_imports_no_heavy_library() -> None:
+    code = (
+        "import sys\n"
+        "from pipeline.cli import build_parser\n"
+        "build_parser('').format_help()\n"
+        "heavy = {'torch', 'numpy', 'mlflow', 'pinocchio', 'pyarrow', 'scipy'} & set(sys.modules)\n"
+        "print(sorted(heavy))\n"
+    )
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, cwd=ROOT, check=True)
+    assert out.stdout.strip() == "[]", out.stdout
