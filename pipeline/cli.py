@@ -31,6 +31,8 @@ COMMANDS: dict[str, tuple[str, str]] = {
     "train": ("pipeline.stages.train", "baselines and neural networks of one sensor group"),
     "evaluate": ("pipeline.stages.evaluate", "error tables, figures and noise check of one group's models"),
     "report": ("pipeline.stages.report", "assemble the report page of every group's evaluation"),
+    "export": ("pipeline.stages.export", "the recommended models as ONNX graphs with a manifest"),
+    "calibrate": ("pipeline.tools.calibrate", "copy a log adding the exported calibration's wrenches"),
     "convert-mat": ("pipeline.tools.convert_mat", "convert a robot-logger .mat file to a contract MCAP"),
 }
 

@@ -55,3 +55,45 @@ def icub() -> RobotModel:
 
 def foot_pairs(robot: RobotModel) -> list:
     return [robot.foot_pair(name, *sensors) for name, sensors in FOOT_PAIRS.items()]
+
+
+@pytest.fixture(scope="session")
+def trained_models(tmp_path_factory: pytest.TempPathFactory) -> dict:
+    """Tiny trained models of r_leg_ft and the r_foot pair (every family: raw, affine, poly1-2, nn7, nn13)
+    on synthetic labelled tables, written by the real train stage into a throwaway MLflow store.
+
+    Returns {"root", "labelled", "models", "params" (a params.yaml path), "mlflow_uri"}. Shared by the
+    export and calibrate tests (training is the slow part).
+    """
+    import yaml
+
+    from pipeline.core.config import load_params
+    from pipeline.stages import train as T
+    from tests.test_train import LEG, LOGS, PAIR, write_labelled_log, write_params
+
+    root = tmp_path_factory.mktemp("trained")
+    labelled = root / "labelled"
+    for i, (name, kind, role) in enumerate(LOGS):
+        write_labelled_log(labelled / f"{name}_{role}.parquet", kind, role, n=400, seed=i)
+    params_path = write_params(root, n_trials=1, epochs=2)
+    data = yaml.safe_load(params_path.read_text())
+    data["export"] = yaml.safe_load((REPO / "params.yaml").read_text())["export"]
+    params_path.write_text(yaml.safe_dump(data, sort_keys=False))
+    uri = f"sqlite:///{root / 'mlflow.db'}"
+    patch = pytest.MonkeyPatch()
+    patch.setenv("MLFLOW_TRACKING_URI", uri)
+    try:
+        params = load_params(params_path)
+        for group in (LEG, PAIR):
+            T.train_group(
+                params, group, labelled, root / "models" / group, root / "studies" / group, progress=False
+            )
+    finally:
+        patch.undo()
+    return {
+        "root": root,
+        "labelled": labelled,
+        "models": root / "models",
+        "params": params_path,
+        "mlflow_uri": uri,
+    }

@@ -286,6 +286,28 @@ class LabelParams:
             raise ConfigError(f"label.cut_max_sensors must be an integer in [1, 6], got {m!r}")
 
 
+@dataclass(frozen=True)
+class ExportParams:
+    """Section `export` of params.yaml: which model of each group is exported, and the export's checks."""
+
+    models: Mapping[str, str]  # group -> model exported instead of the recommended one (nn7, poly2, ...)
+    tolerance_float32: float  # N and Nm: max |float32 graph - stored test predictions|
+    tolerance_float64: float  # N and Nm: max |float64 graph - the project's float64 model|
+
+    def __post_init__(self) -> None:
+        models = self.models if self.models is not None else {}
+        if not isinstance(models, Mapping):
+            raise ConfigError(f"export.models must be a mapping group -> model name, got {models!r}")
+        for group, name in models.items():
+            _check_name(name, f"export.models.{group}")
+        object.__setattr__(self, "models", dict(models))
+        for key in ("tolerance_float32", "tolerance_float64"):
+            value = getattr(self, key)
+            if isinstance(value, bool) or not isinstance(value, int | float) or not 0 < value < math.inf:
+                raise ConfigError(f"export.{key} must be a positive number (N, Nm), got {value!r}")
+            object.__setattr__(self, key, float(value))
+
+
 # --- loading -----------------------------------------------------------------------------------
 
 
@@ -405,6 +427,7 @@ SECTIONS: dict[str, str] = {
     "label": "pipeline.core.config:LabelParams",
     "train": "pipeline.calib.params:TrainParams",
     "evaluate": "pipeline.evaluation.params:EvaluateParams",
+    "export": "pipeline.core.config:ExportParams",
 }
 SHARED_KEYS = ("seed", "robot", "topics")
 

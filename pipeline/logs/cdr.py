@@ -18,7 +18,7 @@ from __future__ import annotations
 
 import re
 import struct
-from collections.abc import Sequence
+from collections.abc import Mapping, Sequence
 from typing import Any
 
 import numpy as np
@@ -371,3 +371,41 @@ def from_ros(msgtype: str, msg: Any) -> tuple[int | None, dict[str, Any], tuple[
     else:
         raise DataError(f"unsupported message type {msgtype}")
     return stamp, values, names
+
+
+def fixed_records(
+    template: CdrTemplate,
+    channel: int,
+    sequence: np.ndarray,
+    log_times: np.ndarray,
+    publish_times: np.ndarray,
+    stamps: np.ndarray,
+    values: Mapping[str, np.ndarray],
+) -> np.ndarray:
+    """(n, size) uint8: n complete MCAP Message records (record header + CDR) of a fixed-layout type.
+
+    `template` (`fixed_template`) fixes the type and frame_id; times are int64 ns (header.stamp from
+    `stamps`); `values` fills the template's slots by name (e.g. ``wrench`` (n, 6)).
+    """
+    n = len(stamps)
+    extra = [
+        (name, RECORD_HEADER.fields[name][0], RECORD_HEADER.fields[name][1]) for name in RECORD_HEADER.names
+    ]
+    dtype = template.dtype(prefix=RECORD_HEADER_SIZE, extra=extra)
+    size = dtype.itemsize
+    rows = np.empty(n, dtype=dtype)
+    raw = rows.view(np.uint8).reshape(n, size)
+    raw[:, RECORD_HEADER_SIZE:] = np.frombuffer(bytes(template.buf), dtype=np.uint8)
+    rows["op"] = 0x05
+    rows["len"] = size - 9
+    rows["channel"] = channel
+    rows["sequence"] = sequence
+    rows["log_time"] = np.asarray(log_times, dtype=np.int64).view(np.uint64)
+    rows["publish_time"] = np.asarray(publish_times, dtype=np.int64).view(np.uint64)
+    sec, nanosec = split_stamps(np.asarray(stamps, dtype=np.int64))
+    rows["sec"] = sec
+    rows["nanosec"] = nanosec
+    for name, value in values.items():
+        if name in dtype.names:
+            rows[name] = value
+    return raw

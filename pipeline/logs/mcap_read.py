@@ -133,14 +133,7 @@ class LogReader:
         `fast=False` decodes every message with the standard mcap_ros2 decoder. `progress(n)` is called
         with the number of file bytes consumed after each chunk.
         """
-        wanted = set(self.topics) if topics is None else set(topics)
-        decoders: dict[int, ChannelDecoder] = {}
-        for cid, channel in self._channels.items():
-            if channel.topic in wanted:
-                schema = self._schemas.get(channel.schema_id)
-                decoders[cid] = ChannelDecoder(
-                    channel.topic, schema.name if schema else "", schema, channel.message_encoding, fast
-                )
+        decoders = self._decoders(set(self.topics) if topics is None else set(topics), fast)
         if not self.indexed:
             blocks = scan_blocks(self._file, self.size_bytes, str(self.path), self.validate_crcs)
             for ordinal, (offset, consumed, data) in enumerate(blocks):
@@ -149,15 +142,46 @@ class LogReader:
                 if progress is not None:
                     progress(consumed)
             return
+        for index, batches in self._indexed_chunks(decoders):
+            if batches is not None:
+                yield batches
+            if progress is not None:
+                progress(index.chunk_length + index.message_index_length)
+
+    @property
+    def summary(self) -> Any:
+        """The file's summary (mcap.reader Summary: schemas, channels, statistics, chunk indexes), or None."""
+        return self._summary
+
+    def iter_indexed_chunks(
+        self, topics: Iterable[str], *, fast: bool = True
+    ) -> Iterator[tuple[Any, list[Batch]]]:
+        """Yield every chunk of an indexed file in file order: (its ChunkIndex, the batches of `topics`)."""
+        if not self.indexed:
+            raise self._error("MCAP file without chunk indexes; re-index it with `mcap recover`")
+        for index, batches in self._indexed_chunks(self._decoders(set(topics), fast)):
+            yield index, batches or []
+
+    def _indexed_chunks(
+        self, decoders: Mapping[int, ChannelDecoder]
+    ) -> Iterator[tuple[Any, list[Batch] | None]]:
+        """(index, batches) of every chunk in file order; batches None when no wanted channel is in it."""
         chunk_indexes = sorted(self._summary.chunk_indexes, key=lambda c: c.chunk_start_offset)
         for ordinal, index in enumerate(chunk_indexes):
             if index.message_index_offsets and not any(c in decoders for c in index.message_index_offsets):
-                if progress is not None:
-                    progress(index.chunk_length + index.message_index_length)
-                continue
-            yield self._read_chunk(index, ordinal, decoders)
-            if progress is not None:
-                progress(index.chunk_length + index.message_index_length)
+                yield index, None
+            else:
+                yield index, self._read_chunk(index, ordinal, decoders)
+
+    def _decoders(self, wanted: set[str], fast: bool) -> dict[int, ChannelDecoder]:
+        decoders: dict[int, ChannelDecoder] = {}
+        for cid, channel in self._channels.items():
+            if channel.topic in wanted:
+                schema = self._schemas.get(channel.schema_id)
+                decoders[cid] = ChannelDecoder(
+                    channel.topic, schema.name if schema else "", schema, channel.message_encoding, fast
+                )
+        return decoders
 
     def _read_chunk(self, index: Any, ordinal: int, decoders: Mapping[int, ChannelDecoder]) -> list[Batch]:
         where = f"chunk at byte {index.chunk_start_offset}"

@@ -21,16 +21,14 @@ from pipeline.logs.cdr import (
     IMU,
     JOINT_STATE,
     MAGIC,
-    RECORD_HEADER,
-    RECORD_HEADER_SIZE,
     SCHEMAS,
     STRING,
     TEMPERATURE,
     WRENCH_STAMPED,
     CdrTemplate,
+    fixed_records,
     fixed_template,
     joint_state_template,
-    split_stamps,
 )
 from pipeline.logs.mcap_chunks import ChunkSink, Pending, write_record
 
@@ -331,29 +329,9 @@ class LogWriter:
         if len(log_times) != n:
             raise ValueError(f"{topic}: {len(log_times)} log times for {n} stamps")
         channel = self._channel(topic, msgtype)
-        dtype = template.dtype(
-            prefix=RECORD_HEADER_SIZE,
-            extra=[
-                (name, RECORD_HEADER.fields[name][0], RECORD_HEADER.fields[name][1])
-                for name in RECORD_HEADER.names
-            ],
-        )
-        size = dtype.itemsize
-        rows = np.empty(n, dtype=dtype)
-        raw = rows.view(np.uint8).reshape(n, size)
-        raw[:, RECORD_HEADER_SIZE:] = np.frombuffer(bytes(template.buf), dtype=np.uint8)
-        rows["op"] = 0x05
-        rows["len"] = size - 9
-        rows["channel"] = channel
-        rows["sequence"] = self._next_sequence(channel, n)
-        rows["log_time"] = log_times.view(np.uint64)
-        rows["publish_time"] = stamps.view(np.uint64)
-        sec, nanosec = split_stamps(stamps)
-        rows["sec"] = sec
-        rows["nanosec"] = nanosec
-        for name, value in values.items():
-            if name in dtype.names:
-                rows[name] = value
+        sequence = self._next_sequence(channel, n)
+        raw = fixed_records(template, channel, sequence, log_times, stamps, stamps, values)
+        size = raw.shape[1]
         self._push(Pending(raw.reshape(-1), size, log_times, channel))
 
     def _push(self, pending: Pending) -> None:

@@ -1,0 +1,272 @@
+"""ONNX graphs of the calibration models, normalisation inside, in float32 or float64.
+
+A graph has one input ``inputs`` (N, K) and one output ``calibrated`` (N, 6 S): the raw inputs of its
+sensors side by side (each sensor's columns in the models' order: fx fy fz N, tx ty tz Nm, temperature
+degC, [accelerometer x y z m/s^2, gyroscope x y z rad/s]) and the calibrated wrenches (fx..tz per sensor,
+N and Nm, each in its sensor frame), sensor after sensor. N is dynamic (1 in a control loop).
+
+Per sensor, with x its columns (the forms of `pipeline.export.trained`):
+
+- network: ``x[:, :6] + out_scale * mlp((x - in_offset) / in_scale)``, mlp = Gemm layers with their
+  activations, the operations in torch's order (so float32 matches torch's float32 closely); networks of
+  one architecture (the sensors of a foot, or of every group in the fused graph) are evaluated together,
+  one batched MatMul per layer (fewer operations per call: the latency of a control loop's single sample
+  is per-operation overhead more than arithmetic);
+- affine / polynomial: ``x[:, :6] + phi((x[:, :7] - offset) / scale) @ W^T``, phi the monomials: the
+  standardised inputs padded with a column of ones, gathered by an index table (P, order) and multiplied
+  along the last axis (ReduceProd), so one Gather and one ReduceProd compute every monomial; in float64
+  also inside a float32 graph (as the project computes them: float32 arithmetic would lose 1e-3 N);
+- raw: ``x[:, :6]``.
+
+The fused graph of several groups slices its input per group and concatenates the groups' outputs, so a
+robot's loop makes one call per sample for all its sensors. Opset 17 (onnxruntime >= 1.14).
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from typing import Any
+
+import numpy as np
+
+from pipeline.export.trained import WRENCH, Dense, GroupModel, IdentityPart, LinearPart, NetworkPart
+
+OPSET = 17
+INPUT, OUTPUT = "inputs", "calibrated"
+DTYPES = ("float32", "float64")
+
+
+class _Builder:
+    """Collects nodes and constants of one graph; every tensor gets a unique name."""
+
+    def __init__(self, dtype: str) -> None:
+        self.dtype = np.dtype(dtype)
+        self.nodes: list[Any] = []
+        self.initializers: list[Any] = []
+        self._count = 0
+
+    def _name(self, hint: str) -> str:
+        self._count += 1
+        return f"{hint}_{self._count}"
+
+    def const(self, hint: str, value: Any, dtype: Any = None) -> str:
+        """A constant tensor (in the graph's float type unless `dtype` is given)."""
+        from onnx import numpy_helper
+
+        name = self._name(hint)
+        array = np.asarray(value, dtype=dtype if dtype is not None else self.dtype)
+        self.initializers.append(numpy_helper.from_array(array, name))
+        return name
+
+    def op(
+        self,
+        op_type: str,
+        inputs: Sequence[str],
+        hint: str | None = None,
+        output: str | None = None,
+        **attrs: Any,
+    ) -> str:
+        from onnx import helper
+
+        out = output or self._name(hint or op_type.lower())
+        self.nodes.append(helper.make_node(op_type, list(inputs), [out], name=out, **attrs))
+        return out
+
+    def columns(self, x: str, start: int, stop: int, hint: str) -> str:
+        """x[:, start:stop]."""
+        index = self.const(f"{hint}_columns", np.arange(start, stop), np.int64)
+        return self.op("Gather", [x, index], hint, axis=1)
+
+
+def _activation(b: _Builder, x: str, layer: Dense, hint: str) -> str:
+    if layer.activation is None:
+        return x
+    if layer.activation == "relu":
+        return b.op("Relu", [x], hint)
+    if layer.activation == "leaky_relu":
+        if b.dtype == np.float32:  # the float attribute alpha is exact only in float32
+            return b.op("LeakyRelu", [x], hint, alpha=float(layer.alpha))
+        return b.op(
+            "Where",
+            [b.op("Greater", [x, b.const("zero", 0.0)]), x, b.op("Mul", [x, b.const("alpha", layer.alpha)])],
+            hint,
+        )
+    if layer.activation == "tanh":
+        return b.op("Tanh", [x], hint)
+    if layer.activation == "elu":  # onnxruntime has no float64 Elu: alpha (exp(x) - 1) where x <= 0
+        negative = b.op(
+            "Mul", [b.const("alpha", layer.alpha), b.op("Sub", [b.op("Exp", [x]), b.const("one", 1.0)])]
+        )
+        return b.op("Where", [b.op("Greater", [x, b.const("zero", 0.0)]), x, negative], hint)
+    raise ValueError(f"unknown activation {layer.activation!r}")
+
+
+def _network(b: _Builder, x: str, part: NetworkPart, hint: str) -> str:
+    h = b.op(
+        "Div",
+        [
+            b.op("Sub", [x, b.const(f"{hint}_in_offset", part.in_offset)]),
+            b.const(f"{hint}_in_scale", part.in_scale),
+        ],
+    )
+    for k, layer in enumerate(part.layers):
+        w, bias = b.const(f"{hint}_w{k}", layer.weight), b.const(f"{hint}_b{k}", layer.bias)
+        h = _activation(b, b.op("Gemm", [h, w, bias], f"{hint}_layer{k}", transB=1), layer, f"{hint}_act{k}")
+    return b.op("Mul", [b.const(f"{hint}_out_scale", part.out_scale), h], f"{hint}_correction")
+
+
+def monomial_index(powers: np.ndarray) -> np.ndarray:
+    """(P, order) column indices into [z, 1] whose product is each monomial z^powers[p] (7 = the ones)."""
+    powers = np.asarray(powers, dtype=np.int64)
+    n_vars = powers.shape[1]
+    order = max(int(powers.sum(axis=1).max(initial=0)), 1)
+    index = np.full((len(powers), order), n_vars, dtype=np.int64)
+    for p, row in enumerate(powers):
+        factors = np.repeat(np.arange(n_vars), row)
+        index[p, : len(factors)] = factors
+    return index
+
+
+def _linear(b: _Builder, x: str, part: LinearPart, hint: str) -> str:
+    n_vars = part.powers.shape[1]
+    z = b.op(
+        "Div",
+        [
+            b.op("Sub", [b.columns(x, 0, n_vars, f"{hint}_x"), b.const(f"{hint}_offset", part.offset)]),
+            b.const(f"{hint}_scale", part.scale),
+        ],
+    )
+    pads = b.const("pads", [0, 0, 0, 1], np.int64)
+    padded = b.op("Pad", [z, pads, b.const("one", 1.0)], f"{hint}_z1", mode="constant")
+    gathered = b.op(
+        "Gather", [padded, b.const(f"{hint}_monomials", monomial_index(part.powers), np.int64)], axis=1
+    )
+    phi = b.op("ReduceProd", [gathered], f"{hint}_phi", axes=[2], keepdims=0)
+    return b.op(
+        "MatMul",
+        [phi, b.const(f"{hint}_weights", np.ascontiguousarray(part.weights.T))],
+        f"{hint}_correction",
+    )
+
+
+def _sensor(b: _Builder, x: str, part: Any, hint: str) -> str:
+    """One sensor's calibrated wrench (N, 6) from its inputs x (N, n_inputs)."""
+    raw = b.columns(x, 0, WRENCH, f"{hint}_raw")
+    if isinstance(part, IdentityPart):
+        return b.op("Identity", [raw], f"{hint}_calibrated")
+    if isinstance(part, NetworkPart):
+        correction = _network(b, x, part, hint)
+    elif isinstance(part, LinearPart) and b.dtype == np.float32:
+        # The project computes these models in float64 (a 4th-order polynomial in float32 loses 1e-3 N):
+        # float32 in and out, float64 inside.
+        from onnx import TensorProto
+
+        b.dtype = np.dtype(np.float64)
+        try:
+            x64 = b.op("Cast", [x], f"{hint}_x64", to=TensorProto.DOUBLE)
+            y64 = b.op("Add", [b.columns(x64, 0, WRENCH, f"{hint}_raw64"), _linear(b, x64, part, hint)])
+        finally:
+            b.dtype = np.dtype(np.float32)
+        return b.op("Cast", [y64], f"{hint}_calibrated", to=TensorProto.FLOAT)
+    elif isinstance(part, LinearPart):
+        correction = _linear(b, x, part, hint)
+    else:
+        raise TypeError(f"cannot export a {type(part).__name__}")
+    return b.op("Add", [raw, correction], f"{hint}_calibrated")
+
+
+def _signature(part: Any, n_inputs: int) -> tuple | None:
+    """Networks of one signature (inputs, layer shapes, activations) are evaluated stacked; None: alone."""
+    if not isinstance(part, NetworkPart):
+        return None
+    return (n_inputs, tuple((layer.weight.shape, layer.activation, layer.alpha) for layer in part.layers))
+
+
+def _stack(b: _Builder, x: str, starts: Sequence[int], n_inputs: int, parts: Sequence[NetworkPart]) -> str:
+    """Calibrated wrenches (N, 6 S) of S networks of one signature, as one batched MatMul per layer:
+    x[:, starts[s] : starts[s] + n_inputs] -> (S, N, n_inputs) -> layers -> (N, S, 6) -> (N, 6 S), the
+    element-wise steps (normalisation, output scale, residual) as torch does them."""
+    s_count = len(parts)
+    columns = np.concatenate([np.arange(lo, lo + n_inputs) for lo in starts])
+    if not np.array_equal(columns, np.arange(len(columns))):
+        x = b.op("Gather", [x, b.const("stack_columns", columns, np.int64)], axis=1)
+    inputs = b.op("Reshape", [x, b.const("shape", [0, s_count, n_inputs], np.int64)], "stack_inputs")
+    bounds = (b.const(k, v, np.int64) for k, v in (("lo", [0]), ("hi", [WRENCH]), ("ax", [2])))
+    raw = b.op("Slice", [inputs, *bounds], "stack_raw")
+    offset = b.const("in_offset", np.stack([p.in_offset for p in parts]))  # (S, n)
+    scale = b.const("in_scale", np.stack([p.in_scale for p in parts]))
+    h = b.op("Div", [b.op("Sub", [inputs, offset]), scale])
+    # (S, N, n): one (N, n) x (n, out) product per sensor, efficient for batches as for single samples
+    h = b.op("Transpose", [h], perm=[1, 0, 2])
+    for k, layer in enumerate(parts[0].layers):
+        w = b.const(f"w{k}", np.stack([p.layers[k].weight.T for p in parts]))  # (S, in, out)
+        bias = b.const(f"b{k}", np.stack([p.layers[k].bias[None, :] for p in parts]))  # (S, 1, out)
+        h = _activation(b, b.op("Add", [b.op("MatMul", [h, w]), bias], f"layer{k}"), layer, f"act{k}")
+    h = b.op("Transpose", [h], perm=[1, 0, 2])  # (N, S, 6)
+    out_scale = b.const("out_scale", np.stack([p.out_scale for p in parts]))  # (S, 6)
+    calibrated = b.op("Add", [raw, b.op("Mul", [out_scale, h])], "stack_calibrated")
+    return b.op("Reshape", [calibrated, b.const("shape", [0, s_count * WRENCH], np.int64)])
+
+
+def _all(b: _Builder, x: str, models: Sequence[GroupModel]) -> tuple[str, int]:
+    """Output (N, 6 S) of every sensor of `models` (input columns side by side); the number of inputs.
+
+    Networks of equal signature are stacked (`_stack`); the others run alone; a final Gather restores
+    the sensor order when stacking changed it.
+    """
+    sensors, start = [], 0  # (input start, n_inputs, part, name)
+    for m in models:
+        for sensor, part in zip(m.sensors, m.parts, strict=True):
+            sensors.append((start, m.n_inputs, part, sensor))
+            start += m.n_inputs
+    stacks: dict[Any, list[int]] = {}
+    for k, (_, n, part, _) in enumerate(sensors):
+        key = _signature(part, n)
+        stacks.setdefault(key if key is not None else ("alone", k), []).append(k)
+    outs, order = [], []
+    for members in stacks.values():
+        if len(members) > 1:
+            picked = [sensors[k] for k in members]
+            outs.append(_stack(b, x, [s[0] for s in picked], picked[0][1], [s[2] for s in picked]))
+        else:
+            lo, n, part, sensor = sensors[members[0]]
+            inputs = x if (lo, n) == (0, start) else b.columns(x, lo, lo + n, f"{sensor}_inputs")
+            outs.append(_sensor(b, inputs, part, sensor))
+        order += members
+    out = outs[0] if len(outs) == 1 else b.op("Concat", outs, "concat", axis=1)
+    if order != sorted(order):
+        columns = np.concatenate([np.arange(k * WRENCH, (k + 1) * WRENCH) for k in np.argsort(order)])
+        out = b.op("Gather", [out, b.const("sensor_order", columns, np.int64)], "in_sensor_order", axis=1)
+    return out, start
+
+
+def build(models: Sequence[GroupModel], dtype: str, metadata: dict[str, str], name: str) -> Any:
+    """The ONNX ModelProto of `models` (one group, or several fused) in `dtype` with `metadata` props."""
+    from onnx import TensorProto, checker, helper
+
+    if dtype not in DTYPES:
+        raise ValueError(f"dtype must be one of {DTYPES}, got {dtype!r}")
+    b = _Builder(dtype)
+    out, start = _all(b, INPUT, models)
+    if b.nodes[-1].output[0] == out:  # name the last result the graph's output (no extra Identity)
+        b.nodes[-1].output[0] = OUTPUT
+    else:
+        b.op("Identity", [out], output=OUTPUT)
+    elem = TensorProto.FLOAT if dtype == "float32" else TensorProto.DOUBLE
+    n_out = sum(len(m.sensors) for m in models) * WRENCH
+    graph = helper.make_graph(
+        b.nodes,
+        name,
+        [helper.make_tensor_value_info(INPUT, elem, ["N", start])],
+        [helper.make_tensor_value_info(OUTPUT, elem, ["N", n_out])],
+        b.initializers,
+    )
+    model = helper.make_model(
+        graph,
+        opset_imports=[helper.make_opsetid("", OPSET)],
+        producer_name="ftcal",
+        doc_string=(__doc__ or "").split("\n\n")[1],
+    )
+    helper.set_model_props(model, metadata)
+    checker.check_model(model, full_check=True)
+    return model

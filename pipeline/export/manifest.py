@@ -1,0 +1,189 @@
+"""What an exported graph is: its inputs and outputs (names, order, units, topics), provenance, checks.
+
+The same description goes into each ONNX file's metadata (``metadata_props``: ``ftcal.manifest`` holds the
+graph's entry as JSON, plus a few flat keys readable with any ONNX viewer) and into ``manifest.json``
+beside the files, which `ftcal calibrate` and a lab's own loader read:
+
+    {"format": "ftcal-onnx", "version": 1, "robot": ..., "input": "inputs", "output": "calibrated",
+     "fused": "all", "graphs": {"<group>" | "all": {"files": {"float32": ..., "float64": ...},
+     "sha256": {...}, "groups": [...], "sensors": [...], "models": {group: name}, "inputs": [...],
+     "outputs": [...], "training": {group: {...}}, "check": {dtype: {max_abs_diff, samples}}}}}
+
+Each input/output entry: ``index`` (column of the tensor), ``column`` (labelled-table name), ``sensor``,
+``topic`` and ``field`` (where a ROS 2 log carries the value), ``unit``.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+from collections.abc import Mapping, Sequence
+from pathlib import Path
+from typing import Any
+
+from pipeline.export.graph import INPUT, OPSET, OUTPUT
+from pipeline.export.trained import GroupModel
+
+FORMAT, VERSION = "ftcal-onnx", 1
+MANIFEST_FILE = "manifest.json"
+FUSED = "all"  # the graph of every group
+_WRENCH_FIELDS = ("force.x", "force.y", "force.z", "torque.x", "torque.y", "torque.z")
+_IMU_FIELDS = tuple(f"linear_acceleration.{a}" for a in "xyz") + tuple(f"angular_velocity.{a}" for a in "xyz")
+
+
+def _source(topics: Any, sensor: str, k: int) -> tuple[str, str]:
+    """(topic, message field) of input k of a sensor's inputs (order of `pipeline.calib.models`)."""
+    if k < 6:
+        return topics.sensor_topic("ft_wrench", sensor), f"wrench.{_WRENCH_FIELDS[k]}"
+    if k == 6:
+        return topics.sensor_topic("ft_temperature", sensor), "temperature"
+    return topics.sensor_topic("ft_imu", sensor), _IMU_FIELDS[k - 7]
+
+
+def columns(models: Sequence[GroupModel], topics: Any) -> tuple[list[dict[str, Any]], list[dict[str, Any]]]:
+    """(inputs, outputs) entries of a graph of `models` side by side (module docstring)."""
+    from pipeline.logs import schema as S
+
+    inputs, outputs = [], []
+    for m in models:
+        for s, sensor in enumerate(m.sensors):
+            for k in range(m.n_inputs):
+                column = m.input_columns[s * m.n_inputs + k]
+                topic, name = _source(topics, sensor, k)
+                inputs.append(
+                    {"index": len(inputs), "column": column, "sensor": sensor, "topic": topic, "field": name}
+                    | {"unit": S.unit(column)}
+                )
+            for k in range(6):
+                column = m.output_columns[s * 6 + k]
+                outputs.append(
+                    {"index": len(outputs), "column": column, "sensor": sensor}
+                    | {"topic": topics.sensor_topic("ft_wrench", sensor) + "_calibrated"}
+                    | {"field": f"wrench.{_WRENCH_FIELDS[k]}", "unit": S.unit(column)}
+                )
+    return inputs, outputs
+
+
+def training(model: GroupModel, data_sha256: str, mlflow_run: str | None) -> dict[str, Any]:
+    """Provenance of one group's model: name, family, training logs and data hash, MLflow run, test errors."""
+    info = dict(model.info)
+    return {
+        "model": model.name,
+        "family": model.family,
+        "sensors": list(model.sensors),
+        "inputs_per_sensor": model.n_inputs,
+        "separable": True,  # each sensor's output depends on its own inputs only (every family here)
+        "best_on_validation": info.pop("best_on_validation", None),
+        "training_data_sha256": data_sha256,
+        "mlflow_run": mlflow_run or info.pop("mlflow_run", None),
+        "logs": info.pop("logs", None),
+        "samples": info.pop("samples", None),
+        "test_metrics": info.pop("test_metrics", None),
+        "details": {k: v for k, v in info.items() if k != "mlflow_run"},
+    }
+
+
+def graph_entry(
+    models: Sequence[GroupModel], topics: Any, trainings: Mapping[str, Mapping[str, Any]]
+) -> dict[str, Any]:
+    """A graph's manifest entry, without files and checks (added once written and checked)."""
+    inputs, outputs = columns(models, topics)
+    return {
+        "groups": [m.group for m in models],
+        "sensors": [s for m in models for s in m.sensors],
+        "models": {m.group: m.name for m in models},
+        "input": INPUT,
+        "output": OUTPUT,
+        "input_shape": ["N", len(inputs)],
+        "output_shape": ["N", len(outputs)],
+        "inputs": inputs,
+        "outputs": outputs,
+        "training": {m.group: dict(trainings[m.group]) for m in models},
+    }
+
+
+def metadata(entry: Mapping[str, Any], robot: str) -> dict[str, str]:
+    """ONNX metadata_props of a graph: the whole entry as JSON and flat keys for viewers."""
+    runs = {g: t.get("mlflow_run") or "" for g, t in entry["training"].items()}
+    hashes = {g: t.get("training_data_sha256") or "" for g, t in entry["training"].items()}
+    metrics = {g: t.get("test_metrics") for g, t in entry["training"].items()}
+    return {
+        "ftcal.format": f"{FORMAT}/{VERSION}",
+        "ftcal.robot": robot,
+        "ftcal.sensors": ",".join(entry["sensors"]),
+        "ftcal.models": json.dumps(entry["models"]),
+        "ftcal.inputs": ",".join(f"{c['column']}[{c['unit']}]" for c in entry["inputs"]),
+        "ftcal.outputs": ",".join(f"{c['column']}[{c['unit']}]" for c in entry["outputs"]),
+        "ftcal.training_data_sha256": json.dumps(hashes),
+        "ftcal.mlflow_runs": json.dumps(runs),
+        "ftcal.test_metrics": json.dumps(metrics),
+        "ftcal.manifest": json.dumps(entry),
+    }
+
+
+def document(robot: str, graphs: Mapping[str, Any]) -> dict[str, Any]:
+    """The content of manifest.json."""
+    return {
+        "format": FORMAT,
+        "version": VERSION,
+        "robot": robot,
+        "opset": OPSET,
+        "input": INPUT,
+        "output": OUTPUT,
+        "fused": FUSED,
+        "graphs": dict(graphs),
+    }
+
+
+def sha256_file(path: Path) -> str:
+    digest = hashlib.sha256()
+    with path.open("rb") as fh:
+        for block in iter(lambda: fh.read(1 << 20), b""):
+            digest.update(block)
+    return digest.hexdigest()
+
+
+def data_sha256(paths: Sequence[Path]) -> str:
+    """One hash of several files: sha256 over each file's name and sha256, in name order."""
+    digest = hashlib.sha256()
+    for path in sorted(paths, key=lambda p: p.name):
+        digest.update(f"{path.name}\0{sha256_file(path)}\n".encode())
+    return digest.hexdigest()
+
+
+def build_graphs(
+    models: Sequence[GroupModel], topics: Any, robot: str, trainings: Mapping[str, Mapping[str, Any]]
+) -> dict[str, tuple[dict[str, Any], dict[str, Any]]]:
+    """name -> (manifest entry, {dtype: ONNX ModelProto}) of each group's graph and of the fused one."""
+    from pipeline.export import graph
+
+    out = {}
+    for name, members in [*((m.group, [m]) for m in models), (FUSED, list(models))]:
+        entry = graph_entry(members, topics, trainings)
+        props = metadata(entry, robot)
+        out[name] = (
+            entry,
+            {dtype: graph.build(members, dtype, props, f"ftcal_{name}") for dtype in graph.DTYPES},
+        )
+    return out
+
+
+def write_export(
+    out_dir: Path, robot: str, built: Mapping[str, tuple[dict[str, Any], dict[str, Any]]]
+) -> dict[str, Any]:
+    """Write every graph as ``<name>.<dtype>.onnx`` and manifest.json into `out_dir`; the manifest."""
+    import onnx
+
+    from pipeline.core.io import write_json
+
+    entries = {}
+    for name, (entry, graphs) in built.items():
+        entry = dict(entry)
+        entry["files"] = {dtype: f"{name}.{dtype}.onnx" for dtype in graphs}
+        for dtype, model in graphs.items():
+            onnx.save_model(model, out_dir / entry["files"][dtype])
+        entry["sha256"] = {d: sha256_file(out_dir / f) for d, f in entry["files"].items()}
+        entries[name] = entry
+    doc = document(robot, entries)
+    write_json(out_dir / MANIFEST_FILE, doc)
+    return doc

@@ -1,0 +1,296 @@
+"""Running an export on a log: the exported graphs, and causal inputs per raw wrench message.
+
+`Deployment.load(DIR)` reads ``manifest.json`` and opens each group's float64 graph with onnxruntime
+(files checked against their sha256). `CausalCalibrator` turns the decoded messages of a log, chunk by
+chunk, into calibrated wrenches: for every raw wrench message of a modelled sensor, the temperature (and
+IMU) are those of the latest message stamped at or before the wrench's header stamp, never a later one,
+as a robot's loop would have them. Messages may arrive out of stamp order (transport delays), so the
+wrenches of one chunk are calibrated once the next chunk has been read: a temperature delayed by less
+than a chunk (seconds) is still found. A wrench stamped before its sensor's first temperature (or IMU)
+message has no input yet and is counted as uncalibrated.
+
+Each sensor's output depends on its own inputs only (``separable`` in the manifest; true of every model
+family here), so a group's graph is fed one sensor's messages in that sensor's slot (and the same rows
+in the other slots, whose outputs are discarded).
+"""
+
+from __future__ import annotations
+
+import json
+from collections.abc import Iterable, Mapping, Sequence
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from pipeline.core.errors import DataError
+
+WRENCH_FIELDS = tuple(f"wrench.{k}.{a}" for k in ("force", "torque") for a in "xyz")
+IMU_FIELDS = tuple(f"linear_acceleration.{a}" for a in "xyz") + tuple(f"angular_velocity.{a}" for a in "xyz")
+INPUT_FIELDS = (*WRENCH_FIELDS, "temperature", *IMU_FIELDS)  # the models' input order, per sensor
+HISTORY = 64  # temperature/IMU messages kept from before the current chunks (the latest by stamp)
+
+
+@dataclass(frozen=True)
+class SensorPlan:
+    """Where one modelled sensor's inputs come from and where its calibrated wrench goes."""
+
+    sensor: str
+    group: str
+    slot: int  # the sensor's position in its group's graph
+    n_inputs: int  # 7 or 13
+    wrench_topic: str
+    temperature_topic: str
+    imu_topic: str | None  # 13-input models only
+    out_topic: str
+
+
+@dataclass
+class Deployment:
+    """An export directory: its manifest and one onnxruntime session (float64 graph) per group."""
+
+    path: Path
+    manifest: dict[str, Any]
+    sessions: dict[str, Any] = field(repr=False)
+
+    @property
+    def robot(self) -> str:
+        return str(self.manifest.get("robot") or "")
+
+    def groups(self) -> dict[str, dict[str, Any]]:
+        """group -> its graph entry (every graph but the fused one)."""
+        fused = self.manifest.get("fused")
+        return {g: e for g, e in self.manifest["graphs"].items() if g != fused}
+
+    @classmethod
+    def load(cls, path: str | Path, threads: int = 1) -> Deployment:
+        """Read `path`/manifest.json and open the float64 graphs. Raises DataError naming the file."""
+        from pipeline.export.check import session
+        from pipeline.export.manifest import FORMAT, MANIFEST_FILE, sha256_file
+
+        path = Path(path)
+        file = path / MANIFEST_FILE
+        if not path.is_dir():
+            raise DataError(f"{path}: models directory not found (run `dvc repro export`, or pass --models)")
+        try:
+            manifest = json.loads(file.read_text(encoding="utf-8"))
+        except FileNotFoundError:
+            raise DataError(f"{file}: not found (is {path} an export directory?)") from None
+        except (OSError, ValueError) as exc:
+            raise DataError(f"{file}: not a manifest: {exc}") from None
+        if not isinstance(manifest, dict) or manifest.get("format") != FORMAT or "graphs" not in manifest:
+            raise DataError(f"{file}: not an ftcal export manifest (format {FORMAT!r})")
+        sessions = {}
+        deployment = cls(path, manifest, sessions)
+        for group, entry in deployment.groups().items():
+            graph = path / entry["files"]["float64"]
+            if not graph.is_file():
+                raise DataError(f"{graph}: not found (listed in {file})")
+            if sha256_file(graph) != entry["sha256"]["float64"]:
+                raise DataError(f"{graph}: sha256 differs from {file}'s (file changed after export)")
+            try:
+                sessions[group] = session(graph, threads)
+            except Exception as exc:  # noqa: BLE001 (onnxruntime raises its own types)
+                raise DataError(f"{graph}: onnxruntime cannot load it: {str(exc).splitlines()[0]}") from None
+        return deployment
+
+    def plans(self, topics: Any) -> list[SensorPlan]:
+        """One plan per sensor of the export, topics from the params' templates. DataError if a graph's
+        inputs are not the per-sensor layout this command feeds (INPUT_FIELDS)."""
+        out = []
+        for group, entry in self.groups().items():
+            training = entry["training"][group]
+            n = int(training["inputs_per_sensor"])
+            if not training.get("separable"):
+                raise DataError(
+                    f"{self.path}: {group}'s model is not separable by sensor; cannot run per message"
+                )
+            for slot, sensor in enumerate(entry["sensors"]):
+                fields = [c["field"] for c in entry["inputs"][slot * n : (slot + 1) * n]]
+                owners = {c["sensor"] for c in entry["inputs"][slot * n : (slot + 1) * n]}
+                if tuple(fields) != INPUT_FIELDS[:n] or owners != {sensor}:
+                    raise DataError(
+                        f"{self.path}: inputs of {sensor} in {group}'s graph are {fields}, "
+                        f"not {list(INPUT_FIELDS[:n])}"
+                    )
+                wrench = topics.sensor_topic("ft_wrench", sensor)
+                out.append(
+                    SensorPlan(
+                        sensor,
+                        group,
+                        slot,
+                        n,
+                        wrench,
+                        topics.sensor_topic("ft_temperature", sensor),
+                        topics.sensor_topic("ft_imu", sensor) if n == 13 else None,
+                        wrench + "_calibrated",
+                    )
+                )
+        return out
+
+    def predict(self, group: str, inputs: Mapping[int, np.ndarray]) -> dict[int, np.ndarray]:
+        """Calibrated wrenches {slot: (n_slot, 6)} of a group's sensors from their inputs {slot: (n_slot,
+        n_inputs)}, float64, in one graph call: the slots' rows side by side (a slot with fewer rows, or
+        none, repeats rows of another; separable models make their outputs irrelevant)."""
+        from pipeline.export.check import run
+
+        n_slots = len(self.groups()[group]["sensors"])
+        rows = max(len(x) for x in inputs.values())
+        filler = next(x for x in inputs.values() if len(x))
+        columns = []
+        for slot in range(n_slots):
+            x = inputs.get(slot)
+            x = filler if x is None or not len(x) else x
+            columns.append(x[np.arange(rows) % len(x)])
+        y = run(self.sessions[group], np.concatenate(columns, axis=1))
+        return {
+            slot: y[: len(x), slot * 6 : (slot + 1) * 6].astype(np.float64)
+            for slot, x in inputs.items()
+            if len(x)
+        }
+
+
+class _Stream:
+    """Recent messages of one input stream: stamps (n,) int64 ns, values (n, k), sorted by stamp."""
+
+    def __init__(self, width: int) -> None:
+        self.stamp = np.empty(0, dtype=np.int64)
+        self.value = np.empty((0, width))
+        self.last = 0  # messages added by the latest chunk
+
+    def add(self, stamp: np.ndarray, value: np.ndarray) -> None:
+        """Append one chunk's messages; keep the latest (by stamp) previous chunk's count + HISTORY."""
+        keep = min(len(self.stamp), self.last + HISTORY)
+        stamps = np.concatenate([self.stamp[len(self.stamp) - keep :], stamp])
+        values = np.concatenate([self.value[len(self.value) - keep :], value.reshape(len(stamp), -1)])
+        order = np.argsort(stamps, kind="stable")
+        self.stamp, self.value, self.last = stamps[order], values[order], len(stamp)
+
+    def at(self, stamps: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """(values (m, k), found (m,)): the latest message stamped at or before each stamp."""
+        k = np.searchsorted(self.stamp, stamps, side="right") - 1
+        found = k >= 0
+        return self.value[np.maximum(k, 0)], found
+
+
+@dataclass
+class Calibrated:
+    """Calibrated wrenches of one sensor's raw messages: headers and times copied from the raw ones."""
+
+    plan: SensorPlan
+    stamp: np.ndarray  # (n,) int64 ns, header stamps
+    log_time: np.ndarray  # (n,) int64 ns
+    publish_time: np.ndarray  # (n,) int64 ns
+    frame_id: np.ndarray  # (n,) object
+    wrench: np.ndarray  # (n, 6) N, Nm
+
+
+class CausalCalibrator:
+    """Feeds decoded chunks; returns the calibrated wrenches of the previous chunk (module docstring)."""
+
+    def __init__(self, deployment: Deployment, plans: Sequence[SensorPlan]) -> None:
+        self.deployment = deployment
+        self.plans = {p.wrench_topic: p for p in plans}
+        self._temperature = {p.sensor: _Stream(1) for p in plans}
+        self._imu = {p.sensor: _Stream(6) for p in plans if p.imu_topic}
+        self._by_topic: dict[str, tuple[str, str]] = {}
+        for p in plans:
+            self._by_topic[p.temperature_topic] = ("temperature", p.sensor)
+            if p.imu_topic:
+                self._by_topic[p.imu_topic] = ("imu", p.sensor)
+        self._pending: list[Any] = []
+        self.uncalibrated: dict[str, int] = {p.sensor: 0 for p in plans}
+        self.calibrated: dict[str, int] = {p.sensor: 0 for p in plans}
+
+    def topics(self) -> list[str]:
+        return [*self.plans, *self._by_topic]
+
+    def feed(self, batches: Iterable[Any]) -> list[Calibrated]:
+        """Take one chunk's batches (`rosmsg.Batch`); return the previous chunk's calibrated wrenches."""
+        wrenches = []
+        fresh: dict[tuple[str, str], list[tuple[np.ndarray, np.ndarray]]] = {}
+        for b in batches:
+            if b.topic in self.plans:
+                wrenches.append(b)
+            elif b.topic in self._by_topic:
+                kind, _ = key = self._by_topic[b.topic]
+                if kind == "temperature":
+                    value = b.fields["temperature"].reshape(-1, 1)
+                else:
+                    value = np.concatenate(
+                        [b.fields["linear_acceleration"], b.fields["angular_velocity"]], axis=1
+                    )
+                fresh.setdefault(key, []).append((b.stamp_ns, value))
+        for (kind, sensor), parts in fresh.items():
+            stream = self._temperature[sensor] if kind == "temperature" else self._imu[sensor]
+            stream.add(np.concatenate([p[0] for p in parts]), np.concatenate([p[1] for p in parts]))
+        out = self._calibrate(self._pending)
+        self._pending = wrenches
+        return out
+
+    def flush(self) -> list[Calibrated]:
+        """The calibrated wrenches of the last chunk fed."""
+        out = self._calibrate(self._pending)
+        self._pending = []
+        return out
+
+    def _calibrate(self, batches: Sequence[Any]) -> list[Calibrated]:
+        """Calibrate wrench batches: their inputs, then one graph call per group."""
+        todo: dict[str, list[tuple[Any, SensorPlan, np.ndarray, np.ndarray]]] = {}
+        for b in batches:
+            plan = self.plans[b.topic]
+            temperature, ok = self._temperature[plan.sensor].at(b.stamp_ns)
+            parts = [b.fields["wrench"], temperature]
+            if plan.imu_topic:
+                imu, ok_imu = self._imu[plan.sensor].at(b.stamp_ns)
+                parts.append(imu)
+                ok &= ok_imu
+            self.uncalibrated[plan.sensor] += int((~ok).sum())
+            if ok.any():
+                todo.setdefault(plan.group, []).append((b, plan, ok, np.concatenate(parts, axis=1)[ok]))
+        out = []
+        for group, items in todo.items():
+            inputs: dict[int, list[np.ndarray]] = {}
+            for _, plan, _, x in items:
+                inputs.setdefault(plan.slot, []).append(x)
+            y = self.deployment.predict(group, {slot: np.concatenate(xs) for slot, xs in inputs.items()})
+            taken: dict[int, int] = {}
+            for b, plan, ok, x in items:
+                k = taken.get(plan.slot, 0)
+                taken[plan.slot] = k + len(x)
+                self.calibrated[plan.sensor] += len(x)
+                out.append(
+                    Calibrated(
+                        plan,
+                        b.stamp_ns[ok],
+                        b.log_time_ns[ok],
+                        b.publish_time_ns[ok],
+                        b.fields["frame_id"][ok],
+                        y[plan.slot][k : k + len(x)],
+                    )
+                )
+        return out
+
+
+def sensors_in_topics(template: str, topics: Iterable[str]) -> list[str]:
+    """Sensor names whose topic of `template` (with {sensor}) is among `topics`."""
+    head, _, tail = template.partition("{sensor}")
+    return sorted(
+        t[len(head) : len(t) - len(tail)]
+        for t in topics
+        if t.startswith(head)
+        and t.endswith(tail)
+        and len(t) > len(head) + len(tail)
+        and "/" not in t[len(head) : len(t) - len(tail)]
+    )
+
+
+def check_robot(deployment: Deployment, metadata: Mapping[str, Mapping[str, str]], where: Path) -> None:
+    """DataError if the log says it was recorded on another robot than the export's."""
+    recorded = str((metadata.get("experiment") or {}).get("robot") or "")
+    robot = deployment.robot
+    if recorded and robot and recorded != robot and Path(recorded).stem != Path(robot).stem:
+        raise DataError(
+            f"{where}: recorded on robot {recorded!r}, but the models in {deployment.path} are of {robot!r}"
+        )

@@ -1,0 +1,299 @@
+"""The one adapter between the train stage's output directory and the export: what a graph needs.
+
+`read_group(models/<group>, name)` reads one model of a group (a network ``nn<k>``, a polynomial
+``poly<n>``, the ``affine`` baseline, or ``raw``) and returns a `GroupModel`: per sensor, the plain
+arrays of the model (float64) in one of three forms, and the project's own predictor for the reference
+check. Nothing else of `pipeline.calib` or `pipeline.stages.train` is used by the export, so a change of
+their file formats or classes is adapted here only.
+
+Every model of this project is *separable*: sensor s's calibrated wrench depends on sensor s's inputs only
+(a foot pair's two networks are side by side; the baselines' W_s act per sensor). Each part below is
+therefore one sensor's map, inputs in the order of `pipeline.calib.models` (raw wrench fx..tz N/Nm,
+temperature degC, [accelerometer m/s^2, gyroscope rad/s]), output its calibrated wrench (6, N/Nm, sensor
+frame).
+"""
+
+from __future__ import annotations
+
+import json
+import math
+from collections.abc import Callable, Mapping
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from pipeline.core.errors import DataError
+
+WRENCH = 6
+METRICS_FILE = "metrics.json"
+BASELINES_FILE = "baselines.json"
+PREDICTIONS_FILE = "predictions.parquet"
+RAW = "raw"
+FAMILIES = ("network", "polynomial", "affine", "raw")
+
+
+@dataclass(frozen=True)
+class Dense:
+    """``y = act(W x + b)``: weight (out, in), bias (out,); activation None (linear), relu, leaky_relu
+    (negative slope `alpha`), tanh or elu (`alpha`)."""
+
+    weight: np.ndarray
+    bias: np.ndarray
+    activation: str | None = None
+    alpha: float = 0.0
+
+
+@dataclass(frozen=True)
+class NetworkPart:
+    """``f = x[:6] + out_scale * mlp((x - in_offset) / in_scale)``; x (n_inputs,), constants float64."""
+
+    in_offset: np.ndarray  # (n_inputs,)
+    in_scale: np.ndarray  # (n_inputs,)
+    out_scale: np.ndarray  # (6,) N / Nm
+    layers: tuple[Dense, ...]
+
+
+@dataclass(frozen=True)
+class LinearPart:
+    """``f = x[:6] + weights @ phi((x[:7] - offset) / scale)``, phi the monomials of `powers` (P, 7)."""
+
+    offset: np.ndarray  # (7,)
+    scale: np.ndarray  # (7,)
+    powers: np.ndarray  # (P, 7) int exponents, constant monomial first
+    weights: np.ndarray  # (6, P)
+
+
+@dataclass(frozen=True)
+class IdentityPart:
+    """``f = x[:6]``: the raw wrench (the robot's primary calibration)."""
+
+
+Part = NetworkPart | LinearPart | IdentityPart
+
+
+@dataclass
+class GroupModel:
+    """One model of one sensor group, ready to become a graph.
+
+    `reference(x)` is the project's own computation in float64: x (N, S * n_inputs) -> (N, S * 6), the
+    columns of `input_columns` in, of `output_columns` out.
+    """
+
+    group: str
+    name: str  # nn7, nn13, affine, poly<n>, raw
+    family: str  # one of FAMILIES
+    sensors: tuple[str, ...]
+    n_inputs: int  # per sensor: 7 or 13
+    parts: tuple[Part, ...]  # one per sensor
+    input_columns: list[str]
+    output_columns: list[str]
+    reference: Callable[[np.ndarray], np.ndarray] = field(repr=False)
+    info: dict[str, Any] = field(default_factory=dict)  # hyperparameters, training logs, ...
+
+
+def input_columns(sensor: str, n_inputs: int) -> list[str]:
+    """Column names of one sensor's inputs (labelled-table names), in the models' order."""
+    from pipeline.calib.data import input_cols
+
+    return input_cols(sensor, n_inputs)
+
+
+def output_columns(sensor: str) -> list[str]:
+    """Column names of one sensor's calibrated wrench, fx..tz (labelled-table names of the raw wrench)."""
+    from pipeline.logs import schema as S
+
+    return S.wrench_cols(S.FT, sensor)
+
+
+def prediction_columns(name: str, sensor: str) -> list[str]:
+    """Columns of `name`'s predictions of `sensor` in the group's predictions table."""
+    from pipeline.logs import schema as S
+
+    return S.prediction_cols(name, sensor)
+
+
+def read_metrics(model_dir: Path) -> dict[str, Any]:
+    """The group's ``metrics.json`` (validation/test errors, best_on_validation, sensors)."""
+    path = model_dir / METRICS_FILE
+    try:
+        metrics = json.loads(path.read_text(encoding="utf-8"))
+    except FileNotFoundError:
+        raise DataError(f"{path}: not found (is {model_dir} a train@<group> output?)") from None
+    except (OSError, ValueError) as exc:
+        raise DataError(f"{path}: not a metrics file: {exc}") from None
+    if not isinstance(metrics, dict) or not isinstance(metrics.get("sensors"), list):
+        raise DataError(f"{path}: no 'sensors' list (not a train@<group> metrics file)")
+    return metrics
+
+
+def _network(model_dir: Path, name: str, group: str, sensors: tuple[str, ...]) -> GroupModel:
+    import torch
+    from torch import nn
+
+    from pipeline.calib.models import load_model
+
+    model, config = load_model(model_dir / name)
+    n_inputs = int(model.config.n_inputs)
+    if tuple(config.get("sensors", sensors)) != sensors:
+        raise DataError(
+            f"{model_dir / name}.json: sensors {config.get('sensors')} differ from metrics.json's"
+        )
+    parts = []
+    for net in model.nets:
+        layers: list[Dense] = []
+        for module in net.mlp:
+            if isinstance(module, nn.Linear):
+                w = module.weight.detach().double().numpy().copy()
+                layers.append(Dense(w, module.bias.detach().double().numpy().copy()))
+                continue
+            kinds = {nn.ReLU: ("relu", 0.0), nn.Tanh: ("tanh", 0.0)}
+            if isinstance(module, nn.LeakyReLU):
+                kind = ("leaky_relu", float(module.negative_slope))
+            elif isinstance(module, nn.ELU):
+                kind = ("elu", float(module.alpha))
+            elif type(module) in kinds:
+                kind = kinds[type(module)]
+            else:
+                raise DataError(f"{model_dir / name}: layer {type(module).__name__} cannot be exported")
+            last = layers[-1]
+            layers[-1] = Dense(last.weight, last.bias, kind[0], kind[1])
+        parts.append(
+            NetworkPart(
+                net.in_offset.double().numpy().copy(),
+                net.in_scale.double().numpy().copy(),
+                net.out_scale.double().numpy().copy(),
+                tuple(layers),
+            )
+        )
+    reference_model = model.double().eval()
+
+    def reference(x: np.ndarray) -> np.ndarray:
+        with torch.no_grad():
+            return reference_model(torch.tensor(np.asarray(x, dtype=np.float64))).numpy()
+
+    info = {k: config[k] for k in ("hyperparameters", "study", "trial") if k in config}
+    return GroupModel(
+        group,
+        name,
+        "network",
+        sensors,
+        n_inputs,
+        tuple(parts),
+        [c for s in sensors for c in input_columns(s, n_inputs)],
+        [c for s in sensors for c in output_columns(s)],
+        reference,
+        info,
+    )
+
+
+def _linear(model_dir: Path, name: str, group: str, sensors: tuple[str, ...]) -> GroupModel:
+    from pipeline.calib.models import LinearBaseline
+
+    path = model_dir / BASELINES_FILE
+    try:
+        entry = json.loads(path.read_text(encoding="utf-8"))[name]
+        baseline = LinearBaseline(
+            name,
+            np.asarray(entry["offset"], dtype=np.float64),
+            np.asarray(entry["scale"], dtype=np.float64),
+            np.asarray(entry["powers"], dtype=np.int64),
+            np.asarray(entry["weights"], dtype=np.float64),
+        )
+    except FileNotFoundError:
+        raise DataError(f"{path}: not found") from None
+    except KeyError as exc:
+        raise DataError(f"{path}: no entry {exc} (models: {name} was not trained?)") from None
+    except (OSError, ValueError, TypeError) as exc:
+        raise DataError(f"{path}: not a baselines file: {exc}") from None
+    n_sensors = len(sensors)
+    if baseline.weights.shape[0] != n_sensors or baseline.offset.shape != (n_sensors, 7):
+        raise DataError(f"{path}: {name} has {baseline.weights.shape[0]} sensors, metrics.json {n_sensors}")
+    parts = tuple(
+        LinearPart(baseline.offset[s], baseline.scale[s], baseline.powers, baseline.weights[s])
+        for s in range(n_sensors)
+    )
+
+    def reference(x: np.ndarray) -> np.ndarray:
+        x = np.asarray(x, dtype=np.float64).reshape(len(x), n_sensors, 7)
+        return baseline.predict(x).reshape(len(x), n_sensors * WRENCH)
+
+    order = int(baseline.powers.sum(axis=1).max(initial=0))
+    family = "affine" if name == "affine" else "polynomial"
+    return GroupModel(
+        group,
+        name,
+        family,
+        sensors,
+        7,
+        parts,
+        [c for s in sensors for c in input_columns(s, 7)],
+        [c for s in sensors for c in output_columns(s)],
+        reference,
+        {"order": order, "monomials": len(baseline.powers)},
+    )
+
+
+def _raw(group: str, sensors: tuple[str, ...]) -> GroupModel:
+    n = len(sensors)
+
+    def reference(x: np.ndarray) -> np.ndarray:
+        return np.asarray(x, dtype=np.float64).reshape(len(x), n, 7)[:, :, :WRENCH].reshape(len(x), -1)
+
+    return GroupModel(
+        group,
+        RAW,
+        "raw",
+        sensors,
+        7,
+        tuple(IdentityPart() for _ in sensors),
+        [c for s in sensors for c in input_columns(s, 7)],
+        [c for s in sensors for c in output_columns(s)],
+        reference,
+    )
+
+
+def read_group(model_dir: str | Path, name: str, group: str | None = None) -> GroupModel:
+    """Model `name` of the group trained into `model_dir` (see the module docstring).
+
+    Raises:
+        DataError: the directory is not a train output, the model is not in it, or its files are unusable.
+    """
+    model_dir = Path(model_dir)
+    metrics = read_metrics(model_dir)
+    group = group or str(metrics.get("group") or model_dir.name)
+    sensors = tuple(str(s) for s in metrics["sensors"])
+    if name == RAW:
+        model = _raw(group, sensors)
+    elif name.startswith("nn") and name[2:].isdigit():
+        model = _network(model_dir, name, group, sensors)
+    elif name == "affine" or (name.startswith("poly") and name[4:].isdigit()):
+        model = _linear(model_dir, name, group, sensors)
+    else:
+        raise DataError(f"{model_dir}: unknown model {name!r} (nn<k>, affine, poly<n> or raw)")
+    model.info.update(provenance(metrics, name))
+    return model
+
+
+def provenance(metrics: Mapping[str, Any], name: str) -> dict[str, Any]:
+    """What the manifest says of a model's training: logs, sample counts, its test errors (N, Nm)."""
+
+    def finite(v: Any) -> Any:
+        return v if not isinstance(v, float) or math.isfinite(v) else None
+
+    test = (metrics.get("test") or {}).get(name) or {}
+    headline = str(metrics.get("headline") or "")
+    keep = {k: finite(test.get(k)) for k in ("rmse", "rmse_labelled", "rmse_force", "rmse_torque")}
+    per = {
+        s: {k: finite(v) for k, v in (test.get(s) or {}).items() if k.startswith("rmse") or k == "samples"}
+        for s in [*metrics["sensors"], headline]
+    }
+    return {
+        "best_on_validation": metrics.get("best_on_validation"),
+        "headline": headline,
+        "logs": metrics.get("logs"),
+        "samples": metrics.get("samples"),
+        "test_metrics": {**keep, **{k: v for k, v in per.items() if v}},
+        "mlflow_run": metrics.get("mlflow_run"),
+    }

@@ -1,0 +1,319 @@
+"""`ftcal calibrate`: on a real export of tiny trained models and a synthetic multi-chunk MCAP log, every
+original message byte-identical (read back with mcap's own reader), one calibrated message per raw wrench
+with the same header and times, values equal to an independent causal computation (mcap_ros2's decoder,
+a plain loop for the latest temperature/IMU, the project's float64 model); directory form; bad input."""
+
+from __future__ import annotations
+
+import bisect
+import json
+import shutil
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import pytest
+
+from pipeline.cli import main
+from pipeline.core.config import load_params
+from pipeline.export.trained import read_group
+from pipeline.stages import export as E
+from tests.mcap_factory import write_log
+from tests.test_train import FRONT, LEG, PAIR, REAR
+
+OTHER = "l_leg_ft"  # a sensor of the log without a model
+SENSORS = (LEG, FRONT, REAR, OTHER)
+RECOMMENDED = {LEG: "nn13", PAIR: "nn7"}
+
+
+def _metrics_dir(tmp: Path, recommended: dict[str, str]) -> Path:
+    """evaluate's reports/metrics directory: <group>.json naming the recommended model."""
+    path = tmp / "metrics"
+    path.mkdir(exist_ok=True)
+    for group, model in recommended.items():
+        (path / f"{group}.json").write_text(json.dumps({"recommended": model}))
+    return path
+
+
+@pytest.fixture(scope="module")
+def setup(trained_models: dict, tmp_path_factory: pytest.TempPathFactory) -> dict:
+    tmp = tmp_path_factory.mktemp("calibrate")
+    report = _metrics_dir(tmp, RECOMMENDED)
+    patch = pytest.MonkeyPatch()
+    patch.setenv("MLFLOW_TRACKING_URI", f"sqlite:///{tmp / 'mlflow.db'}")
+    try:
+        params = load_params(trained_models["params"])
+        E.run(params, trained_models["models"], report, trained_models["labelled"], tmp / "exported")
+    finally:
+        patch.undo()
+    log = tmp / "logs" / "walk.mcap"
+    write_log(log, SENSORS, 10.0, seed=3, chunk_size=32 * 1024)  # ~15 chunks: inputs cross chunk bounds
+    return {
+        "tmp": tmp,
+        "export": tmp / "exported",
+        "log": log,
+        "params": trained_models["params"],
+        **trained_models,
+    }
+
+
+def _cli(setup: dict, src: Path, out: Path, *extra: str, models: Path | None = None) -> list[str]:
+    return [
+        "calibrate",
+        str(src),
+        str(out),
+        "--models",
+        str(models or setup["export"]),
+        "--params",
+        str(setup["params"]),
+        *extra,
+    ]
+
+
+def _messages(path: Path) -> list[tuple[str, int, int, int, bytes]]:
+    from mcap.reader import make_reader
+
+    with path.open("rb") as f:
+        reader = make_reader(f, validate_crcs=True)
+        return [
+            (c.topic, m.log_time, m.publish_time, m.sequence, bytes(m.data))
+            for _, c, m in reader.iter_messages(log_time_order=False)
+        ]
+
+
+def _decoded(path: Path) -> dict[str, list[Any]]:
+    """Every message decoded by mcap_ros2 (the standard decoder, independent of ours), per topic."""
+    from mcap_ros2.reader import read_ros2_messages
+
+    out: dict[str, list[Any]] = {}
+    for m in read_ros2_messages(str(path)):
+        out.setdefault(m.channel.topic, []).append(m)
+    return out
+
+
+def _stamp(msg: Any) -> int:
+    return msg.header.stamp.sec * 1_000_000_000 + msg.header.stamp.nanosec
+
+
+def _vec(v: Any) -> list[float]:
+    return [v.x, v.y, v.z]
+
+
+def _expected(
+    decoded: dict[str, list[Any]], sensor: str, n_inputs: int
+) -> list[tuple[int, np.ndarray] | None]:
+    """Per raw wrench message of `sensor`: (stamp, inputs) with the latest temperature/IMU stamped at or
+    before it (None where there is none yet)."""
+    temps = sorted((_stamp(m.ros_msg), m.ros_msg.temperature) for m in decoded[f"/ft/{sensor}/temperature"])
+    imus = sorted(
+        (_stamp(m.ros_msg), _vec(m.ros_msg.linear_acceleration) + _vec(m.ros_msg.angular_velocity))
+        for m in decoded[f"/ft/{sensor}/imu"]
+    )
+    out = []
+    for m in decoded[f"/ft/{sensor}/wrench"]:
+        stamp = _stamp(m.ros_msg)
+        k = bisect.bisect_right([t for t, _ in temps], stamp) - 1
+        j = bisect.bisect_right([t for t, _ in imus], stamp) - 1
+        if k < 0 or (n_inputs == 13 and j < 0):
+            out.append(None)
+            continue
+        x = _vec(m.ros_msg.wrench.force) + _vec(m.ros_msg.wrench.torque) + [temps[k][1]]
+        out.append((stamp, np.array(x + (imus[j][1] if n_inputs == 13 else []))))
+    return out
+
+
+def test_calibrate_copies_every_message_and_adds_causal_calibration(
+    setup: dict, tmp_path: Path, capsys: Any
+) -> None:
+    out = tmp_path / "walk_calibrated.mcap"
+    assert main(_cli(setup, setup["log"], out)) == 0
+    captured = capsys.readouterr()
+    assert f"no model for {OTHER}" in captured.err and "calibrated wrenches added" in captured.out
+
+    original, copied = _messages(setup["log"]), _messages(out)
+    assert [m for m in copied if not m[0].endswith("_calibrated")] == original  # byte for byte, same order
+    decoded_in, decoded_out = _decoded(setup["log"]), _decoded(out)
+    assert f"/ft/{OTHER}/wrench_calibrated" not in decoded_out
+    for sensor, group in ((LEG, LEG), (FRONT, PAIR), (REAR, PAIR)):
+        model = read_group(setup["models"] / group, RECOMMENDED[group])
+        slot = model.sensors.index(sensor)
+        raw = decoded_in[f"/ft/{sensor}/wrench"]
+        expected = _expected(decoded_in, sensor, model.n_inputs)
+        calibrated = decoded_out[f"/ft/{sensor}/wrench_calibrated"]
+        kept = [(m, e) for m, e in zip(raw, expected, strict=True) if e is not None]
+        assert len(calibrated) == len(kept) >= len(raw) - 2  # at most the messages before the first inputs
+        x = np.stack([e[1] for _, e in kept])
+        y = model.reference(np.tile(x, (1, len(model.sensors))))[:, slot * 6 : (slot + 1) * 6]
+        got = np.array([_vec(m.ros_msg.wrench.force) + _vec(m.ros_msg.wrench.torque) for m in calibrated])
+        np.testing.assert_allclose(got, y, rtol=0, atol=1e-9)
+        assert np.abs(got - x[:, :6]).max() > 0.1  # the calibration changes the wrench
+        for (m_raw, _), m_cal in zip(kept, calibrated, strict=True):
+            assert _stamp(m_cal.ros_msg) == _stamp(m_raw.ros_msg)
+            assert m_cal.ros_msg.header.frame_id == m_raw.ros_msg.header.frame_id
+            assert (m_cal.log_time_ns, m_cal.publish_time_ns) == (m_raw.log_time_ns, m_raw.publish_time_ns)
+    # the experiment metadata is kept
+    from mcap.reader import make_reader
+
+    with out.open("rb") as f:
+        assert {m.name for m in make_reader(f).iter_metadata()} == {"experiment"}
+
+
+def test_directory_form_and_existing_output(setup: dict, tmp_path: Path, capsys: Any) -> None:
+    src = tmp_path / "in"
+    (src / "day2").mkdir(parents=True)
+    shutil.copy(setup["log"], src / "a.mcap")
+    shutil.copy(setup["log"], src / "day2" / "b.mcap")
+    out = tmp_path / "out"
+    assert main(_cli(setup, src, out)) == 0
+    assert sorted(str(p.relative_to(out)) for p in out.rglob("*.mcap")) == ["a.mcap", "day2/b.mcap"]
+    capsys.readouterr()
+    assert main(_cli(setup, src, out)) == 2
+    assert "a.mcap: exists (use --force to replace it)" in capsys.readouterr().err
+    assert main(_cli(setup, src, out, "--force")) == 0
+
+
+def _bad_cases(setup: dict, tmp: Path) -> dict[str, tuple[list[str], str]]:
+    other_robot = tmp / "other_robot"
+    shutil.copytree(setup["export"], other_robot)
+    manifest = json.loads((other_robot / "manifest.json").read_text())
+    manifest["robot"] = "ergoCubSN001"
+    (other_robot / "manifest.json").write_text(json.dumps(manifest))
+    no_temperature = tmp / "no_temperature.mcap"
+    write_log(no_temperature, SENSORS, 2.0, temperature=False)
+    truncated = tmp / "truncated.mcap"
+    data = setup["log"].read_bytes()
+    truncated.write_bytes(data[: len(data) // 2])
+    arms = tmp / "arms.mcap"
+    write_log(arms, ("l_arm_ft",), 2.0)
+    mismatch = tmp / "inputs_mismatch"
+    shutil.copytree(setup["export"], mismatch)
+    manifest = json.loads((mismatch / "manifest.json").read_text())
+    manifest["graphs"][LEG]["inputs"][6]["field"] = "variance"
+    (mismatch / "manifest.json").write_text(json.dumps(manifest))
+    existing = tmp / "existing.mcap"
+    existing.write_bytes(b"keep")
+    return {
+        "models missing": (
+            _cli(setup, setup["log"], tmp / "o1.mcap", models=tmp / "nowhere"),
+            "models directory",
+        ),
+        "another robot": (
+            _cli(setup, setup["log"], tmp / "o2.mcap", models=other_robot),
+            "recorded on robot 'iCubGenova09', but the models",
+        ),
+        "no temperature": (
+            _cli(setup, no_temperature, tmp / "o3.mcap"),
+            f"has /ft/{LEG}/wrench but no /ft/{LEG}/temperature",
+        ),
+        "truncated": (_cli(setup, truncated, tmp / "o4.mcap"), "truncated MCAP file"),
+        "no modelled sensor": (_cli(setup, arms, tmp / "o5.mcap"), "none of the sensors of"),
+        "output exists": (_cli(setup, setup["log"], existing), "existing.mcap: exists (use --force"),
+        "inputs mismatch": (
+            _cli(setup, setup["log"], tmp / "o6.mcap", models=mismatch),
+            f"inputs of {LEG} in {LEG}'s graph are",
+        ),
+    }
+
+
+@pytest.mark.parametrize(
+    "case",
+    ["models missing", "another robot", "no temperature", "truncated", "no modelled sensor", "output exists"]
+    + ["inputs mismatch"],
+)
+def test_bad_input_is_one_line_and_writes_nothing(
+    setup: dict, tmp_path: Path, case: str, capsys: Any
+) -> None:
+    args, message = _bad_cases(setup, tmp_path)[case]
+    before = sorted(p.name for p in tmp_path.iterdir())
+    assert main(args) == 2
+    err = capsys.readouterr().err
+    assert err.startswith("ftcal: error: ") and message in err and err.count("\n") == 1, err
+    assert sorted(p.name for p in tmp_path.iterdir()) == before  # no output, no .part left
+    if case == "output exists":
+        assert (tmp_path / "existing.mcap").read_bytes() == b"keep"
+
+
+def test_attachments_metadata_and_foreign_records_survive(setup: dict, tmp_path: Path) -> None:
+    """A log written by mcap's own writer (one message per chunk, an attachment and metadata between the
+    chunks): everything read back identical, the attachment and metadata at their moved offsets."""
+    from mcap.reader import make_reader
+    from mcap.writer import Writer
+
+    from pipeline.logs.cdr import (
+        RECORD_HEADER_SIZE,
+        SCHEMAS,
+        TEMPERATURE,
+        WRENCH_STAMPED,
+        fixed_records,
+        fixed_template,
+    )
+
+    src = tmp_path / "foreign.mcap"
+    t0 = 1_700_000_000_000_000_000
+    with src.open("wb") as f:
+        w = Writer(f, chunk_size=200)
+        w.start(profile="ros2", library="test")
+        ids = {}
+        for msgtype, topic in (
+            (WRENCH_STAMPED, f"/ft/{LEG}/wrench"),
+            (TEMPERATURE, f"/ft/{LEG}/temperature"),
+        ):
+            schema = w.register_schema(name=msgtype, encoding="ros2msg", data=SCHEMAS[msgtype].encode())
+            ids[msgtype] = w.register_channel(topic=topic, message_encoding="cdr", schema_id=schema)
+        w.add_metadata("experiment", {"robot": "iCubGenova09", "role": "test"})
+        for k in range(30):
+            stamp = np.array([t0 + k * 10_000_000])
+            rec = fixed_records(
+                fixed_template(TEMPERATURE, b"t"),
+                0,
+                np.zeros(1, np.uint32),
+                stamp,
+                stamp,
+                stamp,
+                {"temperature": np.array([30.0 + k])},
+            )
+            w.add_message(
+                ids[TEMPERATURE],
+                int(stamp[0]),
+                rec[0, RECORD_HEADER_SIZE:].tobytes(),
+                int(stamp[0]),
+                sequence=k,
+            )
+            rec = fixed_records(
+                fixed_template(WRENCH_STAMPED, b"w"),
+                0,
+                np.zeros(1, np.uint32),
+                stamp + 5,
+                stamp + 5,
+                stamp + 5,
+                {"wrench": np.full((1, 6), float(k))},
+            )
+            w.add_message(
+                ids[WRENCH_STAMPED],
+                int(stamp[0]) + 5,
+                rec[0, RECORD_HEADER_SIZE:].tobytes(),
+                int(stamp[0]) + 5,
+            )
+            if k == 10:
+                w.add_attachment(
+                    create_time=1, log_time=2, name="notes.txt", media_type="text/plain", data=b"hello"
+                )
+        w.finish()
+    out = tmp_path / "out.mcap"
+    assert main(_cli(setup, src, out)) == 2  # a 13-input model needs the IMU this log lacks
+    models = tmp_path / "leg7"
+    report = _metrics_dir(tmp_path, {LEG: "nn7", PAIR: "nn7"})
+    patch = pytest.MonkeyPatch()
+    patch.setenv("MLFLOW_TRACKING_URI", f"sqlite:///{tmp_path / 'm.db'}")
+    try:
+        E.run(load_params(setup["params"]), setup["models"], report, setup["labelled"], models)
+    finally:
+        patch.undo()
+    assert main(_cli(setup, src, out, models=models)) == 0
+    assert [m for m in _messages(out) if not m[0].endswith("_calibrated")] == _messages(src)
+    assert sum(m[0].endswith("_calibrated") for m in _messages(out)) == 30
+    with out.open("rb") as f:
+        reader = make_reader(f, validate_crcs=True)
+        (attachment,) = list(reader.iter_attachments())
+        assert (attachment.name, attachment.data) == ("notes.txt", b"hello")
+        assert [m.metadata for m in reader.iter_metadata()] == [{"robot": "iCubGenova09", "role": "test"}]

@@ -1,0 +1,258 @@
+"""Stage `export`: ONNX graphs of every model family against independent computations, the fused graph
+against the groups' graphs, and end to end on tiny trained models (real train output, real onnxruntime,
+real MLflow sqlite store): files, manifest, ONNX metadata, checks, registry; bad input."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import onnx
+import pytest
+import torch
+import yaml
+
+from pipeline.calib.models import load_model, monomial_powers
+from pipeline.cli import main
+from pipeline.core.config import load_params
+from pipeline.core.errors import ConfigError, DataError
+from pipeline.export import graph
+from pipeline.export.check import run, session
+from pipeline.export.trained import read_group
+from pipeline.stages import export as E
+from tests.test_train import LEG, PAIR
+
+MODELS = ("raw", "affine", "poly1", "poly2", "nn7", "nn13")
+SCALE = np.array([60.0, 60.0, 200.0, 4.0, 4.0, 1.5, 4.0, 1, 1, 1, 1, 1, 1])  # per input: N, Nm, degC, ...
+
+
+def _inputs(n_sensors: int, n_inputs: int, n: int = 500, seed: int = 0) -> np.ndarray:
+    """(n, S n_inputs) raw inputs around the synthetic tables' range (temperature around 30 degC)."""
+    rng = np.random.default_rng(seed)
+    x = rng.normal(size=(n, n_sensors, n_inputs)) * SCALE[:n_inputs]
+    x[:, :, 6] += 30.0
+    return x.reshape(n, -1)
+
+
+def _outputs(model: Any, dtype: str, x: np.ndarray) -> np.ndarray:
+    return run(session(graph.build([model], dtype, {}, "test")), x)
+
+
+# --- graphs --------------------------------------------------------------------------------------
+
+
+def test_monomial_index_multiplies_to_every_monomial() -> None:
+    powers = monomial_powers(7, 3)
+    index = graph.monomial_index(powers)
+    z = np.random.default_rng(0).normal(size=(20, 7))
+    z1 = np.concatenate([z, np.ones((20, 1))], axis=1)
+    expected = np.prod(z[:, None, :] ** powers[None], axis=2)
+    np.testing.assert_allclose(np.prod(z1[:, index], axis=2), expected, rtol=1e-12)
+
+
+@pytest.mark.parametrize("name", MODELS)
+def test_group_graph_equals_project_model(trained_models: dict, name: str) -> None:
+    model = read_group(trained_models["models"] / PAIR, name)
+    x = _inputs(2, model.n_inputs)
+    reference = model.reference(x)
+    np.testing.assert_allclose(_outputs(model, "float64", x), reference, rtol=0, atol=1e-9)
+    if model.family == "network":  # float32 arithmetic (as torch's): against torch in test_network_graph_...
+        np.testing.assert_allclose(_outputs(model, "float32", x), reference, rtol=0, atol=2e-3)
+    else:  # float32 in and out, float64 inside: only the output's rounding (|f| < 1000 N: < 6.1e-5 N)
+        rounded = model.reference(x.astype(np.float32).astype(np.float64))
+        np.testing.assert_allclose(_outputs(model, "float32", x), rounded, rtol=0, atol=6.2e-5)
+
+
+def test_affine_graph_equals_hand_computation_from_baselines_json(trained_models: dict) -> None:
+    entry = json.loads((trained_models["models"] / LEG / "baselines.json").read_text())["affine"]
+    offset, scale, weights = (np.asarray(entry[k]) for k in ("offset", "scale", "weights"))
+    x = _inputs(1, 7)
+    z = (x - offset[0]) / scale[0]
+    expected = x[:, :6] + np.concatenate([np.ones((len(x), 1)), z], axis=1) @ weights[0].T
+    model = read_group(trained_models["models"] / LEG, "affine")
+    np.testing.assert_allclose(_outputs(model, "float64", x), expected, rtol=0, atol=1e-9)
+
+
+def test_network_graph_equals_torch_module(trained_models: dict) -> None:
+    net, _ = load_model(trained_models["models"] / PAIR / "nn13")
+    x = _inputs(2, 13)
+    with torch.no_grad():
+        expected32 = net(torch.tensor(x, dtype=torch.float32)).numpy()
+        expected64 = net.double()(torch.tensor(x)).numpy()
+    model = read_group(trained_models["models"] / PAIR, "nn13")
+    np.testing.assert_allclose(_outputs(model, "float64", x), expected64, rtol=0, atol=1e-9)
+    np.testing.assert_allclose(_outputs(model, "float32", x), expected32, rtol=0, atol=1e-4)
+
+
+@pytest.mark.parametrize("leg", ["poly2", "nn7"])
+def test_fused_graph_equals_groups_side_by_side(trained_models: dict, leg: str) -> None:
+    """With nn7 on both groups, the three networks are stacked (one MatMul per layer) across groups."""
+    models = [
+        read_group(trained_models["models"] / LEG, leg),
+        read_group(trained_models["models"] / PAIR, "nn7"),
+    ]
+    x = [_inputs(1, 7, seed=1), _inputs(2, 7, seed=2)]
+    for dtype in graph.DTYPES:
+        fused = run(session(graph.build(models, dtype, {}, "fused")), np.concatenate(x, axis=1))
+        separate = np.concatenate([_outputs(m, dtype, xi) for m, xi in zip(models, x, strict=True)], axis=1)
+        np.testing.assert_allclose(fused, separate, rtol=0, atol=1e-9 if dtype == "float64" else 2e-3)
+
+
+# --- the stage -----------------------------------------------------------------------------------
+
+
+def _params(trained: dict, tmp_path: Path, **export: Any) -> Path:
+    data = yaml.safe_load(Path(trained["params"]).read_text())
+    data["export"].update(export)
+    path = tmp_path / "params.yaml"
+    path.write_text(yaml.safe_dump(data, sort_keys=False))
+    return path
+
+
+def _report(tmp_path: Path, recommended: dict[str, Any]) -> Path:
+    """evaluate's reports/metrics directory: <group>.json with the recommended model ("none": flagged)."""
+    path = tmp_path / "metrics"
+    path.mkdir(exist_ok=True)
+    for group, model in recommended.items():
+        (path / f"{group}.json").write_text(json.dumps({"recommended": model or "none", "rmse": {}}))
+    return path
+
+
+@pytest.fixture(scope="module")
+def exported(trained_models: dict, tmp_path_factory: pytest.TempPathFactory) -> dict:
+    """The stage run once through the CLI: nn13 recommended for the leg, poly2 for the foot."""
+    tmp = tmp_path_factory.mktemp("export")
+    patch = pytest.MonkeyPatch()
+    patch.setenv("MLFLOW_TRACKING_URI", trained_models["mlflow_uri"])
+    try:
+        args = [
+            "export",
+            str(trained_models["models"]),
+            str(_report(tmp, {LEG: "nn13", PAIR: "poly2"})),
+            str(trained_models["labelled"]),
+            str(tmp / "exported"),
+            "--params",
+            str(trained_models["params"]),
+        ]
+        assert main(args) == 0
+    finally:
+        patch.undo()
+    return {"dir": tmp / "exported", "manifest": json.loads((tmp / "exported" / "manifest.json").read_text())}
+
+
+def test_stage_writes_checked_graphs_and_manifest(exported: dict, trained_models: dict) -> None:
+    out, doc = exported["dir"], exported["manifest"]
+    assert sorted(p.name for p in out.iterdir()) == sorted(
+        [f"{n}.{d}.onnx" for n in (LEG, PAIR, "all") for d in graph.DTYPES] + ["manifest.json"]
+    )
+    assert set(doc["graphs"]) == {LEG, PAIR, "all"} and doc["robot"] == "iCubGenova09"
+    fused = doc["graphs"]["all"]
+    assert fused["models"] == {LEG: "nn13", PAIR: "poly2"}
+    assert fused["input_shape"] == ["N", 13 + 2 * 7] and fused["output_shape"] == ["N", 18]
+    first = fused["inputs"][0]
+    assert first == {
+        "index": 0,
+        "column": f"ft.{LEG}.fx",
+        "sensor": LEG,
+        "topic": f"/ft/{LEG}/wrench",
+        "field": "wrench.force.x",
+        "unit": "N",
+    }
+    assert [c["unit"] for c in fused["inputs"][6:13]] == ["degC", "m/s^2", "m/s^2", "m/s^2"] + ["rad/s"] * 3
+    assert fused["outputs"][-1]["topic"] == "/ft/r_foot_rear_ft/wrench_calibrated"
+    training = fused["training"][PAIR]
+    assert training["family"] == "polynomial" and len(training["training_data_sha256"]) == 64
+    assert training["mlflow_run"] and training["logs"]["test"] == ["05_pole_test", "06_walking_test"]
+    assert fused["training"][LEG]["family"] == "network"
+    for name, entry in doc["graphs"].items():
+        assert entry["check"]["float32"]["max_abs_diff"] <= 1e-4, name
+        assert entry["check"]["float64"]["max_abs_diff"] <= 1e-9, name
+        assert entry["check"]["float64"]["samples"] > 500
+        props = {p.key: p.value for p in onnx.load(out / entry["files"]["float32"]).metadata_props}
+        assert json.loads(props["ftcal.manifest"])["inputs"] == entry["inputs"]
+        assert props["ftcal.robot"] == "iCubGenova09"
+        assert json.loads(props["ftcal.mlflow_runs"]) == {
+            g: t["mlflow_run"] for g, t in entry["training"].items()
+        }
+
+
+def test_stage_registers_the_export(exported: dict, trained_models: dict) -> None:
+    from mlflow import MlflowClient
+
+    client = MlflowClient(trained_models["mlflow_uri"])
+    (version,) = client.search_model_versions(f"name = '{E.REGISTERED_MODEL}'")
+    assert version.tags[f"model.{LEG}"] == "nn13" and version.source.endswith("/onnx")
+    files = client.list_artifacts(version.run_id, "onnx")
+    assert {Path(f.path).name for f in files} >= {"manifest.json", "all.float32.onnx"}
+    # the registered training version of the exported network points at its ONNX graphs
+    run = exported["manifest"]["graphs"][LEG]["training"][LEG]["mlflow_run"]
+    (trained,) = client.search_model_versions(f"name = 'ftcal-{LEG}-13' and run_id = '{run}'")
+    assert trained.tags["onnx.float32"] == f"runs:/{version.run_id}/onnx/{LEG}.float32.onnx"
+
+
+def test_failed_check_writes_nothing(
+    trained_models: dict, tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    monkeypatch.setenv("MLFLOW_TRACKING_URI", f"sqlite:///{tmp_path / 'm.db'}")
+    out = tmp_path / "exported"
+    out.mkdir()
+    (out / "old.txt").write_text("previous export")
+    params = load_params(_params(trained_models, tmp_path, tolerance_float32=1e-12))
+    report = _report(tmp_path, {LEG: "nn7", PAIR: "nn7"})
+    with pytest.raises(
+        DataError, match=r"export check failed: r_leg_ft float32 .* > export.tolerance_float32"
+    ):
+        E.run(params, trained_models["models"], report, trained_models["labelled"], out)
+    assert [p.name for p in tmp_path.iterdir() if p.name.startswith(".")] == []
+    assert [p.name for p in out.iterdir()] == ["old.txt"]
+
+
+@pytest.mark.parametrize(
+    ("change", "recommended", "message"),
+    [
+        ({"models": {"nope": "nn7"}}, {LEG: "nn7", PAIR: "nn7"}, "export.models.nope: not a group"),
+        (
+            {"models": {LEG: 7}},
+            {LEG: "nn7", PAIR: "nn7"},
+            "export.models.r_leg_ft must be a non-empty string",
+        ),
+        ({"tolerance_float64": -1}, {LEG: "nn7", PAIR: "nn7"}, "export.tolerance_float64 must be a positive"),
+        ({}, {LEG: None, PAIR: "nn7"}, "no recommended model for r_leg_ft"),
+        ({"models": {LEG: "poly9"}}, {PAIR: "nn7"}, "baselines.json: no entry 'poly9'"),
+    ],
+)
+def test_bad_input_is_one_line(
+    trained_models: dict, tmp_path: Path, change: dict, recommended: dict, message: str, capsys: Any
+) -> None:
+    args = [
+        "export",
+        str(trained_models["models"]),
+        str(_report(tmp_path, recommended)),
+        str(trained_models["labelled"]),
+        str(tmp_path / "out"),
+        "--params",
+        str(_params(trained_models, tmp_path, **change)),
+    ]
+    assert main(args) == 2
+    err = capsys.readouterr().err
+    assert err.startswith("ftcal: error: ") and message in err and err.count("\n") == 1, err
+    assert not (tmp_path / "out").exists()
+
+
+def test_missing_inputs_are_data_errors(trained_models: dict, tmp_path: Path) -> None:
+    params = load_params(trained_models["params"])
+    report = _report(tmp_path, {LEG: "nn7", PAIR: "nn7"})
+    with pytest.raises(DataError, match="models directory not found"):
+        E.run(params, tmp_path / "none", report, trained_models["labelled"], tmp_path / "o")
+    with pytest.raises(DataError, match=r"r_leg_ft\.json: not found"):
+        E.run(
+            params,
+            trained_models["models"],
+            tmp_path / "missing.json",
+            trained_models["labelled"],
+            tmp_path / "o",
+        )
+    with pytest.raises(ConfigError):
+        E.choose_models([LEG], report, {PAIR: "nn7"})
