@@ -6,10 +6,10 @@ import copy
 
 import numpy as np
 import pytest
+from pipeline.deploy.params import deploy_params, deployment_simulation
 
 from pipeline.core.config import load_params
 from pipeline.core.errors import ConfigError
-from pipeline.deploy.params import deploy_params, deployment_simulation
 from pipeline.sim.params import simulate_params
 from pipeline.sim.world import build_world
 
