@@ -31,6 +31,10 @@ COMMANDS: dict[str, tuple[str, str]] = {
     "train": ("pipeline.stages.train", "baselines and neural networks of one sensor group"),
     "evaluate": ("pipeline.stages.evaluate", "error tables, figures and noise check of one group's models"),
     "report": ("pipeline.stages.report", "assemble the report page of every group's evaluation"),
+    "deploy-test": (
+        "pipeline.stages.deploy_test",
+        "deployment tests A, B, C on logs recorded after training",
+    ),
     "convert-mat": ("pipeline.tools.convert_mat", "convert a robot-logger .mat file to a contract MCAP"),
 }
 

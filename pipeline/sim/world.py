@@ -50,6 +50,9 @@ class World:
     distortions: dict[str, SensorDistortion]
     model_errors: dict
     motions: MotionGenerator  # its .p: the motion params used (URDF-derived where params say null)
+    base_params: Params | None = (
+        None  # deployment worlds: the params the world was built from (training seed)
+    )
 
 
 def build_world(params: Params, sim: SimulateParams) -> World:
@@ -77,7 +80,8 @@ def build_world(params: Params, sim: SimulateParams) -> World:
         distortions = shifted_offsets(
             distortions, sim.shift.seed, sim.shift.offset_force, sim.shift.offset_torque
         )
-        params = replace(params, seed=sim.shift.seed)
+        shifted = replace(params, seed=sim.shift.seed)
+        return World(shifted, sim, robot, truth_robot, feet, pairs, distortions, errors, motions, params)
     return World(params, sim, robot, truth_robot, feet, pairs, distortions, errors, motions)
 
 

@@ -59,7 +59,7 @@ def _generate(world: Any, jobs: list[tuple], progress: bool | None) -> list:
                 results.append(_work(job))
                 bar.advance(task, job[1].duration_s)
         else:
-            init = (world.params, world.sim)
+            init = (world.base_params or world.params, world.sim)  # workers rebuild the same world
             with ProcessPoolExecutor(workers, initializer=_init_worker, initargs=init) as pool:
                 order = sorted(jobs, key=lambda j: -j[1].duration_s)  # longest first: no idle core at the end
                 for result, job in zip(pool.map(_work, order), order, strict=True):
