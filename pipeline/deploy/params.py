@@ -53,9 +53,8 @@ def _mapping(raw: Any, key: str, names: tuple[str, ...]) -> dict[str, Any]:
     unknown = sorted(set(raw) - set(names))
     missing = sorted(set(names) - set(raw))
     if unknown or missing:
-        what = (
-            f"unknown key deploy.{key}.{unknown[0]}" if unknown else f"missing key deploy.{key}.{missing[0]}"
-        )
+        prefix = f"deploy.{key}." if key else "deploy."
+        what = f"unknown key {prefix}{unknown[0]}" if unknown else f"missing key {prefix}{missing[0]}"
         raise ConfigError(what)
     return raw
 
