@@ -33,6 +33,10 @@ COMMANDS: dict[str, tuple[str, str]] = {
     "report": ("pipeline.stages.report", "assemble the report page of every group's evaluation"),
     "export": ("pipeline.stages.export", "the recommended models as ONNX graphs with a manifest"),
     "calibrate": ("pipeline.tools.calibrate", "copy a log adding the exported calibration's wrenches"),
+    "deploy-test": (
+        "pipeline.stages.deploy_test",
+        "deployment tests A, B, C on logs recorded after training",
+    ),
     "convert-mat": ("pipeline.tools.convert_mat", "convert a robot-logger .mat file to a contract MCAP"),
 }
 

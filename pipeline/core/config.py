@@ -134,6 +134,7 @@ class TopicParams:
     sim_wrench_distorted: str  # WrenchStamped: the sensor's noise-free distorted reading
     sim_wrench_oracle: str  # WrenchStamped: the oracle calibration of the raw reading (noise floor)
     sim_contacts: str  # std_msgs/msg/String: comma-separated links touching the environment
+    sim_joint_torques: str = "/sim/joint_torques"  # JointState: true joint torques (effort, Nm), pushed logs
 
     PER_SENSOR = (
         "ft_wrench",
@@ -428,6 +429,7 @@ SECTIONS: dict[str, str] = {
     "train": "pipeline.calib.params:TrainParams",
     "evaluate": "pipeline.evaluation.params:EvaluateParams",
     "export": "pipeline.core.config:ExportParams",
+    "deploy": "pipeline.deploy.params:deploy_params",
 }
 SHARED_KEYS = ("seed", "robot", "topics")
 

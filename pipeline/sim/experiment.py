@@ -45,12 +45,25 @@ def make_motion(world: World, spec: LogSpec, rng: np.random.Generator) -> Motion
     """The true motion of the log `spec` at the simulation rate."""
     gen, rate = world.motions, world.sim.rate_hz
     if spec.type == "pole":
-        return gen.pole(rng, spec.duration_s, rate)
+        motion = gen.pole(rng, spec.duration_s, rate)
+        if world.sim.push is not None:
+            from pipeline.sim.push import add_pushes
+
+            motion = add_pushes(gen.kin, motion, push_links(world), world.sim.push)
+        return motion
+    if spec.type == "standing":
+        return gen.standing(rng, spec.duration_s, rate)
     if spec.type == "balancing":
         return gen.balancing(rng, spec.duration_s, rate, spec.foot)
     if spec.type == "half_foot":
         return gen.balancing(rng, spec.duration_s, rate, spec.foot, spec.part)
     return gen.walking(rng, spec.duration_s, rate)
+
+
+def push_links(world: World) -> list[str]:
+    """The links pushed in pole logs: per foot pair, the link that carries its two sensors (the ankle),
+    below every leg joint and above the foot sensors."""
+    return [world.robot.sensors[pair.front].parent_link for pair in world.pairs]
 
 
 def sensor_readings(
@@ -148,6 +161,7 @@ def simulate_log(world: World, index: int, spec: LogSpec, out_dir: Path, plot: b
         contacts=np.array([",".join(sorted(c)) for c in truth.contacts], dtype=object),
         ft_stamps=ft_stamps,
         sensors=data,
+        joint_torque=truth.joint_torque,
     )
     with atomic_path(out_dir / f"{name}.mcap") as tmp:
         messages = write_recording(tmp, rec, world.params.topics, sim.timing, sim.rate_hz, rng)

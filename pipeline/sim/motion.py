@@ -16,7 +16,7 @@ still, everything else moves freely, and the lengths of the motions are derived 
 from __future__ import annotations
 
 from collections.abc import Callable, Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import numpy as np
 import pinocchio as pin
@@ -43,6 +43,8 @@ class Motion:
     transfer: (N,) in double support the load fraction on `transfer_to[k]`'s foot, NaN elsewhere.
     transfer_to: (N,) the foot (pair name) taking over in double support, '' elsewhere.
     root_pose: (N, 4, 4) pose of root_link in the world, for plots and checks.
+    pushes: link -> external wrench (N, 6) on it (a hand pushing), N and Nm in the sample's world frame
+    about its origin; empty for none (:mod:`pipeline.sim.push`).
     """
 
     t: np.ndarray
@@ -55,6 +57,7 @@ class Motion:
     transfer: np.ndarray
     transfer_to: np.ndarray
     root_pose: np.ndarray
+    pushes: dict[str, np.ndarray] = field(default_factory=dict)
 
     @property
     def n(self) -> int:
@@ -316,3 +319,21 @@ class MotionGenerator:
 
         root_pose = self._track(t, q, rate, sway, feet_world, feet_world, com_target)
         return self._finish(t, q, gait.contacts, gait.fixed, root_pose, gait.transfer, gait.transfer_to)
+
+    def standing(self, rng: np.random.Generator, duration: float, rate: float) -> Motion:
+        """Standing still on both feet (double support), the CoM between them, a faint sway of the pelvis
+        (0.002 rad, as a balance controller leaves it); the load split follows the statics."""
+        names = list(self.feet)
+        t = self._time(duration, rate)
+        n = t.shape[0]
+        y = {f: self.kin.frame_pose(self.home, self.feet[f].sole).translation[1] for f in names}
+        feet = {f: pose([0.0, y[f], 0.0]) for f in names}
+        q = np.tile(self.home, (n, 1))
+        sway = 0.002 * multisine(rng, t, 3, self.p.f_min_hz, self.p.f_max_hz)
+        com = np.tile([0.0, float(np.mean(list(y.values())))], (n, 1))
+        root_pose = self._track(t, q, rate, sway, lambda k: feet, lambda k: feet, com)
+        contacts = frozenset().union(*(self.feet[f].links for f in names))
+        fixed = np.full(n, self.feet[names[0]].sole, dtype=object)
+        transfer = np.full(n, 0.5)
+        transfer_to = np.full(n, names[-1], dtype=object)
+        return self._finish(t, q, [contacts] * n, fixed, root_pose, transfer, transfer_to)

@@ -15,7 +15,7 @@ from typing import Any
 from pipeline.core.config import Params, stage_section
 from pipeline.core.errors import ConfigError
 
-EXPERIMENT_TYPES = ("pole", "balancing", "half_foot", "walking")
+EXPERIMENT_TYPES = ("pole", "balancing", "half_foot", "walking", "standing")
 
 
 def _number(
@@ -266,7 +266,7 @@ class TimingParams:
 class LogSpec:
     """One simulated log (an entry of ``simulate.logs``)."""
 
-    type: str  # pole | balancing | half_foot | walking
+    type: str  # pole | balancing | half_foot | walking | standing (both feet flat, still)
     duration_s: float  # robot time, s
     role: str  # train | test (written into the log's metadata)
     foot: str = ""  # balancing / half_foot: the supporting foot (a robot.foot_pairs name)
@@ -292,6 +292,54 @@ class LogSpec:
 
 
 @dataclass(frozen=True)
+class PushParams:
+    """External pushes on the legs in pole logs (deployment logs, ``deploy.push``): a hand pushing one foot.
+
+    Each push is a half-sine force profile along `direction` (world frame: the root_link frame on the
+    pole), applied at the origin of the sole frame of one foot; feet take turns. The motion is unchanged
+    (the joints track their trajectories, as under stiff position control): the push shows in the wrenches
+    of the sensors between it and the root and in the joint torques.
+    """
+
+    force_n: float  # peak force of a push, N
+    duration_s: float  # length of a push, s
+    period_s: float  # a push starts every this many seconds (the first after half a period), s
+    direction: tuple[float, float, float]  # force direction in the world frame (normalised), 1
+
+    SECTION = "deploy.push"
+
+    def __post_init__(self) -> None:
+        _number(self, "force_n", 0.0, 2000.0)
+        _number(self, "duration_s", 0.0, 60.0, lo_open=True)
+        _number(self, "period_s", 0.0, 600.0, lo_open=True)
+        _ordered(self, "duration_s", "period_s")
+        d = self.direction
+        if (
+            not isinstance(d, list | tuple)
+            or len(d) != 3
+            or not all(isinstance(v, int | float) and not isinstance(v, bool) and math.isfinite(v) for v in d)
+            or math.hypot(*d) == 0.0
+        ):
+            raise ConfigError(f"{self.SECTION}.direction must be 3 numbers, not all zero, got {d!r}")
+        norm = math.hypot(*d)
+        object.__setattr__(self, "direction", tuple(float(v) / norm for v in d))
+
+
+@dataclass(frozen=True)
+class DeploymentShift:
+    """What sets deployment logs apart from the training logs of the same robot (a later day).
+
+    The hidden distortions are those of training (drawn from the top-level seed); motions and noise come
+    from `seed`, and every sensor's offset has drifted by a draw uniform +- `offset_force` (N, force axes)
+    and +- `offset_torque` (Nm, torque axes) from `seed`.
+    """
+
+    seed: int  # seed of the deployment logs' motions, noise and offset drift
+    offset_force: float  # N, offset drift bound per force axis
+    offset_torque: float  # Nm, offset drift bound per torque axis
+
+
+@dataclass(frozen=True)
 class SimulateParams:
     """Section ``simulate`` of params.yaml."""
 
@@ -309,6 +357,8 @@ class SimulateParams:
     thermal: ThermalParams = field(default_factory=ThermalParams)
     imu: ImuNoiseParams = field(default_factory=ImuNoiseParams)
     timing: TimingParams = field(default_factory=TimingParams)
+    push: PushParams | None = None  # external pushes in pole logs (deployment logs only)
+    shift: DeploymentShift | None = None  # deployment logs: their own seed and drifted offsets
 
     SECTION = "simulate"
 
@@ -356,6 +406,12 @@ def simulate_params(params: Params) -> SimulateParams:
         if not isinstance(raw, dict):
             raise ConfigError("missing section simulate")
         raw = dict(raw)
+        for key in ("push", "shift"):  # set by the deployment section only (pipeline.deploy.params)
+            if key in raw:
+                raise ConfigError(
+                    f"unknown key simulate.{key} (pushes and drift belong to the deploy section)"
+                )
+            raw[key] = None
         for key, cls in _NESTED.items():
             if key in raw:
                 raw[key] = _sub(cls, raw[key], f"simulate.{key}")

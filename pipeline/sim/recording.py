@@ -48,6 +48,7 @@ class Recording:
     contacts: np.ndarray  # (N,) object: true contact set as 'link,link'
     ft_stamps: np.ndarray  # (N,) int64 ns
     sensors: dict[str, dict[str, np.ndarray]]
+    joint_torque: np.ndarray | None = None  # (N, n_joints) true joint torques, Nm (logs with pushes only)
 
 
 class _Delays:
@@ -95,6 +96,16 @@ def write_recording(
             )
             writer.strings(topics.sim_contacts, rec.js_stamps[rows], list(rec.contacts[rows]))
             messages += sel.size + rows.size
+            if rec.joint_torque is not None:  # truth: every sample, undelayed; effort = true torque
+                writer.joint_states(
+                    topics.sim_joint_torques,
+                    rec.js_stamps[rows],
+                    rec.joint_names,
+                    rec.q[rows],
+                    rec.dq[rows],
+                    rec.joint_torque[rows],
+                )
+                messages += rows.size
             for s in rec.sensors:
                 sel = keep_ft[s][(keep_ft[s] >= rows[0]) & (keep_ft[s] <= rows[-1])]
                 messages += _write_sensor(

@@ -23,7 +23,7 @@ from dataclasses import dataclass
 import numpy as np
 import pinocchio as pin
 
-from pipeline.physics.dynamics import ContactCase, rooted_readings
+from pipeline.physics.dynamics import ContactCase, choose_root, far_side_wrenches, rooted_readings
 from pipeline.physics.robot import FootPair, RobotModel, sensor_frame_name, wrench_transform
 from pipeline.sim.motion import Motion
 
@@ -52,6 +52,9 @@ class Truth:
     gyro: dict[str, np.ndarray]
     world_T_sensor: dict[str, np.ndarray]
     contacts: list[frozenset[str]] | None = None  # per sample: the load-bearing contact links
+    # (N, n_joints) true joint torques, Nm (robot.joint_names order), with pushes only; NaN where more than
+    # one link touches (the ground split is not resolved for joint torques)
+    joint_torque: np.ndarray | None = None
 
 
 def _cross(a: np.ndarray, b: np.ndarray) -> np.ndarray:
@@ -187,6 +190,8 @@ class TruthComputer:
                     contact_wrench[c][idx] = np.nan
                 for s in robot.sensors:
                     wrench[s][idx] = asif[s]
+                if motion.pushes:
+                    self._subtract_pushes(wrench, idx, root, pose, motion)
                 continue
             for c, g_c in ground.items():
                 contact_wrench[c][idx] = g_c
@@ -208,6 +213,8 @@ class TruthComputer:
                     t_s = np.einsum("nij,nj->ni", rot, g_c[:, 3:]) + _cross(pos, f_s)
                     total -= sign * np.concatenate([f_s, t_s], axis=1)
                 wrench[s][idx] = total
+            if motion.pushes:
+                self._subtract_pushes(wrench, idx, root, pose, motion)
         # the load-bearing contact set: a foot whose ground wrench is exactly zero does not touch; a foot
         # that bears load touches with every link it has on the floor (a part may carry little)
         contacts = []
@@ -220,7 +227,28 @@ class TruthComputer:
                     idle.update(links)
             bearing = frozenset(declared - idle)
             contacts.append(bearing if bearing else declared)
-        return Truth(wrench, contact_wrench, proper_acc, gyro, world_T_sensor, contacts)
+        torque = joint_torques(robot, motion, self.g) if motion.pushes else None
+        return Truth(wrench, contact_wrench, proper_acc, gyro, world_T_sensor, contacts, torque)
+
+    def _subtract_pushes(
+        self, wrench: dict[str, np.ndarray], idx: np.ndarray, root: str, pose: dict, motion: Motion
+    ) -> None:
+        """Superpose the pushes of `motion` (samples `idx`) on the sensors whose far side they act on."""
+        rooted = self.robot.rooted(root)
+        for s, ft in self.robot.sensors.items():
+            parent_side, child_side = self.robot.sensor_sides(s)
+            far = child_side if rooted.sensor_forward[s] else parent_side
+            sign = (1.0 if ft.direction == "parent_to_child" else -1.0) * (
+                1.0 if rooted.sensor_forward[s] else -1.0
+            )
+            inv = np.linalg.inv(pose[s])
+            rot, pos = inv[:, :3, :3], inv[:, :3, 3]
+            for link, w in motion.pushes.items():
+                if link not in far:
+                    continue
+                f_s = np.einsum("nij,nj->ni", rot, w[idx, :3])
+                t_s = np.einsum("nij,nj->ni", rot, w[idx, 3:]) + _cross(pos, f_s)
+                wrench[s][idx] -= sign * np.concatenate([f_s, t_s], axis=1)
 
     def _ground_wrenches(
         self,
@@ -300,3 +328,40 @@ class TruthComputer:
                 t_w = np.einsum("nij,nj->ni", rot, w[:, 3:]) + _cross(pos, f_w)
                 out[link] = np.concatenate([f_w, t_w], axis=1)
         return out
+
+
+def joint_torques(robot: RobotModel, motion: Motion, gravity: np.ndarray) -> np.ndarray:
+    """(N, n_joints) true joint torques, Nm, of samples where one link touches (NaN elsewhere).
+
+    RNEA on the model rooted at that link gives the torques as if no other force acted; each push wrench
+    w (world frame, about its origin) then adds ``-J^T w`` with J the Jacobian of its link's frame.
+    """
+    out = np.full((motion.n, len(robot.joint_names)), np.nan)
+    for contact_id, contact_set in enumerate(motion.contact_sets):
+        if len(contact_set) != 1:
+            continue
+        for fixed in sorted(set(motion.fixed_links[motion.contact_index == contact_id].tolist())):
+            idx = np.flatnonzero((motion.contact_index == contact_id) & (motion.fixed_links == fixed))
+            root = choose_root(robot, ContactCase.make(contact_set, fixed, gravity))
+            fixed_T_root = robot.rigid_transform(fixed, root)
+            g_root = fixed_T_root.rotation.T @ gravity
+            rooted = robot.rooted(root)
+            q, dq, ddq = motion.q[idx], motion.dq[idx], motion.ddq[idx]
+            tau = far_side_wrenches(robot, root, g_root, q, dq, ddq)
+            root_X_fixed = wrench_transform(fixed_T_root.inverse())
+            model, data = rooted.model, rooted.model.createData()
+            qs = rooted.neutral_batch(len(idx))
+            qs[:, rooted.q_index] = q * rooted.sign
+            for link, w in motion.pushes.items():
+                fid = model.getFrameId(link)
+                w_root = w[idx] @ root_X_fixed.T
+                for j in range(len(idx)):
+                    if not np.any(w_root[j]):
+                        continue
+                    pin.framesForwardKinematics(model, data, qs[j])
+                    jac = pin.computeFrameJacobian(model, data, qs[j], fid, pin.LOCAL_WORLD_ALIGNED)
+                    p = data.oMf[fid].translation
+                    about = np.r_[w_root[j, :3], w_root[j, 3:] - np.cross(p, w_root[j, :3])]
+                    tau[j] -= jac.T @ about
+            out[idx] = tau[:, rooted.v_index] * rooted.sign
+    return out

@@ -6,7 +6,7 @@ labeller and the calibration only ever see the nominal URDF and the raw readings
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numpy as np
 
@@ -50,6 +50,9 @@ class World:
     distortions: dict[str, SensorDistortion]
     model_errors: dict
     motions: MotionGenerator  # its .p: the motion params used (URDF-derived where params say null)
+    base_params: Params | None = (
+        None  # deployment worlds: the params the world was built from (training seed)
+    )
 
 
 def build_world(params: Params, sim: SimulateParams) -> World:
@@ -71,4 +74,27 @@ def build_world(params: Params, sim: SimulateParams) -> World:
         rear["offset"] = (np.abs(rear["offset"]) * np.sign(front["offset"])).tolist()
         distortions[pair.rear] = SensorDistortion.from_dict(rear)
     motions = MotionGenerator(robot, feet, sim.motion)
+    if sim.shift is not None:
+        # a later day of the same robot: the same hidden distortions with drifted offsets; its motions and
+        # noise from its own seed (every per-log stream below reads world.params.seed)
+        distortions = shifted_offsets(
+            distortions, sim.shift.seed, sim.shift.offset_force, sim.shift.offset_torque
+        )
+        shifted = replace(params, seed=sim.shift.seed)
+        return World(shifted, sim, robot, truth_robot, feet, pairs, distortions, errors, motions, params)
     return World(params, sim, robot, truth_robot, feet, pairs, distortions, errors, motions)
+
+
+def shifted_offsets(
+    distortions: dict[str, SensorDistortion], seed: int, force_n: float, torque_nm: float
+) -> dict[str, SensorDistortion]:
+    """Every sensor's distortion, its offset moved per axis by uniform +- `force_n` (N) / `torque_nm` (Nm)."""
+    bound = np.repeat([force_n, torque_nm], 3)
+    out = {}
+    for i, (name, d) in enumerate(distortions.items()):
+        data = d.to_dict()
+        data["offset"] = (
+            np.asarray(data["offset"]) + stream_rng(seed, 4, i).uniform(-1, 1, 6) * bound
+        ).tolist()
+        out[name] = SensorDistortion.from_dict(data)
+    return out

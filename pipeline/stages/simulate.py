@@ -59,7 +59,7 @@ def _generate(world: Any, jobs: list[tuple], progress: bool | None) -> list:
                 results.append(_work(job))
                 bar.advance(task, job[1].duration_s)
         else:
-            init = (world.params, world.sim)
+            init = (world.base_params or world.params, world.sim)  # workers rebuild the same world
             with ProcessPoolExecutor(workers, initializer=_init_worker, initargs=init) as pool:
                 order = sorted(jobs, key=lambda j: -j[1].duration_s)  # longest first: no idle core at the end
                 for result, job in zip(pool.map(_work, order), order, strict=True):
@@ -128,17 +128,23 @@ def _swap_in(tmp: Path, out_dir: Path) -> None:
         tmp.rename(out_dir)
 
 
-def run(params: Any, out_dir: Path, progress: bool | None = None) -> list:
+def run(params: Any, out_dir: Path, progress: bool | None = None, deploy: str | None = None) -> list:
     """Simulate every configured log into `out_dir` (replaced atomically as a whole) and log to MLflow.
 
-    params: the loaded :class:`pipeline.core.config.Params`. Returns the per-log
+    params: the loaded :class:`pipeline.core.config.Params`. deploy: None for the logs of ``simulate``, or
+    ``later`` / ``drifted`` for the deployment logs of section ``deploy``. Returns the per-log
     :class:`pipeline.sim.experiment.LogResult` list, sorted by log name.
     """
     from pipeline.core.tracking import stage_run
     from pipeline.sim.params import simulate_params
     from pipeline.sim.world import build_world
 
-    sim = simulate_params(params)
+    if deploy is None:
+        sim = simulate_params(params)
+    else:
+        from pipeline.deploy.params import deployment_simulation
+
+        sim = deployment_simulation(params, deploy)
     world = build_world(params, sim)  # validates robot, foot pairs and motion params before any work
     out_dir = Path(out_dir)
     tmp = out_dir.with_name(out_dir.name + ".tmp")
@@ -150,6 +156,8 @@ def run(params: Any, out_dir: Path, progress: bool | None = None) -> list:
         jobs.append((i, spec, str(tmp), sim.plots and spec.type not in seen))
         seen.add(spec.type)
     logged = {"seed": params.seed, "robot": asdict(params.robot), "simulate": params.raw["simulate"]}
+    if deploy is not None:
+        logged.update(deploy=params.raw["deploy"], variant=deploy)
     with stage_run("simulate", logged):
         start = time.perf_counter()
         results = _generate(world, jobs, progress)
@@ -162,7 +170,8 @@ def run(params: Any, out_dir: Path, progress: bool | None = None) -> list:
 def _cmd(args: argparse.Namespace) -> int:
     from pipeline.core.config import load_params
 
-    results = run(load_params(args.params), Path(args.out_dir), progress=False if args.quiet else None)
+    progress = False if args.quiet else None
+    results = run(load_params(args.params), Path(args.out_dir), progress=progress, deploy=args.deploy)
     total = sum(r.samples for r in results)
     print(f"simulate: {len(results)} logs, {total} samples -> {args.out_dir}")
     return 0
@@ -175,6 +184,12 @@ def add_cli(sub: argparse._SubParsersAction) -> None:
     p.add_argument("out_dir", help="output directory (e.g. data/sim)")
     p.add_argument("--params", type=Path, default=None, help="params file (default: repo params.yaml)")
     p.add_argument("--quiet", action="store_true", help="no progress bar")
+    p.add_argument(
+        "--deploy",
+        choices=("later", "drifted"),
+        default=None,
+        help="simulate the deployment logs of params section deploy (a later day, or the drift check's)",
+    )
     p.set_defaults(func=_cmd)
 
 

@@ -1,0 +1,180 @@
+"""The three deployment tests of the thesis (chapter 6) on one deployment day's logs.
+
+- Test A, standing still: output noise of every trained model against raw, high-pass std per axis on the
+  quasi-static samples (`pipeline.evaluation.noise`); a model above ``evaluate.noise_threshold`` (worst
+  axis) is flagged.
+- Test B, walking: thesis tables (MSE / MAE / RMSE, global and per axis) of the calibrated sensors and
+  foot sums against the labels and, where simulated, the truth, beside raw.
+- Test C, pushed on the pole: leg joint torques estimated from each leg sensor (`pipeline.physics.torques`)
+  with raw and calibrated wrenches against the true joint torques; RMSE and max error per joint during
+  the pushes.
+Wrenches N / Nm in the sensor frame (foot sums in the sole frame), torques Nm.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import pandas as pd
+
+from pipeline.deploy.models import group_models
+from pipeline.deploy.params import DeployParams
+from pipeline.deploy.prepare import DeployLog
+from pipeline.evaluation.noise import board_speed, highpass, noise_ratio, quasi_static_mask, segment_ids
+from pipeline.evaluation.params import EvaluateParams
+from pipeline.evaluation.results import score
+from pipeline.logs import schema as S
+from pipeline.physics.robot import RobotModel
+
+
+def _wrench(df: pd.DataFrame, quantity: str, name: str) -> np.ndarray:
+    return df[S.wrench_cols(quantity, name)].to_numpy(np.float64)
+
+
+def standing_noise(
+    log: DeployLog, models: Path, cfg: EvaluateParams, deployed: dict[str, str]
+) -> dict[str, Any]:
+    """Test A on a standing-still log: per group and model, noise ratio per axis and the verdict."""
+    table = pd.read_parquet(log.labelled)
+    stamps = table[S.STAMP].to_numpy()
+    seg, fs = segment_ids(np.zeros(len(table), dtype=np.int64), stamps)
+    out: dict[str, Any] = {}
+    for group_dir in sorted(p for p in models.iterdir() if (p / "metrics.json").is_file()):
+        sensors, predictors = group_models(group_dir)
+        gyro = [table[S.vector_cols(S.GYR, s)].to_numpy(np.float64) for s in sensors]
+        speed = board_speed(gyro, seg, fs, cfg.highpass_hz, cfg.highpass_order)
+        mask = quasi_static_mask(
+            speed, table[S.CONTACTS].to_numpy(), table[S.GUARD].to_numpy(), seg, fs,
+            cfg.still_gyro_rad_s, cfg.still_min_s, 1.0,
+        )  # fmt: skip
+        raw_hf = np.concatenate(
+            [highpass(_wrench(table, S.FT, s), seg, fs, cfg.highpass_hz, 4) for s in sensors], 1
+        )
+        rows = {}
+        for name, predict in predictors.items():
+            pred = predict(table)
+            hf = np.concatenate(
+                [highpass(pred[s], seg, fs, cfg.highpass_hz, cfg.highpass_order) for s in sensors], 1
+            )
+            ratio = noise_ratio(hf, raw_hf, mask)
+            worst = float(np.nanmax(ratio)) if np.isfinite(ratio).any() else float("nan")
+            rows[name] = {
+                "ratio_axes": ratio.tolist(),
+                "worst": worst,
+                "flagged": bool(worst > cfg.noise_threshold),
+            }
+        out[group_dir.name] = {
+            "sensors": sensors,
+            "deployed": deployed[group_dir.name],
+            "quasi_static_s": float(mask.sum() / fs),
+            "models": rows,
+        }
+    return out
+
+
+def _pair_sums(robot: RobotModel, params: Any, data: dict[str, np.ndarray]) -> dict[str, np.ndarray]:
+    out = {}
+    for p in params.robot.foot_pairs:
+        if p.front in data and p.rear in data:
+            pair = robot.foot_pair(p.name, p.front, p.rear, p.sole)
+            out[p.name] = data[p.front] @ pair.sole_X_front.T + data[p.rear] @ pair.sole_X_rear.T
+    return out
+
+
+def walking_errors(
+    log: DeployLog, robot: RobotModel, params: Any, calibrated: dict[str, np.ndarray]
+) -> dict[str, Any]:
+    """Test B on a walking log: per calibrated sensor and foot sum, scores of raw and calibrated against the
+    labels (where exact) and the truth."""
+    table = pd.read_parquet(log.labelled)
+    truth = pd.read_parquet(log.truth) if log.truth is not None else None
+    raw = {s: _wrench(table, S.FT, s) for s in calibrated}
+    true = {s: _wrench(truth, S.TRUE, s) for s in calibrated} if truth is not None else {}
+    names = {**{s: (raw[s], calibrated[s]) for s in calibrated}}
+    raw_sums, cal_sums = _pair_sums(robot, params, raw), _pair_sums(robot, params, calibrated)
+    true_sums = _pair_sums(robot, params, true) if true else {}
+    names.update({p: (raw_sums[p], cal_sums[p]) for p in cal_sums})
+    true.update(true_sums)
+    out: dict[str, Any] = {}
+    for name, (r, c) in names.items():
+        label = _wrench(table, S.EXPECTED, name)
+        switch = table[S.switch_col(name)].to_numpy(bool)
+        entry = {"labels": {"raw": score(r, label, switch), "calibrated": score(c, label, switch)}}
+        if name in true:
+            entry["truth"] = {"raw": score(r, true[name]), "calibrated": score(c, true[name])}
+            entry["ratio_truth"] = entry["truth"]["raw"]["rmse"] / entry["truth"]["calibrated"]["rmse"]
+        out[name] = entry
+    return out
+
+
+def read_true_torques(log: DeployLog, topic: str, stamps: np.ndarray, joints: list[str]) -> np.ndarray | None:
+    """(N, len(joints)) true joint torques of a simulated pushed log at `stamps` (NaN where missing)."""
+    from pipeline.logs.rosmsg import LogReader, concat_batches
+
+    with LogReader(log.source) as reader:
+        batches = reader.read([topic]).get(topic, [])
+    if not batches:
+        return None
+    data = concat_batches(batches)
+    names = list(batches[0].names or ())
+    out = np.full((len(stamps), len(joints)), np.nan)
+    pos = np.searchsorted(data["stamp_ns"], stamps)
+    pos = np.clip(pos, 0, len(data["stamp_ns"]) - 1)
+    hit = data["stamp_ns"][pos] == stamps
+    for c, j in enumerate(joints):
+        out[hit, c] = data["effort"][pos[hit], names.index(j)]
+    return out
+
+
+def push_torques(
+    log: DeployLog, robot: RobotModel, params: Any, dp: DeployParams, calibrated: dict[str, np.ndarray]
+) -> tuple[dict[str, Any], dict[str, Any]]:
+    """Test C on a pushed pole log: per leg joint, RMSE and max error of the torque from the raw and from
+    the calibrated leg sensor against the truth during the pushes. Returns (results, series for figures)."""
+    from pipeline.physics.torques import limb_joints, sensor_joint_torques
+    from pipeline.sim.push import push_profile
+
+    table = pd.read_parquet(log.labelled)
+    smooth = pd.read_parquet(log.smoothed, columns=[S.STAMP, *(
+        c for k in (S.QS, S.DQS, S.DDQS) for c in S.joint_cols(k, robot.joint_names))])  # fmt: skip
+    q, dq, ddq = (smooth[S.joint_cols(k, robot.joint_names)].to_numpy() for k in (S.QS, S.DQS, S.DDQS))
+    time_s = table[S.TIME].to_numpy()
+    gravity = [float(v) for v in log.experiment.get("gravity", f"0 0 {-params.robot.gravity}").split()]
+    fixed = str(table[S.FIXED_LINK].iloc[0])
+    _, who = push_profile(time_s, dp.push, len(dp.torque_limbs))
+    pushed = who >= 0
+    results, series = {}, {"time_s": time_s, "pushed": pushed}
+    for sensor, end in dp.torque_limbs.items():
+        if sensor not in calibrated:
+            continue
+        joints = limb_joints(robot, end)
+        true = read_true_torques(log, params.topics.sim_joint_torques, table[S.STAMP].to_numpy(), joints)
+        if true is None:
+            continue
+        est = {
+            kind: sensor_joint_torques(robot, sensor, joints, q, dq, ddq, w, fixed, gravity)
+            for kind, w in (("raw", _wrench(table, S.FT, sensor)), ("calibrated", calibrated[sensor]))
+        }
+        ok = (
+            pushed
+            & np.isfinite(true).all(1)
+            & np.isfinite(est["raw"]).all(1)
+            & np.isfinite(est["calibrated"]).all(1)
+        )
+        per_joint = {}
+        for c, j in enumerate(joints):
+            per_joint[j] = {
+                kind: {
+                    "rmse": float(np.sqrt(np.mean((e[ok, c] - true[ok, c]) ** 2))),
+                    "max": float(np.max(np.abs(e[ok, c] - true[ok, c]))),
+                }
+                for kind, e in est.items()
+            }
+            per_joint[j]["ratio_max"] = per_joint[j]["raw"]["max"] / max(
+                per_joint[j]["calibrated"]["max"], 1e-12
+            )
+        results[sensor] = {"joints": per_joint, "samples_pushed": int(ok.sum())}
+        series[sensor] = {"joints": joints, "true": true, **est}
+    return results, series

@@ -1,0 +1,141 @@
+"""Section ``deploy`` of params.yaml: the deployment logs (a later day of the robot) and the tests' settings.
+
+Light imports only (the stage's CLI validates params with it). Every error names the dotted key.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+from dataclasses import dataclass
+from typing import Any
+
+from pipeline.core.config import Params
+from pipeline.core.errors import ConfigError
+from pipeline.sim.params import DeploymentShift, LogSpec, PushParams, simulate_params
+
+VARIANTS = ("later", "drifted")  # the default deployment logs and the drift check's
+
+
+@dataclass(frozen=True)
+class Drift:
+    """How far a deployment day is from training (``deploy.later``, ``deploy.drifted``)."""
+
+    temperature_c: float  # sensors' idle temperature above training's, deg C
+    offset_force: float  # offset drift per force axis, uniform +-, N
+    offset_torque: float  # offset drift per torque axis, uniform +-, Nm
+
+
+@dataclass(frozen=True)
+class DeployParams:
+    """Section ``deploy``."""
+
+    seed: int
+    real_logs: str
+    logs: tuple[LogSpec, ...]
+    push: PushParams
+    later: Drift
+    drifted: Drift
+    torque_limbs: dict[str, str]  # leg FT sensor -> limb end link (its joints are estimated)
+    figure_joint: str  # suffix of the joint drawn in the Test C figure (e.g. hip_pitch)
+    torque_target: float  # Test C passes when raw max-error / calibrated max-error on it is >= this
+
+
+def _num(value: Any, key: str, lo: float, hi: float) -> float:
+    if isinstance(value, bool) or not isinstance(value, int | float) or not (lo <= value <= hi):
+        raise ConfigError(f"deploy.{key} must be a number in [{lo:g}, {hi:g}], got {value!r}")
+    return float(value)
+
+
+def _mapping(raw: Any, key: str, names: tuple[str, ...]) -> dict[str, Any]:
+    if not isinstance(raw, dict):
+        raise ConfigError(f"deploy.{key} must be a mapping, got {raw!r}")
+    unknown = sorted(set(raw) - set(names))
+    missing = sorted(set(names) - set(raw))
+    if unknown or missing:
+        prefix = f"deploy.{key}." if key else "deploy."
+        what = f"unknown key {prefix}{unknown[0]}" if unknown else f"missing key {prefix}{missing[0]}"
+        raise ConfigError(what)
+    return raw
+
+
+def _drift(raw: Any, key: str) -> Drift:
+    raw = _mapping(raw, key, ("temperature_c", "offset_force", "offset_torque"))
+    return Drift(
+        _num(raw["temperature_c"], f"{key}.temperature_c", -30.0, 60.0),
+        _num(raw["offset_force"], f"{key}.offset_force", 0.0, 500.0),
+        _num(raw["offset_torque"], f"{key}.offset_torque", 0.0, 50.0),
+    )
+
+
+def _logs(raw: Any, feet: tuple[str, ...]) -> tuple[LogSpec, ...]:
+    if not isinstance(raw, list) or not raw:
+        raise ConfigError("deploy.logs must be a non-empty list of logs")
+    out = []
+    for i, entry in enumerate(raw):
+        if not isinstance(entry, dict):
+            raise ConfigError(f"deploy.logs[{i}] must be a mapping, got {entry!r}")
+        try:
+            spec = LogSpec(**{"role": "test", **entry})
+        except TypeError as exc:
+            raise ConfigError(f"deploy.logs[{i}]: {exc}") from None
+        spec.check(f"deploy.logs[{i}]", feet)
+        out.append(spec)
+    types = {s.type for s in out}
+    for need in ("standing", "walking", "pole"):
+        if need not in types:
+            raise ConfigError(f"deploy.logs must hold a {need} log (tests A, B, C need one each)")
+    return tuple(out)
+
+
+def deploy_params(params: Params) -> DeployParams:
+    """Load and validate the ``deploy`` section."""
+    names = tuple(f.name for f in dataclasses.fields(DeployParams))
+    raw = _mapping(params.raw.get("deploy"), "", names) if "deploy" in params.raw else None
+    if raw is None:
+        raise ConfigError("missing section deploy")
+    seed = raw["seed"]
+    if isinstance(seed, bool) or not isinstance(seed, int) or not 0 <= seed < 2**32:
+        raise ConfigError(f"deploy.seed must be an integer in [0, 2**32), got {seed!r}")
+    if not isinstance(raw["real_logs"], str) or not raw["real_logs"]:
+        raise ConfigError(f"deploy.real_logs must be a folder path, got {raw['real_logs']!r}")
+    push = _mapping(raw["push"], "push", ("force_n", "duration_s", "period_s", "direction"))
+    limbs = raw["torque_limbs"]
+    if not isinstance(limbs, dict) or not limbs or not all(isinstance(v, str) for v in limbs.values()):
+        raise ConfigError(f"deploy.torque_limbs must map FT sensors to limb end links, got {limbs!r}")
+    if not isinstance(raw["figure_joint"], str) or not raw["figure_joint"]:
+        raise ConfigError(f"deploy.figure_joint must be a joint name suffix, got {raw['figure_joint']!r}")
+    feet = tuple(p.name for p in params.robot.foot_pairs)
+    return DeployParams(
+        seed=seed,
+        real_logs=raw["real_logs"],
+        logs=_logs(raw["logs"], feet),
+        push=PushParams(
+            **{k: tuple(v) if k == "direction" and isinstance(v, list) else v for k, v in push.items()}
+        ),
+        later=_drift(raw["later"], "later"),
+        drifted=_drift(raw["drifted"], "drifted"),
+        torque_limbs=dict(limbs),
+        figure_joint=raw["figure_joint"],
+        torque_target=_num(raw["torque_target"], "torque_target", 0.0, math.inf),
+    )
+
+
+def deployment_simulation(params: Params, variant: str) -> Any:
+    """The `SimulateParams` of the deployment logs of `variant` (later or drifted): the training
+    simulation's robot and hidden distortions, the deploy section's logs, seed, pushes, warmth and drift."""
+    if variant not in VARIANTS:
+        raise ConfigError(f"deployment variant must be one of {', '.join(VARIANTS)}, got {variant!r}")
+    dp = deploy_params(params)
+    sim = simulate_params(params)
+    drift: Drift = getattr(dp, variant)
+    thermal = dataclasses.replace(sim.thermal, baseline=sim.thermal.baseline + drift.temperature_c)
+    seed = (dp.seed + VARIANTS.index(variant)) % 2**32  # each day its own motions and noise
+    return dataclasses.replace(
+        sim,
+        logs=dp.logs,
+        plots=False,
+        thermal=thermal,
+        push=dp.push,
+        shift=DeploymentShift(seed, drift.offset_force, drift.offset_torque),
+    )

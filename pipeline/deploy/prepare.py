@@ -1,0 +1,93 @@
+"""Deployment logs through the pipeline's own steps: ingest, smooth, label (truth kept where simulated).
+
+The same library functions as the stages (`ingest_one`, `smooth_table`, `label_table`), into a work
+directory, so a deployment log is read exactly as a training log was. Real logs (no truth) too.
+"""
+
+from __future__ import annotations
+
+import json
+from dataclasses import dataclass
+from pathlib import Path
+
+from pipeline.core.config import LabelParams, Params, repo_root, resolve_urdf, stage_section
+from pipeline.logs import schema as S
+from pipeline.logs.smoothing import SmoothParams, smooth_table
+from pipeline.physics.robot import RobotModel, load_robot
+
+
+@dataclass(frozen=True)
+class DeployLog:
+    """One deployment log and its tables (paths), its experiment record and whether truth exists."""
+
+    name: str
+    source: Path  # the MCAP / .mat log
+    smoothed: Path
+    labelled: Path
+    truth: Path | None
+    experiment: dict[str, str]
+
+
+def load_nominal_robot(params: Params) -> RobotModel:
+    """The robot of ``robot.urdf`` (what the calibration and the estimators know)."""
+    return load_robot(resolve_urdf(params.robot.urdf, repo_root()))
+
+
+def prepare_logs(
+    params: Params, robot: RobotModel, logs: list[Path], source_dir: Path, work: Path
+) -> list[DeployLog]:
+    """Ingest, smooth and label every log of `logs` (under `source_dir`) into `work`/<step>/."""
+    from pipeline.labels.table import Labeller, label_table
+    from pipeline.physics.cuts import find_cut_sets
+    from pipeline.stages.ingest import IngestParams, RobotLogSpec, ingest_one, output_name
+
+    spec = RobotLogSpec(
+        stage_section(params, "ingest", IngestParams),
+        params.topics,
+        robot.joint_names,
+        list(robot.sensors),
+        [params.robot.urdf, robot.name, Path(robot.urdf_path).stem],
+    )
+    smooth_cfg = stage_section(params, "smooth", SmoothParams)
+    label_cfg = stage_section(params, "label", LabelParams)
+    pairs = [robot.foot_pair(p.name, p.front, p.rear, p.sole) for p in params.robot.foot_pairs]
+    lab = Labeller(
+        robot, pairs, find_cut_sets(robot, pairs, label_cfg.cut_max_sensors), label_cfg, params.robot.gravity
+    )
+    dirs = {k: work / k for k in ("ingested", "smoothed", "labelled")}
+    for d in dirs.values():
+        d.mkdir(parents=True, exist_ok=True)
+    out = []
+    for log in logs:
+        name = output_name(log, source_dir)
+        ingest_one(log, dirs["ingested"], name, spec, None)
+        table = S.PARQUET_SUFFIX
+        smooth_table(dirs["ingested"] / f"{name}{table}", dirs["smoothed"] / f"{name}{table}", smooth_cfg)
+        truth = dirs["ingested"] / f"{name}{S.TRUTH_SUFFIX}{table}"
+        has_truth = truth.is_file()
+        label_table(
+            dirs["smoothed"] / f"{name}{table}",
+            dirs["labelled"] / f"{name}{table}",
+            lab,
+            dirs["ingested"] if has_truth else None,
+        )
+        experiment = _experiment(dirs["ingested"] / f"{name}{table}")
+        out.append(
+            DeployLog(
+                name,
+                log,
+                dirs["smoothed"] / f"{name}{table}",
+                dirs["labelled"] / f"{name}{table}",
+                truth if has_truth else None,
+                experiment,
+            )
+        )
+    return out
+
+
+def _experiment(table: Path) -> dict[str, str]:
+    import pyarrow.parquet as pq
+
+    meta = pq.read_schema(table).metadata or {}
+    raw = meta.get(S.META_EXPERIMENT)
+    return json.loads(raw) if raw else {}
