@@ -82,7 +82,7 @@ def deployed_models(exported: Path) -> dict[str, str]:
     from pipeline.export.runtime import Deployment
 
     deployment = Deployment.load(exported)
-    return {group: str(entry["model"]) for group, entry in deployment.groups().items()}
+    return {group: str(entry["models"][group]) for group, entry in deployment.groups().items()}
 
 
 def calibrated_wrenches(
