@@ -272,3 +272,24 @@ def pa_table(cols: dict[str, np.ndarray], schema):  # noqa: ANN201
     return pa.Table.from_pydict(
         {k: pa.array(v, type=schema.field(k).type) for k, v in cols.items()}, schema=schema
     )
+
+
+def test_declared_contact_the_urdf_lacks_names_the_log(tmp_path: Path, default_run: Path) -> None:
+    """A log whose experiment metadata declares a link the URDF does not have: the error names the log."""
+    import json
+
+    import pyarrow.parquet as pq
+
+    src = default_run / "smoothed" / "00_pole_train.parquet"
+    table = pq.read_table(src)
+    meta = dict(table.schema.metadata)
+    experiment = json.loads(meta[S.META_EXPERIMENT])
+    experiment["contacts"] = "l_toe"
+    meta[S.META_EXPERIMENT] = json.dumps(experiment).encode()
+    bad = tmp_path / "smoothed" / "00_pole_train.parquet"
+    bad.parent.mkdir()
+    pq.write_table(table.replace_schema_metadata(meta), bad)
+    params = load_params(write_params(tmp_path, "p"))
+    with pytest.raises(DataError, match=r"00_pole_train\.parquet: its experiment metadata .*l_toe"):
+        run(params, bad.parent, tmp_path / "out")
+    assert not (tmp_path / "out").exists()

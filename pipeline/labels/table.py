@@ -20,7 +20,7 @@ import pandas as pd
 import pyarrow as pa
 
 from pipeline.core.config import LabelParams
-from pipeline.core.errors import DataError
+from pipeline.core.errors import DataError, RobotModelError
 from pipeline.core.io import write_parquet
 from pipeline.labels.contacts import Contacts, declared_contacts, detect_contacts
 from pipeline.logs import schema as S
@@ -276,12 +276,15 @@ def label_table(src: Path, dst: Path, lab: Labeller, truth_dir: Path | None = No
     q, dq, ddq = (table[S.joint_cols(k, robot.joint_names)].to_numpy() for k in (S.QS, S.DQS, S.DDQS))
     ok = table[S.ok_col(S.KINEMATICS_STREAM)].to_numpy(bool) & np.isfinite(np.c_[q, dq, ddq]).all(axis=1)
     time_s = table[S.TIME].to_numpy()
-    contacts = declared_contacts(robot, experiment, n)
-    if contacts is None:
-        raw = {s: table[S.wrench_cols(S.FT, s)].to_numpy() for p in lab.pairs for s in (p.front, p.rear)}
-        contacts = detect_contacts(robot, lab.pairs, raw, time_s, lab.cfg, lab.gravity, str(src))
-    gravity_fixed = _gravity_fixed(src, experiment, lab.gravity)
-    columns = label_arrays(lab, contacts, q, dq, ddq, ok, gravity_fixed)
+    try:  # the log's metadata may name links the URDF lacks: the error names the log
+        contacts = declared_contacts(robot, experiment, n)
+        if contacts is None:
+            raw = {s: table[S.wrench_cols(S.FT, s)].to_numpy() for p in lab.pairs for s in (p.front, p.rear)}
+            contacts = detect_contacts(robot, lab.pairs, raw, time_s, lab.cfg, lab.gravity, str(src))
+        gravity_fixed = _gravity_fixed(src, experiment, lab.gravity)
+        columns = label_arrays(lab, contacts, q, dq, ddq, ok, gravity_fixed)
+    except RobotModelError as exc:
+        raise DataError(f"{src}: its experiment metadata does not fit the robot: {exc}") from None
 
     out = _passthrough(table, robot)
     out.update(columns)
