@@ -133,3 +133,15 @@ def test_command_line_help_imports_no_heavy_library() -> None:
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, cwd=ROOT, check=True)
     lines = out.stdout.split("\n")[:-1]
     assert len(lines) == len(COMMANDS) + 1 and all(line.endswith(" []") for line in lines), out.stdout
+
+
+def test_ruff_check_and_format_are_clean() -> None:
+    """The lint and format rules of pyproject.toml hold (so CI, which runs the tests, enforces them)."""
+    for args in (["check", "--no-cache"], ["format", "--check", "--no-cache"]):
+        out = subprocess.run(
+            [sys.executable, "-m", "ruff", *args, "pipeline", "tests", "benchmarks"],
+            capture_output=True,
+            text=True,
+            cwd=ROOT,
+        )
+        assert out.returncode == 0, out.stdout + out.stderr
