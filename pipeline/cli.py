@@ -10,9 +10,9 @@ import argparse
 import importlib
 import sys
 from collections.abc import Sequence
-from pathlib import Path
 
 from pipeline import __version__
+from pipeline.core.cliargs import add_params_option
 from pipeline.core.errors import FtcalError
 
 EXIT_OK = 0
@@ -97,13 +97,7 @@ def build_parser(command: str | None = None) -> argparse.ArgumentParser:
     sub = parser.add_subparsers(dest="command", required=True, metavar="COMMAND")
 
     robot = sub.add_parser("robot", help="print the robot's FT sensors", description=_cmd_robot.__doc__)
-    robot.add_argument(
-        "--params",
-        type=Path,
-        default=None,
-        metavar="PATH",
-        help="params file (default: params.yaml at the repo root)",
-    )
+    add_params_option(robot)
     robot.add_argument(
         "--urdf",
         default=None,

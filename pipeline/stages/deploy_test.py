@@ -16,6 +16,7 @@ import tempfile
 from pathlib import Path
 from typing import Any
 
+from pipeline.core.cliargs import add_params_option
 from pipeline.core.errors import DataError
 
 STAGE = "deploy_test"
@@ -165,5 +166,5 @@ def add_cli(subparsers: Any) -> None:
         "--later", type=Path, default=None, help="deployment logs of a later day (data/deploy/later)"
     )
     p.add_argument("--drifted", type=Path, default=None, help="the drift check's logs (data/deploy/drifted)")
-    p.add_argument("--params", type=Path, default=None, help="params file (default: repo params.yaml)")
+    add_params_option(p)
     p.set_defaults(func=_cmd)

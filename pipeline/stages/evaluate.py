@@ -26,6 +26,7 @@ import time
 from pathlib import Path
 from typing import Any
 
+from pipeline.core.cliargs import add_params_option
 from pipeline.core.errors import DataError
 
 STAGE = "evaluate"
@@ -144,5 +145,5 @@ def add_cli(subparsers: Any) -> None:
         help="directory of simulated <log>.truth.parquet tables (optional): adds the errors against the "
         "true wrench and the oracle calibration",
     )
-    parser.add_argument("--params", type=Path, default=None, help="params file (default: repo params.yaml)")
+    add_params_option(parser)
     parser.set_defaults(func=_cmd)

@@ -31,6 +31,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
+from pipeline.core.cliargs import add_params_option
 from pipeline.core.errors import ConfigError, DataError
 
 STAGE = "export"
@@ -272,5 +273,5 @@ def add_cli(subparsers: Any) -> None:
         "labelled", type=Path, help="directory of labelled <log>.parquet tables (test inputs)"
     )
     parser.add_argument("out", type=Path, help="output directory of the ONNX files and manifest.json")
-    parser.add_argument("--params", type=Path, default=None, help="params file (default: repo params.yaml)")
+    add_params_option(parser)
     parser.set_defaults(func=_cmd)

@@ -20,6 +20,7 @@ from dataclasses import asdict, dataclass
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
+from pipeline.core.cliargs import add_params_option
 from pipeline.core.errors import DataError
 from pipeline.logs.params import IngestParams
 
@@ -294,11 +295,5 @@ def add_cli(subparsers: Any) -> None:
     )
     parser.add_argument("source", type=Path, help="directory searched recursively for *.mcap and *.mat logs")
     parser.add_argument("out", type=Path, help="output directory for <log>.parquet (+ <log>.truth.parquet)")
-    parser.add_argument(
-        "--params",
-        type=Path,
-        default=None,
-        metavar="PATH",
-        help="params file (default: params.yaml at the repo root)",
-    )
+    add_params_option(parser)
     parser.set_defaults(func=_cmd)

@@ -21,6 +21,7 @@ from dataclasses import asdict
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
+from pipeline.core.cliargs import add_params_option
 from pipeline.core.errors import DataError
 
 if TYPE_CHECKING:
@@ -123,7 +124,7 @@ def add_cli(subparsers: Any) -> None:
         help="directory of simulated <log>.truth.parquet tables (optional): adds the contact "
         "agreement and label error against truth to the summary",
     )
-    parser.add_argument("--params", type=Path, default=None, help="params file (default: repo params.yaml)")
+    add_params_option(parser)
     parser.set_defaults(func=_cmd)
 
 

@@ -14,6 +14,7 @@ import time
 from pathlib import Path
 from typing import Any
 
+from pipeline.core.cliargs import add_params_option
 from pipeline.core.errors import DataError
 
 STAGE = "report"
@@ -83,5 +84,5 @@ def add_cli(subparsers: Any) -> None:
         description=(__doc__ or "").split("\n\n")[0],
     )
     parser.add_argument("reports", type=Path, help="reports directory (groups/<group>/report.json inside)")
-    parser.add_argument("--params", type=Path, default=None, help="params file (default: repo params.yaml)")
+    add_params_option(parser)
     parser.set_defaults(func=_cmd)

@@ -24,6 +24,8 @@ from dataclasses import asdict
 from pathlib import Path
 from typing import Any
 
+from pipeline.core.cliargs import add_params_option
+
 _WORLD: Any = None  # the World of a worker process (built once by its initializer)
 
 
@@ -182,7 +184,7 @@ def add_cli(sub: argparse._SubParsersAction) -> None:
         "simulate", help="generate simulated MCAP logs with known truth", description=__doc__.splitlines()[0]
     )
     p.add_argument("out_dir", help="output directory (e.g. data/sim)")
-    p.add_argument("--params", type=Path, default=None, help="params file (default: repo params.yaml)")
+    add_params_option(p)
     p.add_argument("--quiet", action="store_true", help="no progress bar")
     p.add_argument(
         "--deploy",

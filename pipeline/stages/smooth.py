@@ -12,6 +12,7 @@ import time
 from pathlib import Path
 from typing import Any
 
+from pipeline.core.cliargs import add_params_option
 from pipeline.core.errors import DataError
 
 STAGE = "smooth"
@@ -86,11 +87,5 @@ def add_cli(subparsers: Any) -> None:
     )
     parser.add_argument("inputs", type=Path, metavar="IN", help="directory of ingested <log>.parquet tables")
     parser.add_argument("out", type=Path, help="output directory for the smoothed <log>.parquet tables")
-    parser.add_argument(
-        "--params",
-        type=Path,
-        default=None,
-        metavar="PATH",
-        help="params file (default: params.yaml at the repo root)",
-    )
+    add_params_option(parser)
     parser.set_defaults(func=_cmd)

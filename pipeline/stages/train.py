@@ -42,6 +42,8 @@ import argparse
 from pathlib import Path
 from typing import Any
 
+from pipeline.core.cliargs import add_params_option
+
 STAGE = "train"
 STUDIES_DIR = ".optuna"  # default --studies parent, at the repo root (git-ignored)
 
@@ -100,11 +102,5 @@ def add_cli(subparsers: Any) -> None:
         help=f"directory of the group's Optuna studies and trial weights (default: {STUDIES_DIR}/GROUP "
         "at the repo root); a rerun with the same inputs resumes from it",
     )
-    parser.add_argument(
-        "--params",
-        type=Path,
-        default=None,
-        metavar="PATH",
-        help="params file (default: params.yaml at the repo root)",
-    )
+    add_params_option(parser)
     parser.set_defaults(func=_cmd)

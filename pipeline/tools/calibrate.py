@@ -22,6 +22,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
+from pipeline.core.cliargs import add_params_option
 from pipeline.core.errors import DataError
 
 COMMAND = "calibrate"
@@ -213,7 +214,5 @@ def add_cli(subparsers: Any) -> None:
         help=f"export directory with manifest.json (default: {DEFAULT_MODELS}/ at the repo root)",
     )
     parser.add_argument("--force", action="store_true", help="replace existing output logs")
-    parser.add_argument(
-        "--params", type=Path, default=None, help="params file (topic names; default: repo params.yaml)"
-    )
+    add_params_option(parser, "topic names")
     parser.set_defaults(func=_cmd)

@@ -13,6 +13,7 @@ import argparse
 from pathlib import Path
 from typing import Any
 
+from pipeline.core.cliargs import add_params_option
 from pipeline.core.errors import DataError
 
 COMMAND = "convert-mat"
@@ -82,11 +83,5 @@ def add_cli(subparsers: Any) -> None:
         "mat", type=Path, help="logger .mat file (its experiment sidecar <stem>.yaml beside it)"
     )
     parser.add_argument("mcap", type=Path, help="MCAP file to write")
-    parser.add_argument(
-        "--params",
-        type=Path,
-        default=None,
-        metavar="PATH",
-        help="params file (default: params.yaml at the repo root)",
-    )
+    add_params_option(parser)
     parser.set_defaults(func=_cmd)
