@@ -7,6 +7,7 @@ from pathlib import Path
 import pytest
 
 from pipeline.physics.robot import RobotModel, load_robot
+from tests.pgserver import mlflow_server, pg_url  # noqa: F401 (session fixtures)
 
 REPO = Path(__file__).resolve().parents[1]
 ERGOCUB_URDF = REPO.parent / "shared" / "robots" / "ergoCubSN001" / "model.urdf"

@@ -44,6 +44,8 @@ def labelled(tmp_path_factory: pytest.TempPathFactory) -> Path:
 TRAIN_PARAMS = {
     "val_logs": 1,
     "threads": 1,
+    "storage": None,
+    "heartbeat": 10,
     "defaults": {
         "inputs": [7, 13],
         "hidden": 16,

@@ -17,6 +17,7 @@ INPUT_SIZES = (7, 13)  # raw wrench + temperature (+ accelerometer + gyroscope)
 NORMALISATIONS = ("max", "standard")
 ACTIVATION_NAMES = ("relu", "leaky_relu", "tanh", "elu")
 RAW, AFFINE = "raw", "affine"
+STORAGE_SCHEMES = ("postgresql", "sqlite", "mysql")  # SQLAlchemy dialects Optuna's RDB storage supports
 
 
 def nn_name(n_inputs: int) -> str:
@@ -173,12 +174,28 @@ _GROUP_KEYS = {f.name for f in fields(GroupParams)} - {"name"}
 _DEFAULT_KEYS = _GROUP_KEYS - {"sensor", "pair"}
 
 
+def check_storage(url: Any, where: str = "train.storage") -> None:
+    """Raise ConfigError naming `where` unless `url` is None or a supported database URL."""
+    if url is None:
+        return
+    scheme = url.split("://", 1)[0].split("+", 1)[0] if isinstance(url, str) and "://" in url else None
+    if scheme == "postgres":
+        scheme = "postgresql"
+    if scheme not in STORAGE_SCHEMES:
+        raise ConfigError(
+            f"{where} must be null (a journal file) or a database URL such as "
+            f"postgresql://user:password@host:5432/db, got {url!r}"
+        )
+
+
 @dataclass(frozen=True)
 class TrainParams:
     """Section `train` of params.yaml (see the comments there)."""
 
     val_logs: int  # training logs held out as validation
     threads: int  # torch CPU threads
+    storage: str | None  # Optuna studies: None = journal file, else a database URL (calib.studies)
+    heartbeat: int  # s between heartbeats of a trial on a database; stale (retried) after twice that
     defaults: Mapping[str, Any]  # every group's params ...
     groups: Mapping[str, Any]  # ... updated per group: name -> {sensor | pair, overrides}
 
@@ -187,6 +204,9 @@ class TrainParams:
             raise ConfigError(f"train.val_logs must be an integer >= 1, got {self.val_logs!r}")
         if not _is_int(self.threads) or self.threads < 1:
             raise ConfigError(f"train.threads must be an integer >= 1, got {self.threads!r}")
+        check_storage(self.storage)
+        if not _is_int(self.heartbeat) or self.heartbeat < 1:
+            raise ConfigError(f"train.heartbeat must be an integer >= 1 (s), got {self.heartbeat!r}")
         if not isinstance(self.defaults, Mapping):
             raise ConfigError(f"train.defaults must be a mapping, got {self.defaults!r}")
         unknown = sorted(set(self.defaults) - _DEFAULT_KEYS)

@@ -18,6 +18,7 @@ from pipeline.calib.models import WRENCH, LinearBaseline, save_model
 from pipeline.calib.params import RAW, nn_name
 from pipeline.calib.records import TrainResult, log_network, log_trial_run, write_predictions
 from pipeline.calib.search import NetResult, code_digest, data_digest, search_network
+from pipeline.calib.studies import open_storage, storage_url
 from pipeline.calib.training import flat_inputs, predict
 from pipeline.core.config import Params
 from pipeline.core.io import write_json
@@ -34,8 +35,9 @@ class Fitted:
     timings: dict[str, float] = field(default_factory=dict)
 
 
-def _identity(params: Params, prep: Prepared) -> dict[str, Any]:
-    """Everything a study's result depends on, but n_trials (more trials extend a study)."""
+def study_identity(params: Params, prep: Prepared) -> dict[str, Any]:
+    """Everything a study's result depends on, but n_trials (more trials extend a study); the stage and
+    `ftcal worker` name a study after it."""
     return {
         "group": {k: v for k, v in asdict(prep.gp).items() if k != "n_trials"},
         "seed": params.seed,
@@ -48,7 +50,8 @@ def _identity(params: Params, prep: Prepared) -> dict[str, Any]:
 
 
 def fit_models(params: Params, prep: Prepared, studies: Path, ui: ProgressLog) -> Fitted:
-    """The baselines and the Optuna search of every network size of the group."""
+    """The baselines and the Optuna search of every network size of the group (studies in a journal under
+    `studies`, or in the database of ``train.storage``)."""
     gp, group = prep.gp, prep.group
     data = {"val": prep.val, "test": prep.test}
     fitted = Fitted({}, {}, {k: {RAW: d.x[:, :, :WRENCH].copy()} for k, d in data.items()})
@@ -59,7 +62,8 @@ def fit_models(params: Params, prep: Prepared, studies: Path, ui: ProgressLog) -
             fitted.preds[k][name] = model.predict(d.x)
     fitted.timings["baselines"] = seconds = time.perf_counter() - t
     ui.line(f"{group.name}: baselines fitted on {len(prep.train)} samples in {seconds:.1f} s")
-    identity = _identity(params, prep)
+    identity = study_identity(params, prep)
+    storage = open_storage(storage_url(prep.cfg.storage), studies, prep.cfg.heartbeat)
     for n_inputs in gp.inputs:
         name = nn_name(n_inputs)
         t = time.perf_counter()
@@ -70,7 +74,7 @@ def fit_models(params: Params, prep: Prepared, studies: Path, ui: ProgressLog) -
             prep.val,
             n_inputs,
             params.seed,
-            studies,
+            storage,
             identity,
             ui,
             log_trial_run(group.name, name),

@@ -1,10 +1,12 @@
 """Optuna search of one group network.
 
-One study per network size, stored in a journal file under ``--studies`` and named after a hash of
-everything that determines its result (group params except n_trials, seed, threads, validation logs, data,
-this code): a rerun after an interruption resumes it, a rerun with more trials extends it. Trial k is
-seeded from (seed, group, inputs, k) and its sampler is a TPE sampler seeded the same way, so the search is
-reproducible whether or not it was resumed. The first trial is the group's own params (the thesis's
+One study per network size, stored in a journal file under ``--studies`` (or, with ``train.storage`` or
+``$FTCAL_OPTUNA_STORAGE``, in a database shared with ``ftcal worker GROUP`` processes:
+`pipeline.calib.studies`) and named after a hash of everything that determines its result (group params except
+n_trials, seed, threads, validation logs, data, this code): a rerun after an interruption resumes it, a rerun
+with more trials extends it. Trial k is seeded from (seed, group, inputs, k) and its sampler is a TPE sampler
+seeded the same way, so a search run by one process is reproducible whether or not it was resumed (run by
+several, it depends on which trials finish first). The first trial is the group's own params (the thesis's
 defaults); a MedianPruner stops trials whose validation error lags.
 """
 
@@ -24,11 +26,19 @@ import numpy as np
 from pipeline.calib.data import Group, GroupData, derive_seed
 from pipeline.calib.models import (
     GroupNet,
-    save_model,
 )
 from pipeline.calib.params import SEARCHABLE, GroupParams, nn_name
+from pipeline.calib.studies import (
+    MLFLOW_PARENT,
+    finished_trials,
+    join_study,
+    load_trial_model,
+    open_study,
+    run_trials,
+    save_trial_model,
+    trial_index,
+)
 from pipeline.calib.training import NetSetting, train_network
-from pipeline.core.errors import DataError
 from pipeline.core.progress import ProgressLog
 
 _PACKAGE = Path(__file__).resolve().parent
@@ -80,11 +90,11 @@ def _suggest(trial: Any, search: Mapping[str, Any]) -> dict[str, Any]:
 
 
 TrialLog = Callable[[int, dict[str, Any], list[dict[str, float]], str, float], None]
-_DONE = ("COMPLETE", "PRUNED")  # TrialState names of finished trials
 
 
 class _Search:
-    """One network's Optuna study: opened (or resumed), run to n_trials, its best trial's model loaded."""
+    """One network's Optuna study: opened (or resumed) by the stage or joined by a worker, run to n_trials
+    by any number of processes (`pipeline.calib.studies`), its best trial's model loaded."""
 
     def __init__(
         self,
@@ -93,57 +103,68 @@ class _Search:
         data: tuple[GroupData, GroupData],
         n_inputs: int,
         seed: int,
-        studies: Path,
+        storage: Any,
         identity: Mapping[str, Any],
         progress: ProgressLog,
         log_trial: TrialLog | None,
     ) -> None:
         self.gp, self.group, (self.train, self.val) = gp, group, data
-        self.n_inputs, self.seed, self.studies = n_inputs, seed, studies
+        self.n_inputs, self.seed, self.storage = n_inputs, seed, storage  # storage: studies.open_storage
         self.progress, self.log_trial = progress, log_trial
         self.name = nn_name(n_inputs)
         digest = json.dumps({**identity, "inputs": n_inputs}, sort_keys=True).encode()
         self.study_name = f"{group.name}-{self.name}-{hashlib.sha256(digest).hexdigest()[:16]}"
-        self.trial_dir = studies / self.study_name
+
+    def pruner(self) -> Any:
+        """The MedianPruner of the study (every process running its trials uses the same)."""
+        import optuna
+
+        gp = self.gp
+        return optuna.pruners.MedianPruner(
+            n_startup_trials=gp.prune_startup_trials, n_warmup_steps=gp.prune_warmup_epochs
+        )
+
+    def sampler(self, index: int) -> Any:
+        """The TPE sampler of trial `index`, seeded from (seed, group, inputs, index); constant_liar: a
+        process sees the trials others are running, not only finished ones (alone, it changes nothing)."""
+        import optuna
+
+        tpe_seed = derive_seed(self.seed, self.group.name, self.n_inputs, index, "tpe")
+        return optuna.samplers.TPESampler(
+            seed=tpe_seed, n_startup_trials=self.gp.tpe_startup_trials, constant_liar=True
+        )
 
     def open(self) -> None:
-        """Create or load the study; trials left running by an interrupted run are marked failed."""
+        """Create or load the study with its n_trials slots (the first: the group's own params); trials
+        left running by an interrupted run are failed and queued again. Workers log their trials as
+        children of the active MLflow run."""
+        import mlflow
         import optuna
-        from optuna.storages import JournalStorage
-        from optuna.storages.journal import JournalFileBackend
-        from optuna.trial import TrialState
 
         optuna.logging.set_verbosity(optuna.logging.WARNING)
         warnings.filterwarnings("ignore", category=optuna.exceptions.ExperimentalWarning)
-        self.studies.mkdir(parents=True, exist_ok=True)
-        storage = JournalStorage(JournalFileBackend(str(self.studies / "optuna.journal")))
-        pruner = optuna.pruners.MedianPruner(
-            n_startup_trials=self.gp.prune_startup_trials, n_warmup_steps=self.gp.prune_warmup_epochs
-        )
-        self.study = optuna.create_study(
-            study_name=self.study_name,
-            storage=storage,
-            direction="minimize",
-            pruner=pruner,
-            load_if_exists=True,
-        )
-        study_id = storage.get_study_id_from_name(self.study_name)
-        for t in self.study.get_trials(deepcopy=False, states=(TrialState.RUNNING,)):
-            trial_id = storage.get_trial_id_from_study_id_trial_number(study_id, t.number)
-            storage.set_trial_state_values(trial_id, TrialState.FAIL)
-        if not self.finished() and not self.study.get_trials(deepcopy=False, states=(TrialState.WAITING,)):
-            self.study.enqueue_trial({k: getattr(self.gp, k) for k in self.gp.search})  # trial 0: own params
+        first = {k: getattr(self.gp, k) for k in self.gp.search}
+        self.study = open_study(self.storage, self.study_name, self.pruner(), self.gp.n_trials, first)
+        if mlflow.active_run() is not None:
+            self.study.set_user_attr(MLFLOW_PARENT, mlflow.active_run().info.run_id)
+
+    def join(self, wait: float) -> None:
+        """Load the study the stage opens (a worker's side), waiting up to `wait` s for it."""
+        import optuna
+
+        optuna.logging.set_verbosity(optuna.logging.WARNING)
+        warnings.filterwarnings("ignore", category=optuna.exceptions.ExperimentalWarning)
+        self.study = join_study(self.storage, self.study_name, self.pruner(), wait)
 
     def finished(self) -> list[Any]:
         """Complete and pruned trials, in the order they were created."""
-        done = [t for t in self.study.get_trials(deepcopy=False) if t.state.name in _DONE]
-        return sorted(done, key=lambda t: t.number)
+        return finished_trials(self.study)
 
     def objective(self, trial: Any) -> float:
         """Train one trial's network; its validation error (the best epoch's)."""
         import optuna
 
-        gp, ui, index = self.gp, self.progress, len(self.finished())
+        gp, ui, index = self.gp, self.progress, trial_index(trial)
         values = _suggest(trial, gp.search)
         setting = NetSetting.of(gp, self.n_inputs, values)
         trial_seed = derive_seed(self.seed, self.group.name, self.n_inputs, index)
@@ -170,11 +191,9 @@ class _Search:
         finally:
             ui.remove(epochs)
         best = min(history, key=lambda h: h["val_rmse"])
-        file = f"trial_{trial.number:04d}"
-        save_model(self.trial_dir / file, model, {"values": values, "seed": trial_seed, "history": history})
+        save_trial_model(trial, model, {"values": values, "seed": trial_seed, "history": history})
         for key, value in (("index", index), ("seed", trial_seed), ("best_epoch", int(best["epoch"]))):
             trial.set_user_attr(key, value)
-        trial.set_user_attr("file", file)
         seconds = time.perf_counter() - t0
         ui.line(
             f"{where}: val RMSE {best['val_rmse']:.4g} (epoch {int(best['epoch']) + 1}) {_fmt(values)} "
@@ -185,38 +204,28 @@ class _Search:
         return float(best["val_rmse"])
 
     def run(self) -> tuple[int, int]:
-        """Run trials until n_trials have finished; (trials run now, trials reused from before)."""
-        import optuna
-
+        """Run trials until n_trials have finished, counted over every process sharing the study;
+        (trials run here now, trials finished before)."""
         gp, ui = self.gp, self.progress
         reused = min(len(self.finished()), gp.n_trials)
         bar = ui.task(f"{self.group.name} {self.name} trials", gp.n_trials)
         ui.update(bar, completed=reused)
-        run = 0
-        while len(self.finished()) < gp.n_trials:
-            index = len(self.finished())
-            tpe_seed = derive_seed(self.seed, self.group.name, self.n_inputs, index, "tpe")
-            self.study.sampler = optuna.samplers.TPESampler(
-                seed=tpe_seed, n_startup_trials=gp.tpe_startup_trials
-            )
-            self.study.optimize(self.objective, n_trials=1)
-            run += 1
-            ui.update(bar, completed=min(len(self.finished()), gp.n_trials))
+        run = run_trials(
+            self.study,
+            self.objective,
+            gp.n_trials,
+            self.sampler,
+            on_trial=lambda done: ui.update(bar, completed=min(done, gp.n_trials)),
+        )
         ui.remove(bar)
         return run, reused
 
     def best(self, run: int, reused: int) -> NetResult:
         """The lowest-validation-error complete trial among the first n_trials, with its model."""
-        from pipeline.calib.models import load_model
-
         considered = self.finished()[: self.gp.n_trials]
         complete = [t for t in considered if t.state.name == "COMPLETE"]
         best = min(complete, key=lambda t: (t.value, t.number))
-        try:
-            model, info = load_model(self.trial_dir / best.user_attrs["file"])
-        except DataError as exc:
-            lost = f"the Optuna study {self.study_name} lost its weights: delete {self.studies}"
-            raise DataError(f"{exc} ({lost})") from None
+        model, info = load_trial_model(best)
         return NetResult(
             model=model,
             trial=int(best.user_attrs["index"]) + 1,
@@ -239,13 +248,14 @@ def search_network(
     val: GroupData,
     n_inputs: int,
     seed: int,
-    studies: Path,
+    storage: Any,
     identity: Mapping[str, Any],
     progress: ProgressLog,
     log_trial: TrialLog | None = None,
 ) -> NetResult:
-    """Optuna search of one network (see the module docstring); returns the best trial's model."""
-    search = _Search(gp, group, (train, val), n_inputs, seed, studies, identity, progress, log_trial)
+    """Optuna search of one network (see the module docstring) in `storage` (`studies.open_storage`);
+    returns the best trial's model."""
+    search = _Search(gp, group, (train, val), n_inputs, seed, storage, identity, progress, log_trial)
     search.open()
     return search.best(*search.run())
 

@@ -26,14 +26,16 @@ is 1, a foot's sum where ``sw.<pair>`` is 1. ``rmse_labelled`` pools the squared
 exact labels (sensor parts and sum) and decides validation; ``rmse`` is the headline (the sensor's, or the
 foot's sum, as the thesis reports).
 
-Optuna: one study per network size, stored in a journal file under ``--studies`` and named after a hash
-of everything that determines its result (group params except n_trials, seed, threads, validation logs,
-data, this code): a rerun after an interruption resumes it, a rerun with more trials extends it. Trial k
-is seeded from (seed, group, inputs, k) and its sampler is a TPE sampler seeded the same way, so the
-search is reproducible whether or not it was resumed. The first trial is the group's own params (the
-thesis's defaults); a MedianPruner stops trials whose validation error lags. Every trial is a nested
-MLflow run of the stage's run; the best networks are logged with `mlflow.pytorch.log_model` in MLflow's
-``pt2`` format (`torch.export`, loadable without unpickling) and registered as ``ftcal-<group>-<7|13>``.
+Optuna: one study per network size, stored in a journal file under ``--studies`` (or, with ``train.storage``
+or ``$FTCAL_OPTUNA_STORAGE``, in a database shared with ``ftcal worker GROUP`` processes:
+`pipeline.calib.studies`) and named after a hash of everything that determines its result (group params
+except n_trials, seed, threads, validation logs, data, this code): a rerun after an interruption resumes it,
+a rerun with more trials extends it. Trial k is seeded from (seed, group, inputs, k) and its sampler is a TPE
+sampler seeded the same way, so a search run by one process is reproducible whether or not it was resumed
+(run by several, it depends on which trials finish first). The first trial is the group's own params (the
+thesis's defaults); a MedianPruner stops trials whose validation error lags. Every trial is a nested MLflow
+run of the stage's run; the best networks are logged with `mlflow.pytorch.log_model` in MLflow's ``pt2``
+format (`torch.export`, loadable without unpickling) and registered as ``ftcal-<group>-<7|13>``.
 """
 
 from __future__ import annotations
@@ -99,8 +101,8 @@ def add_cli(subparsers: Any) -> None:
         type=Path,
         default=None,
         metavar="DIR",
-        help=f"directory of the group's Optuna studies and trial weights (default: {STUDIES_DIR}/GROUP "
-        "at the repo root); a rerun with the same inputs resumes from it",
+        help=f"directory of the group's Optuna journal (default: {STUDIES_DIR}/GROUP at the repo root; "
+        "unused with train.storage); a rerun with the same inputs resumes from it",
     )
     add_params_option(parser)
     parser.set_defaults(func=_cmd)

@@ -1,0 +1,121 @@
+"""`ftcal worker GROUP IN`: run trials of a group's Optuna searches beside the stage `train@GROUP`.
+
+With ``train.storage`` (or ``$FTCAL_OPTUNA_STORAGE``) set to a database URL, any number of workers, on any
+machine with the same code, params and labelled directory, join the studies the stage opens for GROUP (one
+per network size, in the stage's order) and run their trials until each holds its n_trials; the stage
+then picks the best network and writes its outputs as it always does. A worker prepares the data with the
+stage's own code (`pipeline.calib.fit.prepare`), so it finds the study by the same name, a hash of
+params, data and code: a worker with other data or code waits for a study that never comes, and says so.
+Trials are logged to MLflow as children of the stage's run where the worker reaches the same tracking
+store. Stop a worker at any time: a trial it was running is failed and run again by another process.
+"""
+
+from __future__ import annotations
+
+import argparse
+import sys
+from pathlib import Path
+from typing import Any
+
+from pipeline.core.errors import ConfigError
+
+DEFAULT_WAIT = 600.0  # s a worker waits for the stage to open a study
+
+
+def _trial_logger(group: str, name: str, study: Any) -> Any:
+    """The stage's MLflow trial logger under the stage's run, or None where that run is out of reach."""
+    import mlflow
+
+    from pipeline.calib.records import log_trial_run
+    from pipeline.calib.studies import MLFLOW_PARENT
+    from pipeline.core.tracking import quiet_mlflow, tracking_uri
+
+    parent = study.user_attrs.get(MLFLOW_PARENT)
+    if not parent:
+        return None
+    quiet_mlflow()
+    mlflow.set_tracking_uri(tracking_uri())
+    try:
+        mlflow.MlflowClient().get_run(parent)
+    except Exception:  # another machine's sqlite store, or no server: trials stay in the study only
+        print(
+            f"worker: MLflow run {parent} not found at {tracking_uri()}: trials not logged", file=sys.stderr
+        )
+        return None
+    return log_trial_run(group, name, parent)
+
+
+def run_worker_group(
+    params_path: Path | None, group_name: str, in_dir: Path, wait: float = DEFAULT_WAIT
+) -> dict[str, int]:
+    """Join each network study of `group_name` in turn and run its trials; return trials run per network.
+
+    Raises:
+        ConfigError: no database storage is configured (a journal file is not shared).
+        StudyError: the stage did not open a study within `wait` s, or the database is unreachable.
+    """
+    import torch
+
+    from pipeline.calib import studies
+    from pipeline.calib.fit import prepare
+    from pipeline.calib.run import study_identity
+    from pipeline.calib.search import _Search  # the stage's search of one network, joined here
+    from pipeline.core.config import load_params
+    from pipeline.core.progress import ProgressLog
+
+    params = load_params(params_path)
+    prep = prepare(params, group_name, in_dir)
+    url = studies.storage_url(prep.cfg.storage)
+    if url is None:
+        raise ConfigError(
+            f"ftcal worker needs a shared study: set train.storage or ${studies.ENV_STORAGE} to a database "
+            "URL"
+        )
+    torch.set_num_threads(prep.cfg.threads)
+    torch.use_deterministic_algorithms(True)
+    storage = studies.open_storage(url, Path(), prep.cfg.heartbeat)
+    identity = study_identity(params, prep)
+    ui = ProgressLog()
+    ran: dict[str, int] = {}
+    with ui.running():
+        for n_inputs in prep.gp.inputs:
+            data = (prep.train, prep.val)
+            search = _Search(prep.gp, prep.group, data, n_inputs, params.seed, storage, identity, ui, None)
+            search.join(wait)
+            search.log_trial = _trial_logger(prep.group.name, search.name, search.study)
+            ran[search.name], _ = search.run()
+    return ran
+
+
+def _cmd(args: argparse.Namespace) -> int:
+    ran = run_worker_group(args.params, args.group, args.inputs, args.wait)
+    print(
+        f"{args.group}: " + ", ".join(f"{name} {n} trials" for name, n in ran.items()) + " run by this worker"
+    )
+    return 0
+
+
+def add_cli(subparsers: Any) -> None:
+    """Add `ftcal worker GROUP IN`."""
+    parser = subparsers.add_parser(
+        "worker",
+        help="run Optuna trials of a group's search beside the stage (shared database)",
+        description=(__doc__ or "").split("\n\n")[0],
+    )
+    parser.add_argument("group", help="sensor group: a key of train.groups in params.yaml")
+    parser.add_argument("inputs", type=Path, metavar="IN", help="directory of labelled <log>.parquet tables")
+    parser.add_argument(
+        "--wait",
+        type=float,
+        default=DEFAULT_WAIT,
+        metavar="S",
+        help=f"seconds to wait for the stage to open each study (default {DEFAULT_WAIT:.0f})",
+    )
+    parser.add_argument(
+        "--params",
+        type=Path,
+        default=None,
+        metavar="PATH",
+        help="params file (default: params.yaml at the repo root)",
+    )
+    parser.set_defaults(func=_cmd)
