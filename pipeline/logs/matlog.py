@@ -9,10 +9,10 @@ empty at save time is a struct without fields. Channels have their own N (a samp
 the read succeeded), so every channel keeps its own stamps.
 
 Channels are named by their struct path below the top-level struct, with ``/`` between levels
-(``FTs/l_leg_ft``, ``joints_state/positions``). v7.3 files are read with h5py one slice of samples at a
-time (HDF5 reverses MATLAB's axes: ``data`` is ``(N, 1, k)``, time first); v5/v7 files through
-``scipy.io.loadmat``, which reads the whole file at once (they are small: MATLAB's v7 format caps
-variables at 2 GiB, which is why the logger writes v7.3).
+(``FTs/l_leg_ft``, ``joints_state/positions``). v7.3 files are read with h5py one window of samples
+at a time, in whole HDF5 chunks (HDF5 reverses MATLAB's axes: ``data`` is ``(N, 1, k)``, time first);
+v5/v7 files through ``scipy.io.loadmat``, which reads the whole file at once (they are small: MATLAB's
+v7 format caps variables at 2 GiB, which is why the logger writes v7.3).
 
 Timestamps are float64 seconds since the epoch: about 0.24 us apart at today's epoch. They become
 int64 ns with `seconds_to_ns` (at most 0.12 us from the value the float stands for).
@@ -269,9 +269,10 @@ class _BlockReader:
         if stop > self._stop:
             end = min(self._n, -(-stop // self._rows) * self._rows)
             fresh = self._read_rows(self._stop, end)
-            kept = self._buf[start - self._start :]
+            first = min(start, self._stop)  # rows held before it are dropped
+            kept = self._buf[first - self._start :]
             self._buf = np.concatenate([kept, fresh]) if len(kept) else fresh
-            self._start, self._stop = start, end
+            self._start, self._stop = first, end
         return self._buf[start - self._start : stop - self._start]
 
 
