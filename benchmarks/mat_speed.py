@@ -120,7 +120,12 @@ def run_child(log: Path, out: Path) -> dict[str, float]:
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--seconds", type=float, default=1800.0, help="log duration, s (30 min)")
-    parser.add_argument("--keep", type=Path, default=None, help="write the logs here and keep them")
+    parser.add_argument(
+        "--keep",
+        type=Path,
+        default=None,
+        help="write the logs here and keep them; logs already there are reused",
+    )
     parser.add_argument("--child", nargs=2, type=Path, metavar=("LOG", "OUT"), help=argparse.SUPPRESS)
     args = parser.parse_args()
     if args.child:
