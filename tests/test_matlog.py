@@ -13,6 +13,7 @@ import shutil
 import subprocess
 from pathlib import Path
 
+import h5py
 import numpy as np
 import pandas as pd
 import pyarrow.parquet as pq
@@ -122,6 +123,25 @@ def test_tagged_root_chunked_reading_and_empty_channels(tmp_path: Path, mcap_log
         if ".s_one" not in c or S.IMU_STREAM not in c and S.ACC not in c and S.GYR not in c
     ]
     assert_same_table(table[other], ref[other])
+
+
+def test_windows_read_in_whole_chunks_equal_the_stored_samples(tmp_path: Path) -> None:
+    """Windows read forwards across HDF5 chunk boundaries, backwards and again give the stored samples."""
+    n, channel = 30_000, "FTs/l_leg_ft"
+    values = np.random.default_rng(0).normal(size=(n, 6))
+    t = 1.7e9 + np.arange(n) * 0.01
+    tree = matfile.logger_tree({channel: matfile.leaf("l_leg_ft", t, values)}, JOINTS, "iCubGenova09")
+    mat = matfile.write_v73(tmp_path / "log.mat", tree)
+    with h5py.File(mat, "r") as f:
+        rows = f[f"{matfile.ROOT_NAME}/{channel}/data"].chunks[0]
+    assert 3 * rows < n  # several chunks, so that windows cross their boundaries
+    cuts = sorted({0, 1, rows - 1, rows, rows + 5, 2 * rows + 3, n - 2, n})
+    windows = list(zip(cuts[:-1], cuts[1:], strict=True))
+    windows += [(5, 2 * rows), (rows, rows + 1), (n - 1, n), (0, n), (n, n)]  # back, within, to the end
+    with MatLog(mat) as log:
+        leaf = log.leaf(channel)
+        for a, b in windows:
+            np.testing.assert_array_equal(leaf.read(a, b), values[a:b], err_msg=f"rows {a}:{b}")
 
 
 # --- bad input: one line naming the file, nothing written ---

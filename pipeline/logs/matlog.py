@@ -9,10 +9,10 @@ empty at save time is a struct without fields. Channels have their own N (a samp
 the read succeeded), so every channel keeps its own stamps.
 
 Channels are named by their struct path below the top-level struct, with ``/`` between levels
-(``FTs/l_leg_ft``, ``joints_state/positions``). v7.3 files are read with h5py one slice of samples at a
-time (HDF5 reverses MATLAB's axes: ``data`` is ``(N, 1, k)``, time first); v5/v7 files through
-``scipy.io.loadmat``, which reads the whole file at once (they are small: MATLAB's v7 format caps
-variables at 2 GiB, which is why the logger writes v7.3).
+(``FTs/l_leg_ft``, ``joints_state/positions``). v7.3 files are read with h5py one window of samples
+at a time, in whole HDF5 chunks (HDF5 reverses MATLAB's axes: ``data`` is ``(N, 1, k)``, time first);
+v5/v7 files through ``scipy.io.loadmat``, which reads the whole file at once (they are small: MATLAB's
+v7 format caps variables at 2 GiB, which is why the logger writes v7.3).
 
 Timestamps are float64 seconds since the epoch: about 0.24 us apart at today's epoch. They become
 int64 ns with `seconds_to_ns` (at most 0.12 us from the value the float stands for).
@@ -158,7 +158,9 @@ class _H5Backend(_Backend):
 
         self._h5py, self.error = h5py, error
         try:
-            self.file = h5py.File(path, "r")
+            # No HDF5 chunk cache: every channel is read forwards in whole chunks (`_BlockReader`), so a
+            # cache would only keep up to rdcc_nbytes of spent chunks per open dataset (8 MiB each).
+            self.file = h5py.File(path, "r", rdcc_nbytes=0)
         except OSError as exc:
             raise error(f"cannot read as HDF5 (truncated or corrupted MATLAB v7.3 file?): {exc}") from None
         self._root: Any = None
@@ -237,14 +239,41 @@ class _H5Backend(_Backend):
             else []
         )
 
-        def read(start: int, stop: int) -> np.ndarray:
+        def read_rows(start: int, stop: int) -> np.ndarray:
             block = self._guard(f"{channel}/data", lambda: np.asarray(data[start:stop], dtype=np.float64))
             return block.reshape(stop - start, width)
 
-        return Leaf(channel, stamps_ns, width, read, names)
+        rows = int(data.chunks[0]) if data.chunks else 1  # HDF5 chunk: rows decompressed together
+        return Leaf(channel, stamps_ns, width, _BlockReader(read_rows, n, rows, width), names)
 
     def close(self) -> None:
         self.file.close()
+
+
+class _BlockReader:
+    """Samples [start, stop) of one channel, read from the file in whole HDF5 chunks of `rows` samples.
+
+    Windows that move forwards (as ingest reads) decompress every chunk once: the rows of the last
+    chunk read that lie past `stop` are kept for the next window. Other windows are read afresh.
+    """
+
+    def __init__(self, read_rows: Any, n: int, rows: int, width: int):
+        self._read_rows, self._n, self._rows = read_rows, n, max(1, rows)
+        self._start = self._stop = 0  # rows held in self._buf: [_start, _stop)
+        self._buf = np.empty((0, width))
+
+    def __call__(self, start: int, stop: int) -> np.ndarray:
+        if not self._start <= start <= self._stop:
+            self._start = self._stop = start - start % self._rows
+            self._buf = self._buf[:0]
+        if stop > self._stop:
+            end = min(self._n, -(-stop // self._rows) * self._rows)
+            fresh = self._read_rows(self._stop, end)
+            first = min(start, self._stop)  # rows held before it are dropped
+            kept = self._buf[first - self._start :]
+            self._buf = np.concatenate([kept, fresh]) if len(kept) else fresh
+            self._start, self._stop = first, end
+        return self._buf[start - self._start : stop - self._start]
 
 
 class _Mat5Backend(_Backend):

@@ -210,9 +210,9 @@ class MatLogReader:
             if acc is not None and gyr is not None and len(acc) and len(gyr):
                 self._check_width(acc, 3)
                 self._check_width(gyr, 3)
-                common = np.intersect1d(acc.stamps_ns, gyr.stamps_ns)
+                common = _common_count(acc.stamps_ns, gyr.stamps_ns)
                 imu = {"linear_acceleration": acc, "angular_velocity": gyr}
-                out.append(_Source(topics.sensor_topic("ft_imu", s), rosmsg.IMU, imu, len(common)))
+                out.append(_Source(topics.sensor_topic("ft_imu", s), rosmsg.IMU, imu, common))
         return out
 
     # -- reading --
@@ -261,8 +261,10 @@ class MatLogReader:
         elif source.msgtype == rosmsg.IMU:
             gyr = leaves["angular_velocity"]
             ga, gb = rows["angular_velocity"]
-            keep = np.isin(stamps, gyr.stamps_ns[ga:gb])
-            stamps, fields[main] = stamps[keep], fields[main][keep]
+            gyr_stamps = gyr.stamps_ns[ga:gb]
+            if not np.array_equal(stamps, gyr_stamps):  # equal when both were read at every instant
+                keep = np.isin(stamps, gyr_stamps)
+                stamps, fields[main] = stamps[keep], fields[main][keep]
             fields["angular_velocity"] = _matched(gyr, (ga, gb), stamps)
         elif source.msgtype == rosmsg.TEMPERATURE:
             fields[main] = fields[main].reshape(-1)
@@ -277,6 +279,13 @@ class MatLogReader:
 
     def __exit__(self, *exc: object) -> None:
         self.close()
+
+
+def _common_count(a: np.ndarray, b: np.ndarray) -> int:
+    """Number of distinct stamps in both `a` and `b` (int64 ns)."""
+    if np.array_equal(a, b) and (len(a) < 2 or (np.diff(a) > 0).all()):
+        return len(a)
+    return len(np.intersect1d(a, b))
 
 
 def _matched(leaf: Leaf, rows: tuple[int, int], stamps: np.ndarray) -> np.ndarray:
