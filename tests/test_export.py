@@ -86,14 +86,17 @@ def test_network_graph_equals_torch_module(trained_models: dict) -> None:
     np.testing.assert_allclose(_outputs(model, "float32", x), expected32, rtol=0, atol=1e-4)
 
 
-@pytest.mark.parametrize("leg", ["poly2", "nn7"])
-def test_fused_graph_equals_groups_side_by_side(trained_models: dict, leg: str) -> None:
-    """With nn7 on both groups, the three networks are stacked (one MatMul per layer) across groups."""
+@pytest.mark.parametrize(("leg", "pair_first"), [("poly2", False), ("nn7", False), ("poly2", True)])
+def test_fused_graph_equals_groups_side_by_side(trained_models: dict, leg: str, pair_first: bool) -> None:
+    """With nn7 on both groups, the three networks are stacked (one MatMul per layer) across groups; stacked
+    networks before another model take only their own input columns."""
     models = [
         read_group(trained_models["models"] / LEG, leg),
         read_group(trained_models["models"] / PAIR, "nn7"),
     ]
     x = [_inputs(1, 7, seed=1), _inputs(2, 7, seed=2)]
+    if pair_first:
+        models, x = models[::-1], x[::-1]
     for dtype in graph.DTYPES:
         fused = run(session(graph.build(models, dtype, {}, "fused")), np.concatenate(x, axis=1))
         separate = np.concatenate([_outputs(m, dtype, xi) for m, xi in zip(models, x, strict=True)], axis=1)

@@ -182,13 +182,15 @@ def _signature(part: Any, n_inputs: int) -> tuple | None:
     return (n_inputs, tuple((layer.weight.shape, layer.activation, layer.alpha) for layer in part.layers))
 
 
-def _stack(b: _Builder, x: str, starts: Sequence[int], n_inputs: int, parts: Sequence[NetworkPart]) -> str:
+def _stack(
+    b: _Builder, x: str, width: int, starts: Sequence[int], n_inputs: int, parts: Sequence[NetworkPart]
+) -> str:
     """Calibrated wrenches (N, 6 S) of S networks of one signature, as one batched MatMul per layer:
     x[:, starts[s] : starts[s] + n_inputs] -> (S, N, n_inputs) -> layers -> (N, S, 6) -> (N, 6 S), the
-    element-wise steps (normalisation, output scale, residual) as torch does them."""
+    element-wise steps (normalisation, output scale, residual) as torch does them. `width`: x's columns."""
     s_count = len(parts)
     columns = np.concatenate([np.arange(lo, lo + n_inputs) for lo in starts])
-    if not np.array_equal(columns, np.arange(len(columns))):
+    if not np.array_equal(columns, np.arange(width)):  # not every column of x, in order
         x = b.op("Gather", [x, b.const("stack_columns", columns, np.int64)], axis=1)
     inputs = b.op("Reshape", [x, b.const("shape", [0, s_count, n_inputs], np.int64)], "stack_inputs")
     bounds = (b.const(k, v, np.int64) for k, v in (("lo", [0]), ("hi", [WRENCH]), ("ax", [2])))
@@ -227,7 +229,7 @@ def _all(b: _Builder, x: str, models: Sequence[GroupModel]) -> tuple[str, int]:
     for members in stacks.values():
         if len(members) > 1:
             picked = [sensors[k] for k in members]
-            outs.append(_stack(b, x, [s[0] for s in picked], picked[0][1], [s[2] for s in picked]))
+            outs.append(_stack(b, x, start, [s[0] for s in picked], picked[0][1], [s[2] for s in picked]))
         else:
             lo, n, part, sensor = sensors[members[0]]
             inputs = x if (lo, n) == (0, start) else b.columns(x, lo, lo + n, f"{sensor}_inputs")
