@@ -19,7 +19,7 @@ import yaml
 from pipeline.calib import search as calib_search
 from pipeline.calib.data import LogInfo, find_logs, input_cols, load_group_data, resolve_group, split_logs
 from pipeline.calib.models import load_model
-from pipeline.calib.params import TrainParams
+from pipeline.calib.params import TrainParams, select_simplest
 from pipeline.calib.training import train_network
 from pipeline.cli import main
 from pipeline.core.config import load_params, stage_section
@@ -44,6 +44,7 @@ def labelled(tmp_path_factory: pytest.TempPathFactory) -> Path:
 TRAIN_PARAMS = {
     "val_logs": 1,
     "threads": 1,
+    "selection_margin": 0.1,
     "defaults": {
         "inputs": [7, 13],
         "hidden": 16,
@@ -141,6 +142,14 @@ def test_bad_params_name_the_key(tmp_path: Path, change: dict[str, Any], message
 
 def _logs(*specs: tuple[str, str, str]) -> list[LogInfo]:
     return [LogInfo(name, Path(name), role, kind) for name, kind, role in specs]
+
+
+def test_select_simplest_prefers_the_simpler_model_within_the_margin() -> None:
+    errors = {"raw": 20.0, "affine": 1.0, "poly2": 0.95, "nn7": 0.85, "nn13": 0.84}
+    assert select_simplest(errors, 0.1) == "nn7"  # poly2 is only 5 % better than affine; nn13 1 % than nn7
+    assert select_simplest(errors, 0.2) == "affine"
+    assert select_simplest(errors, 0.0) == "nn13"
+    assert select_simplest({"raw": 1.0, "affine": float("nan"), "nn7": 0.5}, 0.1) == "nn7"
 
 
 def test_split_is_by_whole_logs_one_per_kind_never_a_kinds_last() -> None:
@@ -325,7 +334,12 @@ def test_end_to_end_resumes_registers_and_repeats(
         for errors in m[split].values():
             assert {FRONT, REAR, PAIR, "rmse", "rmse_labelled"} <= set(errors)
             assert errors["rmse"] == errors[PAIR]["rmse"]
-    assert m["best_on_validation"] == min(m["val"], key=lambda k: m["val"][k]["rmse_labelled"])
+    errors = {k: v["rmse_labelled"] for k, v in m["val"].items()}
+    assert m["best_on_validation"] == select_simplest(errors, 0.1)
+    assert m["validation_ranking"][0] == m["best_on_validation"]
+    for name in ("nn7", "nn13"):  # trained from the affine map: epoch -1 is the affine baseline
+        first = m["networks"][name]["history"][0]
+        assert first["epoch"] == -1 and first["val_rmse"] == pytest.approx(errors["affine"], rel=1e-3)
     # The synthetic distortion is nearly affine: every calibration beats the raw wrench by far.
     raw = m["test"]["raw"]["rmse"]
     for name in ("affine", "poly1", "poly2", "nn7", "nn13"):

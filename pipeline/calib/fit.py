@@ -23,7 +23,7 @@ from pipeline.calib.models import (
     LinearBaseline,
     fit_linear_baseline,
 )
-from pipeline.calib.params import AFFINE, GroupParams, TrainParams, poly_name
+from pipeline.calib.params import AFFINE, GroupParams, TrainParams, poly_name, select_simplest
 from pipeline.calib.records import flatten_metrics
 from pipeline.calib.search import NetResult
 from pipeline.calib.training import NetSetting
@@ -106,13 +106,20 @@ def score(
         "headline": group.headline,
         "logs": prep.split,
         "samples": {"train": len(prep.train), "val": len(prep.val), "test": len(prep.test)},
-        "selection": "lowest validation rmse_labelled",
+        "selection": (
+            f"simplest model (raw < affine < poly < nn7 < nn13) unless a more complex one has a validation "
+            f"rmse_labelled lower by more than {prep.cfg.selection_margin:.0%}"
+        ),
     }
     for k, data in (("val", prep.val), ("test", prep.test)):
         metrics[k] = {name: group_errors(group, data, pred) for name, pred in preds[k].items()}
-    ranked = sorted(metrics["val"], key=lambda m: metrics["val"][m]["rmse_labelled"])
-    metrics["best_on_validation"] = ranked[0]
-    metrics["validation_ranking"] = ranked
+    errors = {m: metrics["val"][m]["rmse_labelled"] for m in metrics["val"]}
+    chosen = select_simplest(errors, prep.cfg.selection_margin)
+    ranked = sorted(errors, key=lambda m: errors[m])
+    # the chosen model first, then the others by validation error (the fallbacks if it is noise-flagged)
+    metrics["best_on_validation"] = chosen
+    metrics["lowest_on_validation"] = ranked[0]
+    metrics["validation_ranking"] = [chosen, *(m for m in ranked if m != chosen)]
     metrics["networks"] = {
         name: {
             "trial": r.trial,

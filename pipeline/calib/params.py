@@ -29,6 +29,31 @@ def poly_name(order: int) -> str:
     return f"poly{order}"
 
 
+def complexity(model: str) -> tuple[int, int]:
+    """Sort key, simplest first: raw < affine < poly<n> (by n) < nn<n> (by n)."""
+    if model == RAW:
+        return (0, 0)
+    if model == AFFINE:
+        return (1, 0)
+    for rank, prefix in ((2, "poly"), (3, "nn")):
+        if model.startswith(prefix) and model[len(prefix) :].isdigit():
+            return (rank, int(model[len(prefix) :]))
+    return (4, 0)
+
+
+def select_simplest(errors: Mapping[str, float], margin: float) -> str:
+    """The model to deploy from validation errors {model: rmse}: walking from the simplest model to the
+    most complex, a model replaces the current choice only if its error is below (1 - margin) times the
+    current choice's (NaN errors never win). `errors` must not be empty."""
+    ordered = sorted(errors, key=complexity)
+    choice = ordered[0]
+    for model in ordered[1:]:
+        better = not math.isfinite(errors[choice]) or errors[model] < (1.0 - margin) * errors[choice]
+        if math.isfinite(errors[model]) and better:
+            choice = model
+    return choice
+
+
 # Keys an Optuna search may vary (their type), and which group params are integers.
 SEARCHABLE = {
     "lr": float,
@@ -179,6 +204,7 @@ class TrainParams:
 
     val_logs: int  # training logs held out as validation
     threads: int  # torch CPU threads
+    selection_margin: float  # a more complex model is chosen only if its validation error is this much lower
     defaults: Mapping[str, Any]  # every group's params ...
     groups: Mapping[str, Any]  # ... updated per group: name -> {sensor | pair, overrides}
 
@@ -187,6 +213,10 @@ class TrainParams:
             raise ConfigError(f"train.val_logs must be an integer >= 1, got {self.val_logs!r}")
         if not _is_int(self.threads) or self.threads < 1:
             raise ConfigError(f"train.threads must be an integer >= 1, got {self.threads!r}")
+        if not _is_number(self.selection_margin) or not 0 <= self.selection_margin < 1:
+            raise ConfigError(
+                f"train.selection_margin must be a number in [0, 1), got {self.selection_margin!r}"
+            )
         if not isinstance(self.defaults, Mapping):
             raise ConfigError(f"train.defaults must be a mapping, got {self.defaults!r}")
         unknown = sorted(set(self.defaults) - _DEFAULT_KEYS)

@@ -103,7 +103,10 @@ def log_trial_run(
         )
         now = int(time.time() * 1000)
         metrics = [
-            Metric(k, float(h[k]), now, int(h["epoch"])) for h in history for k in ("loss", "val_rmse")
+            Metric(k, float(h[k]), now, int(h["epoch"]))
+            for h in history
+            if h["epoch"] >= 0  # epoch -1 (the affine start) is in best_val_rmse
+            for k in ("loss", "val_rmse")
         ]
         metrics.append(Metric("seconds", seconds, now, 0))
         if history:
