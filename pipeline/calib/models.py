@@ -274,6 +274,8 @@ def switched_loss(
     alpha_sum: torch.Tensor | None = None,
     transforms: torch.Tensor | None = None,
     lambda_sum: float = 1.0,
+    cuts: tuple[torch.Tensor, torch.Tensor, torch.Tensor] | None = None,
+    lambda_cut: float = 1.0,
 ) -> tuple[torch.Tensor, dict[str, torch.Tensor]]:
     """The thesis's switched loss, averaged over the batch (module docstring; eqs. 5.4-5.12).
 
@@ -286,6 +288,9 @@ def switched_loss(
         alpha_sum: (B,) bool, the sum switch of eq. 5.12 (already sw_pair * (1 - prod sw_s)), or None.
         transforms: (S, 6, 6) ``sole_X_s``; required with sum_label.
         lambda_sum: weight of the sum term.
+        cuts: (predicted sums (B, C, 6), labels (B, C, 6), switches (B, C) bool) of cut sets
+            (`pipeline.calib.cuts`), or None: one term per cut set, alpha lambda_cut mse, like the sum's.
+        lambda_cut: weight of each cut-set term.
 
     Returns:
         (total loss, {"s0": term, "s1": term, "sum": term}): each term is the batch mean of
@@ -300,6 +305,11 @@ def switched_loss(
         sum_term = _switched_mse(sum_in_sole(pred, transforms) - sum_label, alpha_sum) * lambda_sum
         terms["sum"] = sum_term.mean()
         total = total + sum_term
+    if cuts is not None:
+        cut_pred, cut_label, cut_alpha = cuts
+        per_cut = _switched_mse(cut_pred - cut_label, cut_alpha) * lambda_cut  # (B, C)
+        terms.update({f"c{c}": per_cut[:, c].mean() for c in range(per_cut.shape[1])})
+        total = total + per_cut.sum(dim=1)
     return total.mean(), terms
 
 

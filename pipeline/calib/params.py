@@ -82,7 +82,8 @@ class GroupParams:
 
     name: str  # group name (the key under train.groups)
     sensor: str | None  # a single FT sensor ...
-    pair: str | None  # ... or a foot pair of robot.foot_pairs
+    pair: str | None  # ... or a foot pair of robot.foot_pairs ...
+    sensors: tuple[str, ...] | None  # ... or several sensors coupled by the cut sets among them
     inputs: tuple[int, ...]  # network sizes trained: 7 and/or 13
     hidden: int  # neurons per hidden layer
     activations: tuple[str, ...]  # one per hidden layer
@@ -95,6 +96,7 @@ class GroupParams:
     lambda_front: float  # foot: lambdas of eqs. 5.6-5.7
     lambda_rear: float
     lambda_sum: float
+    lambda_cut: float  # several sensors: lambda of each cut set's sum term
     n_trials: int  # Optuna trials per network (the first: these params)
     search: Mapping[str, Any]  # key -> [choices] or {low, high, log}
     tpe_startup_trials: int  # random trials before TPE
@@ -105,12 +107,24 @@ class GroupParams:
 
     def __post_init__(self) -> None:
         key = f"train.groups.{self.name}"
-        if (self.sensor is None) == (self.pair is None):
-            raise ConfigError(f"{key} must have exactly one of 'sensor' or 'pair'")
+        if sum(v is not None for v in (self.sensor, self.pair, self.sensors)) != 1:
+            raise ConfigError(f"{key} must have exactly one of 'sensor', 'pair' or 'sensors'")
         for attr in ("sensor", "pair"):
             value = getattr(self, attr)
             if value is not None and (not isinstance(value, str) or not value.strip()):
                 raise ConfigError(f"{key}.{attr} must be a non-empty string, got {value!r}")
+        if self.sensors is not None:
+            names = self.sensors
+            if (
+                not isinstance(names, list | tuple)
+                or len(names) < 2
+                or any(not isinstance(n, str) or not n.strip() for n in names)
+                or len(set(names)) != len(names)
+            ):
+                raise ConfigError(
+                    f"{key}.sensors must be a list of 2 or more distinct sensor names, got {names!r}"
+                )
+            object.__setattr__(self, "sensors", tuple(names))
         inputs = self.inputs
         if not isinstance(inputs, list | tuple) or not inputs or any(i not in INPUT_SIZES for i in inputs):
             raise ConfigError(f"{key}.inputs must be a non-empty list of {INPUT_SIZES}, got {inputs!r}")
@@ -139,7 +153,15 @@ class GroupParams:
             )
         if not _is_number(self.lr) or self.lr <= 0:
             raise ConfigError(f"{key}.lr must be a positive number, got {self.lr!r}")
-        for attr in ("weight_decay", "lambda_expected", "lambda_front", "lambda_rear", "lambda_sum", "ridge"):
+        for attr in (
+            "weight_decay",
+            "lambda_expected",
+            "lambda_front",
+            "lambda_rear",
+            "lambda_sum",
+            "lambda_cut",
+            "ridge",
+        ):
             value = getattr(self, attr)
             if not _is_number(value) or value < 0:
                 raise ConfigError(f"{key}.{attr} must be a number >= 0, got {value!r}")
@@ -186,7 +208,9 @@ class GroupParams:
 
     @property
     def label(self) -> str:
-        """The sensor or pair name the group trains."""
+        """The sensor or pair name the group trains (several sensors: the group's name)."""
+        if self.sensors is not None:
+            return self.name
         return self.sensor if self.sensor is not None else str(self.pair)
 
     def hyperparameters(self) -> dict[str, Any]:
@@ -195,7 +219,7 @@ class GroupParams:
 
 
 _GROUP_KEYS = {f.name for f in fields(GroupParams)} - {"name"}
-_DEFAULT_KEYS = _GROUP_KEYS - {"sensor", "pair"}
+_DEFAULT_KEYS = _GROUP_KEYS - {"sensor", "pair", "sensors"}
 
 
 @dataclass(frozen=True)
@@ -244,5 +268,5 @@ class TrainParams:
             raise ConfigError(
                 f"unknown key train.groups.{name}.{unknown[0]} (allowed: {', '.join(sorted(_GROUP_KEYS))})"
             )
-        merged = {"sensor": None, "pair": None, **self.defaults, **own}
+        merged = {"sensor": None, "pair": None, "sensors": None, **self.defaults, **own}
         return GroupParams(name=name, **merged)

@@ -16,6 +16,7 @@ import pyarrow as pa
 import pyarrow.parquet as pq
 import torch
 
+from pipeline.calib.cuts import cut_sums_np
 from pipeline.calib.data import Group, GroupData
 from pipeline.calib.models import (
     GroupNet,
@@ -58,7 +59,15 @@ def write_predictions(
         for a, c in enumerate(S.wrench_cols(S.EXPECTED, group.pair)):
             cols[c] = pa.array(data.sum_label[:, a])
         cols[S.switch_col(group.pair)] = pa.array(data.sum_switch.astype(np.uint8))
+    for c, cut in enumerate(group.cuts):
+        for a, col in enumerate(S.wrench_cols(S.EXPECTED, cut.label)):
+            cols[col] = pa.array(data.cut_labels[:, c, a])
+        cols[S.switch_col(cut.label)] = pa.array(data.cut_switches[:, c].astype(np.uint8))
     for model, pred in preds.items():
+        sums = cut_sums_np(group.cuts, pred, data.poses) if group.cuts else None
+        for c, cut in enumerate(group.cuts):
+            for a, col in enumerate(S.prediction_cols(model, cut.label)):
+                cols[col] = pa.array(sums[:, c, a])
         for s, sensor in enumerate(group.sensors):
             for a, c in enumerate(S.prediction_cols(model, sensor)):
                 cols[c] = pa.array(pred[:, s, a])

@@ -10,6 +10,7 @@ from typing import Any
 import numpy as np
 import torch
 
+from pipeline.calib.cuts import cut_sums
 from pipeline.calib.data import Group, GroupData, group_errors
 from pipeline.calib.models import (
     WRENCH,
@@ -36,11 +37,17 @@ class NetSetting:
     weight_decay: float
     lambdas: tuple[float, ...]  # per sensor
     lambda_sum: float
+    lambda_cut: float  # each cut set's sum term (groups of several sensors)
 
     @classmethod
     def of(cls, gp: GroupParams, n_inputs: int, values: Mapping[str, Any] | None = None) -> NetSetting:
         v = {**gp.hyperparameters(), **(values or {})}
-        lambdas = (gp.lambda_expected,) if gp.sensor is not None else (v["lambda_front"], v["lambda_rear"])
+        if gp.sensors is not None:
+            lambdas = (gp.lambda_expected,) * len(gp.sensors)
+        elif gp.sensor is not None:
+            lambdas = (gp.lambda_expected,)
+        else:
+            lambdas = (v["lambda_front"], v["lambda_rear"])
         return cls(
             n_inputs,
             int(v["hidden"]),
@@ -52,6 +59,7 @@ class NetSetting:
             float(v["weight_decay"]),
             tuple(map(float, lambdas)),
             float(v["lambda_sum"]),
+            float(gp.lambda_cut),
         )
 
 
@@ -62,20 +70,27 @@ class Tensors:
     switches: torch.Tensor  # (N, S) bool
     sum_label: torch.Tensor | None
     alpha_sum: torch.Tensor | None
+    cut_labels: torch.Tensor | None = None  # (N, C, 6)
+    cut_alpha: torch.Tensor | None = None  # (N, C) bool
+    poses: torch.Tensor | None = None  # (N, P, 12)
 
 
 def flat_inputs(data: GroupData, n_inputs: int) -> np.ndarray:
     return data.x[:, :, :n_inputs].reshape(len(data), -1)
 
 
-def to_tensors(data: GroupData, n_inputs: int) -> Tensors:
+def to_tensors(data: GroupData, n_inputs: int, group: Group | None = None) -> Tensors:
     f32 = torch.float32
+    cuts = group is not None and bool(group.cuts)
     return Tensors(
         x=torch.as_tensor(flat_inputs(data, n_inputs), dtype=f32),
         labels=torch.as_tensor(data.labels, dtype=f32),
         switches=torch.as_tensor(data.switches),
         sum_label=None if data.sum_label is None else torch.as_tensor(data.sum_label, dtype=f32),
         alpha_sum=None if data.sum_switch is None else torch.as_tensor(data.alpha_sum),
+        cut_labels=torch.as_tensor(data.cut_labels, dtype=f32) if cuts else None,
+        cut_alpha=torch.as_tensor(data.cut_alpha(group.cuts)) if cuts else None,
+        poses=torch.as_tensor(data.poses, dtype=f32) if cuts else None,
     )
 
 
@@ -88,6 +103,7 @@ def predict(model: GroupNet, data: GroupData) -> np.ndarray:
 
 
 def _batch_loss(
+    group: Group,
     model: GroupNet,
     t: Tensors,
     idx: torch.Tensor,
@@ -97,6 +113,9 @@ def _batch_loss(
 ) -> torch.Tensor:
     """The switched loss of the samples `idx` (a batch)."""
     pred = model(t.x[idx]).view(len(idx), model.n_sensors, WRENCH)
+    cuts = None
+    if t.cut_labels is not None:
+        cuts = (cut_sums(group.cuts, pred, t.poses[idx]), t.cut_labels[idx], t.cut_alpha[idx])
     loss, _ = switched_loss(
         pred,
         t.labels[idx],
@@ -106,16 +125,25 @@ def _batch_loss(
         None if t.alpha_sum is None else t.alpha_sum[idx],
         transforms,
         setting.lambda_sum,
+        cuts,
+        setting.lambda_cut,
     )
     return loss
 
 
 def _train_loss(
-    model: GroupNet, t: Tensors, lambdas: torch.Tensor, transforms: torch.Tensor | None, setting: NetSetting
+    group: Group,
+    model: GroupNet,
+    t: Tensors,
+    lambdas: torch.Tensor,
+    transforms: torch.Tensor | None,
+    setting: NetSetting,
 ) -> float:
     """The switched loss over every training sample (the loss of epoch -1, before any step)."""
     with torch.no_grad():
-        return float(_batch_loss(model.eval(), t, torch.arange(len(t.x)), lambdas, transforms, setting))
+        return float(
+            _batch_loss(group, model.eval(), t, torch.arange(len(t.x)), lambdas, transforms, setting)
+        )
 
 
 def _val_error(group: Group, val: GroupData, model: GroupNet) -> float:
@@ -159,14 +187,18 @@ def train_network(
     optimiser = torch.optim.Adam(model.parameters(), lr=setting.lr, weight_decay=setting.weight_decay)
     history: list[dict[str, float]] = []
     best_state, best_err = None, math.inf
-    t = to_tensors(train, setting.n_inputs)
+    t = to_tensors(train, setting.n_inputs, group)
     lambdas = torch.tensor(setting.lambdas, dtype=torch.float32)
     transforms = None if group.transforms is None else torch.as_tensor(group.transforms, dtype=torch.float32)
     if start is not None:
         best_err = _val_error(group, val, model)
         best_state = {k: v.detach().clone() for k, v in model.state_dict().items()}
         history.append(
-            {"epoch": -1, "loss": _train_loss(model, t, lambdas, transforms, setting), "val_rmse": best_err}
+            {
+                "epoch": -1,
+                "loss": _train_loss(group, model, t, lambdas, transforms, setting),
+                "val_rmse": best_err,
+            }
         )
     n = len(train)
     for epoch in range(setting.epochs):
@@ -175,7 +207,7 @@ def train_network(
         total, batches = 0.0, 0
         for start in range(0, n, setting.batch_size):
             idx = order[start : start + setting.batch_size]
-            loss = _batch_loss(model, t, idx, lambdas, transforms, setting)
+            loss = _batch_loss(group, model, t, idx, lambdas, transforms, setting)
             optimiser.zero_grad(set_to_none=True)
             loss.backward()
             optimiser.step()
