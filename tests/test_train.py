@@ -107,7 +107,7 @@ def test_repo_params_resolve_every_group() -> None:
     cfg = stage_section(load_params(ROOT / "params.yaml"), "train", TrainParams)
     for name in cfg.groups:
         gp = cfg.group(name)
-        assert (gp.sensor is None) != (gp.pair is None)
+        assert sum(v is not None for v in (gp.sensor, gp.pair, gp.sensors)) == 1
         assert gp.inputs == (7, 13) and gp.activations == ("leaky_relu", "relu") and gp.hidden == 100
 
 
@@ -115,6 +115,8 @@ def test_repo_params_resolve_every_group() -> None:
     ("change", "message"),
     [
         ({"groups": {"x": {"sensor": "a", "pair": "b"}}}, "train.groups.x must have exactly one of"),
+        ({"groups": {"x": {"sensors": ["a"]}}}, r"train.groups.x.sensors must be a list of 2 or more"),
+        ({"selection_margin": 1.5}, r"train.selection_margin must be a number in \[0, 1\)"),
         ({"groups": {"x": {"sensor": "a", "lr": 1, "foo": 2}}}, "unknown key train.groups.x.foo"),
         ({"defaults": {"epochs": 0}}, "train.groups.r_leg_ft.epochs must be an integer >= 1, got 0"),
         ({"defaults": {"normalisation": "batch"}}, "normalisation must be one of"),
