@@ -204,8 +204,9 @@ def _flags_box(results: Sequence[GroupReport], cfg: EvaluateParams) -> str:
 _SUMMARY_NOTE = (
     "<p class='note'>Accuracy targets: raw/NN7 &ge; {a:g} and NN7/oracle &le; {b:g}, "
     "against the labels and against the truth (green: met, red: not). The oracle inverts each simulated "
-    "sensor's static distortion exactly: its error is the noise floor. <i>deploy</i>: the model with the "
-    "lowest validation error unless noise-flagged, else the next of the validation ranking. Labels exist "
+    "sensor's static distortion exactly: its error is the noise floor. <i>deploy</i>: the simplest model "
+    "unless a more complex one is better on validation by more than train.selection_margin, if not "
+    "noise-flagged, else the next of the validation ranking. Labels exist "
     "only where a sensor's switch is 1 (a foot sum: where the contacts are all on the foot or all off it). "
     "Against the truth (simulated logs) every model is scored twice: on the labelled samples (like for "
     "like with the labels) and on all test samples, double support included, where no label exists and "
