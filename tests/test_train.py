@@ -116,7 +116,7 @@ def test_repo_params_resolve_every_group() -> None:
     [
         ({"groups": {"x": {"sensor": "a", "pair": "b"}}}, "train.groups.x must have exactly one of"),
         ({"groups": {"x": {"sensors": ["a"]}}}, r"train.groups.x.sensors must be a list of 2 or more"),
-        ({"selection_margin": 1.5}, r"train.selection_margin must be a number in \[0, 1\)"),
+        ({"selection_margin": 1.5}, "train.selection_margin must be a number in"),
         ({"groups": {"x": {"sensor": "a", "lr": 1, "foo": 2}}}, "unknown key train.groups.x.foo"),
         ({"defaults": {"epochs": 0}}, "train.groups.r_leg_ft.epochs must be an integer >= 1, got 0"),
         ({"defaults": {"normalisation": "batch"}}, "normalisation must be one of"),
