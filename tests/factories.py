@@ -13,10 +13,14 @@ import pyarrow as pa
 import pyarrow.parquet as pq
 
 from pipeline.logs import schema as S
+from pipeline.physics.cuts import map_wrenches
 from tests.test_models import TRANSFORMS
 
 LEG, FRONT, REAR, PAIR = "r_leg_ft", "r_foot_front_ft", "r_foot_rear_ft", "r_foot"
 SENSORS = (LEG, FRONT, REAR)
+SHANK = S.cut_set_name(SENSORS)  # cut set: the leg with its foot's two sensors, exact at every sample
+SHANK_SIGNS = {LEG: 1.0, FRONT: -1.0, REAR: -1.0}
+SHANK_P = np.array([0.02, -0.01, -0.4])  # m: the leg sensor's position in the sole frame
 SCALE = np.array([60.0, 60.0, 200.0, 4.0, 4.0, 1.5])  # N, N, N, Nm, Nm, Nm: amplitude of the true wrenches
 # Which labels each synthetic experiment type has: (leg, parts, pair) as functions of the phase u in [0, 1).
 SWITCHES = {
@@ -83,6 +87,18 @@ def write_labelled_log(path: Path, kind: str, role: str, n: int, seed: int, bad_
         for c, v in zip(S.wrench_cols(S.EXPECTED, name), np.where(sw[:, None], w, np.nan).T, strict=True):
             cols[c] = v
         cols[S.switch_col(name)] = sw.astype(np.uint8)
+    # the shank cut set: leg + foot parts in the sole frame, the leg's pose turning with an ankle angle
+    angle = 0.3 * np.sin(2 * np.pi * 0.2 * t)
+    rot = np.zeros((n, 3, 3))
+    rot[:, 0, 0] = rot[:, 1, 1] = np.cos(angle)
+    rot[:, 0, 1], rot[:, 1, 0], rot[:, 2, 2] = -np.sin(angle), np.sin(angle), 1.0
+    poses = np.concatenate([rot.reshape(n, 9), np.tile(SHANK_P, (n, 1))], axis=1)
+    shank = SHANK_SIGNS[LEG] * map_wrenches(poses, truth[LEG]) - total
+    for c, v in zip(S.cut_pose_cols(SHANK, LEG), poses.T, strict=True):
+        cols[c] = v
+    for c, v in zip(S.wrench_cols(S.EXPECTED, SHANK), shank.T, strict=True):
+        cols[c] = v
+    cols[S.switch_col(SHANK)] = np.ones(n, dtype=np.uint8)
     cols[S.CONTACTS] = np.full(n, "r_foot_front,r_foot_rear", dtype=object)
     cols[S.FIXED_LINK] = np.full(n, "r_sole", dtype=object)
     cols[S.GUARD] = np.zeros(n, dtype=bool)
@@ -114,7 +130,25 @@ def labelled_metadata(kind: str, role: str, log: str) -> dict[bytes, Any]:
                     "sole_X_front": TRANSFORMS[0].ravel().tolist(),
                     "sole_X_rear": TRANSFORMS[1].ravel().tolist(),
                 }
-            }
+            },
+            "cut_sets": {
+                S.cut_set_name((FRONT, REAR)): {
+                    "label": PAIR,
+                    "sensors": [FRONT, REAR],
+                    "frame": "r_sole",
+                    "signs": {FRONT: 1.0, REAR: 1.0},
+                    "X": {FRONT: TRANSFORMS[0].ravel().tolist(), REAR: TRANSFORMS[1].ravel().tolist()},
+                    "pose_columns": {},
+                },
+                SHANK: {
+                    "label": SHANK,
+                    "sensors": list(SENSORS),
+                    "frame": "r_sole",
+                    "signs": SHANK_SIGNS,
+                    "X": {FRONT: TRANSFORMS[0].ravel().tolist(), REAR: TRANSFORMS[1].ravel().tolist()},
+                    "pose_columns": {LEG: S.cut_pose_cols(SHANK, LEG)},
+                },
+            },
         },
     }
 

@@ -236,6 +236,29 @@ def test_network_corrects_on_top_of_the_raw_wrench() -> None:
     np.testing.assert_array_equal(model(x).detach().numpy(), torch.cat([x[:, :6], x[:, 7:13]], dim=1).numpy())
 
 
+def test_untrained_network_is_its_affine_baseline() -> None:
+    """The correction's output layer starts at zero: before any step the network is the affine map."""
+    rng = np.random.default_rng(5)
+    x = _inputs(rng, 300, sensors=2)
+    gain = np.eye(6) + 0.03 * rng.normal(size=(6, 6))
+    truth = x[..., :6] @ gain.T + (x[..., 6:7] - 25) * rng.normal(size=6) + rng.normal(size=6) * 20
+    switches = np.ones((300, 2), dtype=bool)
+    affine = fit_linear_baseline("affine", x, truth, switches, order=1, ridge=0.0, lambdas=[1.0, 1.0])
+    torch.manual_seed(0)
+    model = GroupNet(NetConfig(7), 2)
+    model.reset_parameters()
+    for s, net in enumerate(model.nets):
+        net.set_affine(*affine.affine_map(s))
+    with torch.no_grad():
+        out = model(torch.tensor(x.reshape(300, 14), dtype=torch.float64).float()).double().numpy()
+    # float32 arithmetic on wrenches of up to ~1000 N
+    np.testing.assert_allclose(out.reshape(300, 2, 6), affine.predict(x), atol=2e-3)
+    np.testing.assert_allclose(affine.predict(x), truth, atol=1e-8)
+    poly = fit_linear_baseline("poly2", x, truth, switches, order=2, ridge=0.0, lambdas=[1.0, 1.0])
+    with pytest.raises(ValueError, match="not an affine model"):
+        poly.affine_map(0)
+
+
 def test_save_and_load_model_weights_only(tmp_path: Path) -> None:
     torch.manual_seed(0)
     model = GroupNet(NetConfig(13, hidden=16, activations=("leaky_relu", "relu", "tanh")), 2)

@@ -17,17 +17,19 @@ import torch
 import yaml
 
 from pipeline.calib import search as calib_search
+from pipeline.calib.cuts import CutTerm, cut_sums_np
 from pipeline.calib.data import LogInfo, find_logs, input_cols, load_group_data, resolve_group, split_logs
 from pipeline.calib.models import load_model
-from pipeline.calib.params import TrainParams
+from pipeline.calib.params import TrainParams, select_simplest
 from pipeline.calib.training import train_network
 from pipeline.cli import main
 from pipeline.core.config import load_params, stage_section
 from pipeline.core.errors import ConfigError, DataError
 from pipeline.logs import schema as S
 from pipeline.logs.schema import LOG, prediction_cols
+from pipeline.physics.cuts import map_wrenches, pose_wrench_transforms
 from pipeline.stages.train import train_group  # the stage entry (default studies dir)
-from tests.factories import FRONT, LEG, LOGS, PAIR, REAR, write_labelled_log
+from tests.factories import FRONT, LEG, LOGS, PAIR, REAR, SHANK, write_labelled_log
 from tests.test_models import TRANSFORMS
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -46,6 +48,7 @@ TRAIN_PARAMS = {
     "threads": 1,
     "storage": None,
     "heartbeat": 10,
+    "selection_margin": 0.1,
     "defaults": {
         "inputs": [7, 13],
         "hidden": 16,
@@ -59,6 +62,7 @@ TRAIN_PARAMS = {
         "lambda_front": 1.0,
         "lambda_rear": 1.0,
         "lambda_sum": 1.0,
+        "lambda_cut": 1.0,
         "n_trials": 3,
         "search": {"lr": {"low": 0.001, "high": 0.03, "log": True}, "hidden": [16, 32]},
         "tpe_startup_trials": 1,
@@ -105,7 +109,7 @@ def test_repo_params_resolve_every_group() -> None:
     cfg = stage_section(load_params(ROOT / "params.yaml"), "train", TrainParams)
     for name in cfg.groups:
         gp = cfg.group(name)
-        assert (gp.sensor is None) != (gp.pair is None)
+        assert sum(v is not None for v in (gp.sensor, gp.pair, gp.sensors)) == 1
         assert gp.inputs == (7, 13) and gp.activations == ("leaky_relu", "relu") and gp.hidden == 100
 
 
@@ -113,6 +117,8 @@ def test_repo_params_resolve_every_group() -> None:
     ("change", "message"),
     [
         ({"groups": {"x": {"sensor": "a", "pair": "b"}}}, "train.groups.x must have exactly one of"),
+        ({"groups": {"x": {"sensors": ["a"]}}}, r"train.groups.x.sensors must be a list of 2 or more"),
+        ({"selection_margin": 1.5}, "train.selection_margin must be a number in"),
         ({"groups": {"x": {"sensor": "a", "lr": 1, "foo": 2}}}, "unknown key train.groups.x.foo"),
         ({"defaults": {"epochs": 0}}, "train.groups.r_leg_ft.epochs must be an integer >= 1, got 0"),
         ({"defaults": {"normalisation": "batch"}}, "normalisation must be one of"),
@@ -143,6 +149,14 @@ def test_bad_params_name_the_key(tmp_path: Path, change: dict[str, Any], message
 
 def _logs(*specs: tuple[str, str, str]) -> list[LogInfo]:
     return [LogInfo(name, Path(name), role, kind) for name, kind, role in specs]
+
+
+def test_select_simplest_prefers_the_simpler_model_within_the_margin() -> None:
+    errors = {"raw": 20.0, "affine": 1.0, "poly2": 0.95, "nn7": 0.85, "nn13": 0.84}
+    assert select_simplest(errors, 0.1) == "nn7"  # poly2 is only 5 % better than affine; nn13 1 % than nn7
+    assert select_simplest(errors, 0.2) == "affine"
+    assert select_simplest(errors, 0.0) == "nn13"
+    assert select_simplest({"raw": 1.0, "affine": float("nan"), "nn7": 0.5}, 0.1) == "nn7"
 
 
 def test_split_is_by_whole_logs_one_per_kind_never_a_kinds_last() -> None:
@@ -327,7 +341,12 @@ def test_end_to_end_resumes_registers_and_repeats(
         for errors in m[split].values():
             assert {FRONT, REAR, PAIR, "rmse", "rmse_labelled"} <= set(errors)
             assert errors["rmse"] == errors[PAIR]["rmse"]
-    assert m["best_on_validation"] == min(m["val"], key=lambda k: m["val"][k]["rmse_labelled"])
+    errors = {k: v["rmse_labelled"] for k, v in m["val"].items()}
+    assert m["best_on_validation"] == select_simplest(errors, 0.1)
+    assert m["validation_ranking"][0] == m["best_on_validation"]
+    for name in ("nn7", "nn13"):  # trained from the affine map: epoch -1 is the affine baseline
+        first = m["networks"][name]["history"][0]
+        assert first["epoch"] == -1 and first["val_rmse"] == pytest.approx(errors["affine"], rel=1e-3)
     # The synthetic distortion is nearly affine: every calibration beats the raw wrench by far.
     raw = m["test"]["raw"]["rmse"]
     for name in ("affine", "poly1", "poly2", "nn7", "nn13"):
@@ -391,3 +410,50 @@ def test_cli_single_sensor_group(
         "nn7.pt",
         "predictions.parquet",
     ]
+
+
+def test_cut_sums_match_the_pose_transforms_of_the_label_stage() -> None:
+    """The trainer's signed sums (torch, poses per sample) against pipeline.physics.cuts's transforms."""
+    rng = np.random.default_rng(3)
+    n = 50
+    rot = np.linalg.qr(rng.normal(size=(n, 3, 3)))[0]
+    poses = np.concatenate([rot.reshape(n, 9), rng.normal(size=(n, 3))], axis=1)
+    fixed = np.zeros((3, 6, 6))
+    fixed[1:] = -TRANSFORMS
+    cut = CutTerm("c", (2, 0, 1), fixed, ((0, 1.0),), (("unused",),))
+    pred = rng.normal(size=(n, 3, 6)) * 50
+    got = cut_sums_np((cut,), pred, poses[:, None])[:, 0]
+    x_leg = pose_wrench_transforms(poses)
+    want = (
+        np.einsum("nij,nj->ni", x_leg, pred[:, 2])
+        - pred[:, 0] @ TRANSFORMS[0].T
+        - pred[:, 1] @ TRANSFORMS[1].T
+    )
+    np.testing.assert_allclose(got, want, rtol=1e-10, atol=1e-9)
+
+
+def test_several_sensors_group_trains_with_its_cut_sets(
+    tmp_path: Path, labelled: Path, mlflow_uri: str
+) -> None:
+    """A leg and its foot's two sensors as one group: the shank and foot cut sets read from the labelled
+    metadata, scored and written; the leg is labelled through the shank where it has no label itself."""
+    train = copy.deepcopy(TRAIN_PARAMS)
+    train["groups"] = {"shank": {"sensors": [LEG, FRONT, REAR], "inputs": [7], "n_trials": 1, "epochs": 3}}
+    params = load_params(write_params(tmp_path, train))
+    r = train_group(params, "shank", labelled, tmp_path / "out", tmp_path / "st", progress=False)
+    m = r.metrics
+    assert m["kind"] == "sensors" and m["headlines"] == [LEG, PAIR]
+    assert m["pairs"] == {PAIR: [FRONT, REAR]} and sorted(m["cut_sets"]) == sorted([PAIR, SHANK])
+    for name in ("affine", "nn7"):
+        errors = m["test"][name]
+        assert {LEG, FRONT, REAR, PAIR, SHANK} <= set(errors)
+        assert errors[SHANK]["rmse"] < m["test"]["raw"][SHANK]["rmse"] / 3
+    # epoch -1 of the network is the affine map, fitted part by part (the leg alone, the foot pair)
+    assert m["networks"]["nn7"]["history"][0]["epoch"] == -1
+    pred = pd.read_parquet(tmp_path / "out" / "predictions.parquet")
+    test = pd.concat([pd.read_parquet(p).assign(**{LOG: p.stem}) for p in labelled.glob("*test.parquet")])
+    test = pred[[LOG, S.STAMP]].merge(test, on=[LOG, S.STAMP], how="left")
+    poses = test[S.cut_pose_cols(SHANK, LEG)].to_numpy()
+    leg, front, rear = (pred[prediction_cols("nn7", s)].to_numpy() for s in (LEG, FRONT, REAR))
+    want = map_wrenches(poses, leg) - front @ TRANSFORMS[0].T - rear @ TRANSFORMS[1].T
+    np.testing.assert_allclose(pred[prediction_cols("nn7", SHANK)].to_numpy(), want, rtol=1e-6, atol=1e-6)

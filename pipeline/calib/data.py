@@ -25,6 +25,7 @@ import numpy as np
 import pyarrow as pa
 import pyarrow.parquet as pq
 
+from pipeline.calib.cuts import CutTerm, cut_sums_np
 from pipeline.calib.models import (
     wrench_errors,
 )
@@ -39,17 +40,31 @@ SPLITS = ("train", "val", "test")
 
 @dataclass(frozen=True)
 class Group:
-    """What a group trains: its sensors (1, or a foot's front and rear) and, for a foot, the transforms."""
+    """What a group trains: its sensors (1, a foot's front and rear, or several coupled by cut sets), for a
+    foot the transforms, for several sensors the cut sets among them (`pipeline.calib.cuts`)."""
 
     name: str
     sensors: tuple[str, ...]
     pair: str | None = None
     transforms: np.ndarray | None = None  # (S, 6, 6) sole_X_sensor, row-major, force first
+    cuts: tuple[CutTerm, ...] = ()
+
+    @property
+    def headlines(self) -> tuple[str, ...]:
+        """The names whose errors are the group's headlines: the sensor, or the foot's sum; for several
+        sensors, each sensor in no foot pair (a leg) then each foot pair's sum."""
+        if self.pair is not None:
+            return (self.pair,)
+        if not self.cuts:
+            return (self.sensors[0],)
+        pairs = [c for c in self.cuts if c.pair is not None]
+        in_pair = {self.sensors[m] for c in pairs for m in c.members}
+        return (*(s for s in self.sensors if s not in in_pair), *(c.label for c in pairs))
 
     @property
     def headline(self) -> str:
-        """The name whose errors are the group's headline: the sensor, or the foot's sum."""
-        return self.pair if self.pair is not None else self.sensors[0]
+        """The first headline."""
+        return self.headlines[0]
 
 
 def input_cols(sensor: str, n_inputs: int = 13) -> list[str]:
@@ -81,6 +96,9 @@ class GroupData:
     switches: np.ndarray
     sum_label: np.ndarray | None = None
     sum_switch: np.ndarray | None = None
+    cut_labels: np.ndarray | None = None  # (N, C, 6) cut-set sums, NaN where the switch is 0
+    cut_switches: np.ndarray | None = None  # (N, C) bool
+    poses: np.ndarray | None = None  # (N, P, 12) the cut sets' moving members' poses (CutTerm)
 
     def __len__(self) -> int:
         return len(self.log)
@@ -100,9 +118,18 @@ class GroupData:
             return None
         return self.sum_switch & ~self.switches.all(axis=1)
 
+    def cut_alpha(self, cuts: Sequence[CutTerm]) -> np.ndarray | None:
+        """(N, C) bool switches of the cut-set terms: sw_cut (1 - prod_{s in cut} sw_s), as eq. 5.12."""
+        if self.cut_switches is None:
+            return None
+        every = np.stack([self.switches[:, list(c.members)].all(axis=1) for c in cuts], axis=1)
+        return self.cut_switches & ~every
+
     def labelled(self) -> np.ndarray:
         """(N,) bool: samples with at least one term in the loss."""
         mask = self.switches.any(axis=1)
+        if self.cut_switches is not None:
+            mask = mask | self.cut_switches.any(axis=1)
         return mask | self.alpha_sum if self.sum_switch is not None else mask
 
 
@@ -154,6 +181,15 @@ def resolve_group(gp: GroupParams, params: Params, logs: Sequence[LogInfo]) -> G
                 f"{key}.sensor: {gp.sensor!r} is not an FT sensor of the labelled tables (have: {have})"
             )
         return Group(gp.name, (gp.sensor,))
+    if gp.sensors is not None:
+        have = S.sensors_of(first.names)
+        for sensor in gp.sensors:
+            if sensor not in have:
+                raise ConfigError(
+                    f"{key}.sensors: {sensor!r} is not an FT sensor of the labelled tables (have: "
+                    f"{', '.join(have) or 'none'})"
+                )
+        return Group(gp.name, gp.sensors, cuts=_cut_terms(gp.sensors, logs))
     pairs = {p.name: p for p in params.robot.foot_pairs}
     if gp.pair not in pairs:
         raise ConfigError(
@@ -176,6 +212,41 @@ def resolve_group(gp: GroupParams, params: Params, logs: Sequence[LogInfo]) -> G
     return Group(gp.name, pair.sensors, pair.name, transforms)
 
 
+def _cut_terms(sensors: Sequence[str], logs: Sequence[LogInfo]) -> tuple[CutTerm, ...]:
+    """The cut sets of the labelled metadata whose members are all among `sensors` (same in every log)."""
+    entries = None
+    for log in logs:
+        meta = S.read_metadata(pq.read_schema(log.path), S.META_LABEL) or {}
+        cuts = meta.get("cut_sets")
+        if not isinstance(cuts, dict):
+            raise DataError(f"{log.path}: metadata ftcal.label has no cut_sets (relabel with this version)")
+        if entries is not None and cuts != entries:
+            raise DataError(f"{log.path}: cut_sets metadata differs from {logs[0].name}'s")
+        entries = cuts
+    pair_labels = {c["label"] for c in entries.values() if c["label"] != S.cut_set_name(c["sensors"])}
+    out = []
+    for name, c in sorted(entries.items()):
+        if not set(c["sensors"]) <= set(sensors):
+            continue
+        try:
+            members = tuple(sensors.index(s) for s in c["sensors"])
+            fixed = np.zeros((len(members), 6, 6))
+            moving = []
+            for k, s in enumerate(c["sensors"]):
+                if s in c["X"]:
+                    fixed[k] = c["signs"][s] * np.asarray(c["X"][s], dtype=np.float64).reshape(6, 6)
+                else:
+                    moving.append((k, float(c["signs"][s])))
+            pose_cols = tuple(tuple(c["pose_columns"][c["sensors"][k]]) for k, _ in moving)
+        except (KeyError, TypeError, ValueError) as exc:
+            raise DataError(
+                f"{logs[0].path}: metadata ftcal.label cut_sets.{name} is incomplete: {exc}"
+            ) from None
+        pair = c["label"] if c["label"] in pair_labels else None
+        out.append(CutTerm(c["label"], members, fixed, tuple(moving), pose_cols, pair))
+    return tuple(out)
+
+
 def _read_log(log: LogInfo, group: Group, index: int) -> GroupData:
     wanted = [S.STAMP, S.TIME]
     for sensor in group.sensors:
@@ -183,6 +254,9 @@ def _read_log(log: LogInfo, group: Group, index: int) -> GroupData:
         wanted.append(S.switch_col(sensor))
     if group.pair is not None:
         wanted += S.wrench_cols(S.EXPECTED, group.pair) + [S.switch_col(group.pair)]
+    for cut in group.cuts:
+        wanted += S.wrench_cols(S.EXPECTED, cut.label) + [S.switch_col(cut.label)]
+        wanted += [c for cols in cut.pose_cols for c in cols]
     try:
         table = pq.read_table(log.path, columns=wanted)
     except (OSError, pa.ArrowException) as exc:
@@ -221,6 +295,17 @@ def _read_log(log: LogInfo, group: Group, index: int) -> GroupData:
     if group.pair is not None:
         data.sum_label = block(S.wrench_cols(S.EXPECTED, group.pair))
         data.sum_switch = col(S.switch_col(group.pair)).astype(bool)
+    if group.cuts:
+        data.cut_labels = np.stack([block(S.wrench_cols(S.EXPECTED, c.label)) for c in group.cuts], axis=1)
+        data.cut_switches = np.stack([col(S.switch_col(c.label)).astype(bool) for c in group.cuts], axis=1)
+        poses = [block(cols) for c in group.cuts for cols in c.pose_cols]
+        data.poses = np.stack(poses, axis=1) if poses else np.zeros((n, 0, 12))
+        p = 0
+        for c, cut in enumerate(group.cuts):  # a sum needs its members' poses
+            for _ in cut.moving:
+                data.cut_switches[:, c] &= np.isfinite(data.poses[:, p]).all(axis=1)
+                p += 1
+        data.poses = np.nan_to_num(data.poses)
     ok &= np.isfinite(data.x).all(axis=(1, 2))
     data = data.subset(ok)
     for s, sensor in enumerate(group.sensors):
@@ -228,6 +313,9 @@ def _read_log(log: LogInfo, group: Group, index: int) -> GroupData:
             raise DataError(
                 f"{log.path}: {S.EXPECTED}.{sensor} is not finite where {S.switch_col(sensor)} is 1"
             )
+    for c, cut in enumerate(group.cuts):
+        if not np.isfinite(data.cut_labels[data.cut_switches[:, c], c]).all():
+            raise DataError(f"{log.path}: {S.EXPECTED}.{cut.label} is not finite where its switch is 1")
     if data.sum_switch is not None and not np.isfinite(data.sum_label[data.sum_switch]).all():
         raise DataError(
             f"{log.path}: {S.EXPECTED}.{group.pair} is not finite where {S.switch_col(group.pair)} is 1"
@@ -310,7 +398,17 @@ def group_errors(group: Group, data: GroupData, pred: np.ndarray) -> dict[str, A
         total = np.einsum("sij,nsj->ni", group.transforms, pred[m])
         out[group.pair] = wrench_errors(total, data.sum_label[m])
         squares.append(((total - data.sum_label[m]) ** 2).ravel())
+    if group.cuts:
+        sums = cut_sums_np(group.cuts, pred, data.poses)
+        for c, cut in enumerate(group.cuts):
+            m = data.cut_switches[:, c]
+            out[cut.label] = wrench_errors(sums[m, c], data.cut_labels[m, c])
+            squares.append(((sums[m, c] - data.cut_labels[m, c]) ** 2).ravel())
     pooled = np.concatenate(squares)
     out["rmse_labelled"] = math.sqrt(float(pooled.mean())) if pooled.size else math.nan
     out["rmse"] = out[group.headline]["rmse"]
+    if len(group.headlines) > 1:  # several headlines: their squared errors pooled
+        n = sum(out[h]["samples"] for h in group.headlines)
+        mse = sum(out[h]["mse"] * out[h]["samples"] for h in group.headlines if out[h]["samples"])
+        out["rmse"] = math.sqrt(mse / n) if n else math.nan
     return out

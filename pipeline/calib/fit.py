@@ -23,7 +23,7 @@ from pipeline.calib.models import (
     LinearBaseline,
     fit_linear_baseline,
 )
-from pipeline.calib.params import AFFINE, GroupParams, TrainParams, poly_name
+from pipeline.calib.params import AFFINE, GroupParams, TrainParams, poly_name, select_simplest
 from pipeline.calib.records import flatten_metrics
 from pipeline.calib.search import NetResult
 from pipeline.calib.training import NetSetting
@@ -76,20 +76,76 @@ def prepare(params: Params, group_name: str, in_dir: Path) -> Prepared:
 
 
 def fit_baselines(gp: GroupParams, group: Group, train: GroupData) -> dict[str, LinearBaseline]:
-    """The affine (least squares) and polynomial (ridge) baselines on the switched loss of the networks."""
+    """The affine (least squares) and polynomial (ridge) baselines on the switched loss of the networks.
+
+    A group of several sensors is fitted part by part: each foot pair (a cut set with constant transforms)
+    jointly with its sum term, every other sensor alone; the cut sets whose transforms depend on the joints
+    are left to the networks (per-sample transforms make the normal equations of the polynomials too big).
+    """
+    if group.cuts:
+        return _fit_baselines_by_part(gp, group, train)
+    return _fit_group_baselines(gp, group, train, NetSetting.of(gp, 7).lambdas, gp.lambda_sum)
+
+
+def _fit_group_baselines(
+    gp: GroupParams, group: Group, train: GroupData, lambdas: tuple[float, ...], lambda_sum: float
+) -> dict[str, LinearBaseline]:
+    """The baselines of a group of one sensor or one foot pair (its sum term with `lambda_sum`)."""
     args = {
         "x": train.x,
         "labels": train.labels,
         "switches": train.switches,
-        "lambdas": NetSetting.of(gp, 7).lambdas,
+        "lambdas": lambdas,
         "sum_label": train.sum_label,
         "alpha_sum": train.alpha_sum,
         "transforms": group.transforms,
-        "lambda_sum": gp.lambda_sum,
+        "lambda_sum": lambda_sum,
     }
     out = {AFFINE: fit_linear_baseline(AFFINE, order=1, ridge=0.0, **args)}
     for order in gp.poly_orders:
         out[poly_name(order)] = fit_linear_baseline(poly_name(order), order=order, ridge=gp.ridge, **args)
+    return out
+
+
+def _fit_baselines_by_part(gp: GroupParams, group: Group, train: GroupData) -> dict[str, LinearBaseline]:
+    """`fit_baselines` of a group of several sensors: its foot pairs and lone sensors, stacked per sensor."""
+    parts: list[tuple[list[int], int | None]] = []  # (sensor indices, fixed cut index or None)
+    taken: set[int] = set()
+    for c, cut in enumerate(group.cuts):
+        if cut.is_fixed and cut.pair is not None and not taken & set(cut.members):
+            parts.append((list(cut.members), c))
+            taken |= set(cut.members)
+    parts += [([s], None) for s in range(len(group.sensors)) if s not in taken]
+    fitted: list[tuple[list[int], dict[str, LinearBaseline]]] = []
+    for members, c in parts:
+        sub = Group(group.name, tuple(group.sensors[s] for s in members))
+        part = GroupData(
+            train.log,
+            train.stamp,
+            train.time,
+            train.x[:, members],
+            train.labels[:, members],
+            train.switches[:, members],
+        )
+        if c is not None:
+            sub = Group(group.name, sub.sensors, group.cuts[c].label, group.cuts[c].fixed)
+            part.sum_label, part.sum_switch = train.cut_labels[:, c], train.cut_switches[:, c]
+        lambdas = (gp.lambda_expected,) * len(members)
+        fitted.append(
+            (members, _fit_group_baselines(gp, sub, part.subset(part.labelled()), lambdas, gp.lambda_cut))
+        )
+    out = {}
+    for name in fitted[0][1]:
+        stack = sorted(
+            (s, b, k) for members, models in fitted for k, s in enumerate(members) for b in [models[name]]
+        )
+        out[name] = LinearBaseline(
+            name,
+            np.stack([b.offset[k] for _, b, k in stack]),
+            np.stack([b.scale[k] for _, b, k in stack]),
+            stack[0][1].powers,
+            np.stack([b.weights[k] for _, b, k in stack]),
+        )
     return out
 
 
@@ -100,19 +156,30 @@ def score(
     group = prep.group
     metrics: dict[str, Any] = {
         "group": group.name,
-        "kind": "sensor" if group.pair is None else "pair",
+        "kind": "pair" if group.pair is not None else "sensors" if group.cuts else "sensor",
         "sensors": list(group.sensors),
         "pair": group.pair,
         "headline": group.headline,
+        "headlines": list(group.headlines),
+        # several sensors: each foot pair's sensors (front, rear) and the cut sets trained with a sum term
+        "pairs": {c.label: [group.sensors[m] for m in c.members] for c in group.cuts if c.pair is not None},
+        "cut_sets": [c.label for c in group.cuts],
         "logs": prep.split,
         "samples": {"train": len(prep.train), "val": len(prep.val), "test": len(prep.test)},
-        "selection": "lowest validation rmse_labelled",
+        "selection": (
+            f"simplest model (raw < affine < poly < nn7 < nn13) unless a more complex one has a validation "
+            f"rmse_labelled lower by more than {prep.cfg.selection_margin:.0%}"
+        ),
     }
     for k, data in (("val", prep.val), ("test", prep.test)):
         metrics[k] = {name: group_errors(group, data, pred) for name, pred in preds[k].items()}
-    ranked = sorted(metrics["val"], key=lambda m: metrics["val"][m]["rmse_labelled"])
-    metrics["best_on_validation"] = ranked[0]
-    metrics["validation_ranking"] = ranked
+    errors = {m: metrics["val"][m]["rmse_labelled"] for m in metrics["val"]}
+    chosen = select_simplest(errors, prep.cfg.selection_margin)
+    ranked = sorted(errors, key=lambda m: errors[m])
+    # the chosen model first, then the others by validation error (the fallbacks if it is noise-flagged)
+    metrics["best_on_validation"] = chosen
+    metrics["lowest_on_validation"] = ranked[0]
+    metrics["validation_ranking"] = [chosen, *(m for m in ranked if m != chosen)]
     metrics["networks"] = {
         name: {
             "trial": r.trial,
@@ -151,7 +218,7 @@ def mlflow_metrics(group: Group, metrics: Mapping[str, Any]) -> dict[str, float]
     for k in ("val", "test"):
         for name, errors in metrics[k].items():
             keep = {"rmse": errors["rmse"], "rmse_labelled": errors["rmse_labelled"]}
-            keep.update({s: errors[s] for s in (*group.sensors, group.headline)})
+            keep.update({s: errors[s] for s in dict.fromkeys((*group.sensors, *group.headlines))})
             flat.update(flatten_metrics(f"{k}.{name}", keep))
     flat.update({f"seconds.{k}": v for k, v in metrics["seconds"].items()})
     return flat

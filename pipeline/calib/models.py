@@ -14,12 +14,15 @@ Networks (`SensorNet`): the thesis's MLP, hidden layers of `hidden` neurons with
 - Inputs are normalised with constants from the training samples (``max``: divided by the largest
   absolute value; ``standard``: minus the mean, divided by the standard deviation), stored as buffers so
   that the saved model takes raw inputs.
-- The network learns a correction on top of the raw wrench, ``f_cal = f_raw + s * mlp(x_norm)``, with ``s``
-  the per-axis standard deviation of the raw wrench in the training samples (a buffer too). The primary
-  calibration is already within a few percent, so the identity is the right prior: a plain MLP would
-  have to rebuild it from ReLU pieces to 0.1 % precision over a +-1000 N range before learning anything,
-  and ``s`` makes the last layer's output O(1) in every axis (N and Nm differ by two orders of magnitude).
-  The loss stays the thesis's: MSE of the wrench in N and Nm (``switched_loss``).
+- The network learns a correction on top of the fitted affine map,
+  ``f_cal = f_raw + A [f_raw, T] + b + s * mlp(x_norm)``, with ``A`` (6, 7) and ``b`` (6,) the group's
+  affine baseline (a buffer, fitted before the network) and ``s`` the per-axis standard deviation of the
+  raw wrench in the training samples (a buffer too). The output layer starts at zero, so the untrained
+  network *is* the affine map: the network only has to learn what the affine map misses, and where the
+  training data say nothing (e.g. a leg in double support, where no single leg has a label) it stays
+  close to the affine map instead of extrapolating from ReLU pieces. ``s`` makes the last layer's output
+  O(1) in every axis (N and Nm differ by two orders of magnitude). The loss stays the thesis's: MSE of
+  the wrench in N and Nm (``switched_loss``).
 
 Losses (`switched_loss`), per sample i, averaged over the batch (thesis eqs. 5.4-5.12):
 
@@ -58,6 +61,7 @@ from pipeline.core.errors import DataError
 
 WRENCH = 6  # fx, fy, fz [N], tx, ty, tz [Nm]
 N_FORCE = 3
+AFFINE_INPUTS = 7  # raw wrench + temperature: the inputs of the affine map and the polynomials
 ACTIVATIONS: dict[str, type[nn.Module]] = {
     "relu": nn.ReLU,
     "leaky_relu": nn.LeakyReLU,
@@ -117,8 +121,9 @@ class NetConfig:
 class SensorNet(nn.Module):
     """Calibration network of one sensor: (B, n_inputs) raw inputs -> (B, 6) calibrated wrench (N, Nm).
 
-    ``f = x[:, :6] + out_scale * mlp((x - in_offset) / in_scale)``; the three constants are buffers
-    (saved in the state dict), set from the training samples with `set_constants`.
+    ``f = x[:, :6] + x[:, :7] @ affine_weight.T + affine_bias + out_scale * mlp((x - in_offset) / in_scale)``;
+    the constants are buffers (saved in the state dict), set from the training samples with
+    `set_constants` and from the affine baseline with `set_affine` (zero: the raw wrench).
     """
 
     def __init__(self, config: NetConfig) -> None:
@@ -134,13 +139,22 @@ class SensorNet(nn.Module):
         self.register_buffer("in_offset", torch.zeros(config.n_inputs))
         self.register_buffer("in_scale", torch.ones(config.n_inputs))
         self.register_buffer("out_scale", torch.ones(WRENCH))
+        self.register_buffer("affine_weight", torch.zeros(WRENCH, AFFINE_INPUTS))
+        self.register_buffer("affine_bias", torch.zeros(WRENCH))
 
     def reset_parameters(self) -> None:
-        """xavier_uniform weights, zero biases (thesis 5.5.1), from the current torch RNG state."""
+        """xavier_uniform weights, zero biases (thesis 5.5.1), from the current torch RNG state; the output
+        layer's weights zero too, so that the network starts as its affine map."""
         for module in self.mlp:
             if isinstance(module, nn.Linear):
                 nn.init.xavier_uniform_(module.weight)
                 nn.init.zeros_(module.bias)
+        nn.init.zeros_(self.mlp[-1].weight)
+
+    def set_affine(self, weight: np.ndarray, bias: np.ndarray) -> None:
+        """The affine map the correction starts from: weight (6, 7) on [f_raw, T], bias (6,) (N, Nm)."""
+        self.affine_weight.copy_(torch.as_tensor(np.asarray(weight), dtype=self.affine_weight.dtype))
+        self.affine_bias.copy_(torch.as_tensor(np.asarray(bias), dtype=self.affine_bias.dtype))
 
     def set_constants(self, in_offset: np.ndarray, in_scale: np.ndarray, out_scale: np.ndarray) -> None:
         for name, value in (("in_offset", in_offset), ("in_scale", in_scale), ("out_scale", out_scale)):
@@ -148,7 +162,8 @@ class SensorNet(nn.Module):
             buffer.copy_(torch.as_tensor(np.asarray(value), dtype=buffer.dtype))
 
     def forward(self, x: torch.Tensor) -> torch.Tensor:
-        return x[:, :WRENCH] + self.out_scale * self.mlp((x - self.in_offset) / self.in_scale)
+        affine = x[:, :AFFINE_INPUTS] @ self.affine_weight.T + self.affine_bias
+        return x[:, :WRENCH] + affine + self.out_scale * self.mlp((x - self.in_offset) / self.in_scale)
 
 
 class GroupNet(nn.Module):
@@ -259,6 +274,8 @@ def switched_loss(
     alpha_sum: torch.Tensor | None = None,
     transforms: torch.Tensor | None = None,
     lambda_sum: float = 1.0,
+    cuts: tuple[torch.Tensor, torch.Tensor, torch.Tensor] | None = None,
+    lambda_cut: float = 1.0,
 ) -> tuple[torch.Tensor, dict[str, torch.Tensor]]:
     """The thesis's switched loss, averaged over the batch (module docstring; eqs. 5.4-5.12).
 
@@ -271,6 +288,9 @@ def switched_loss(
         alpha_sum: (B,) bool, the sum switch of eq. 5.12 (already sw_pair * (1 - prod sw_s)), or None.
         transforms: (S, 6, 6) ``sole_X_s``; required with sum_label.
         lambda_sum: weight of the sum term.
+        cuts: (predicted sums (B, C, 6), labels (B, C, 6), switches (B, C) bool) of cut sets
+            (`pipeline.calib.cuts`), or None: one term per cut set, alpha lambda_cut mse, like the sum's.
+        lambda_cut: weight of each cut-set term.
 
     Returns:
         (total loss, {"s0": term, "s1": term, "sum": term}): each term is the batch mean of
@@ -285,6 +305,11 @@ def switched_loss(
         sum_term = _switched_mse(sum_in_sole(pred, transforms) - sum_label, alpha_sum) * lambda_sum
         terms["sum"] = sum_term.mean()
         total = total + sum_term
+    if cuts is not None:
+        cut_pred, cut_label, cut_alpha = cuts
+        per_cut = _switched_mse(cut_pred - cut_label, cut_alpha) * lambda_cut  # (B, C)
+        terms.update({f"c{c}": per_cut[:, c].mean() for c in range(per_cut.shape[1])})
+        total = total + per_cut.sum(dim=1)
     return total.mean(), terms
 
 
@@ -335,6 +360,17 @@ class LinearBaseline:
             [x[:, s, :WRENCH] + self.features(x[:, s], s) @ self.weights[s].T for s in range(x.shape[1])],
             axis=1,
         )
+
+    def affine_map(self, s: int) -> tuple[np.ndarray, np.ndarray]:
+        """Sensor s's model as ``f_raw + weight @ x[:7] + bias``: (weight (6, 7), bias (6,)); order 1 only."""
+        if len(self.powers) != AFFINE_INPUTS + 1 or self.powers.sum(axis=1).max() > 1:
+            raise ValueError(f"{self.name}: not an affine model (monomials of order > 1)")
+        w = self.weights[s]  # columns: constant, then z_v = (x_v - offset_v) / scale_v in input order
+        order = np.argmax(self.powers[1:], axis=1)  # which input each linear column multiplies
+        weight = np.zeros((WRENCH, AFFINE_INPUTS))
+        weight[:, order] = w[:, 1:] / self.scale[s][order]
+        bias = w[:, 0] - weight @ self.offset[s]
+        return weight, bias
 
     def to_dict(self) -> dict[str, Any]:
         return {

@@ -30,6 +30,31 @@ def poly_name(order: int) -> str:
     return f"poly{order}"
 
 
+def complexity(model: str) -> tuple[int, int]:
+    """Sort key, simplest first: raw < affine < poly<n> (by n) < nn<n> (by n)."""
+    if model == RAW:
+        return (0, 0)
+    if model == AFFINE:
+        return (1, 0)
+    for rank, prefix in ((2, "poly"), (3, "nn")):
+        if model.startswith(prefix) and model[len(prefix) :].isdigit():
+            return (rank, int(model[len(prefix) :]))
+    return (4, 0)
+
+
+def select_simplest(errors: Mapping[str, float], margin: float) -> str:
+    """The model to deploy from validation errors {model: rmse}: walking from the simplest model to the
+    most complex, a model replaces the current choice only if its error is below (1 - margin) times the
+    current choice's (NaN errors never win). `errors` must not be empty."""
+    ordered = sorted(errors, key=complexity)
+    choice = ordered[0]
+    for model in ordered[1:]:
+        better = not math.isfinite(errors[choice]) or errors[model] < (1.0 - margin) * errors[choice]
+        if math.isfinite(errors[model]) and better:
+            choice = model
+    return choice
+
+
 # Keys an Optuna search may vary (their type), and which group params are integers.
 SEARCHABLE = {
     "lr": float,
@@ -58,7 +83,8 @@ class GroupParams:
 
     name: str  # group name (the key under train.groups)
     sensor: str | None  # a single FT sensor ...
-    pair: str | None  # ... or a foot pair of robot.foot_pairs
+    pair: str | None  # ... or a foot pair of robot.foot_pairs ...
+    sensors: tuple[str, ...] | None  # ... or several sensors coupled by the cut sets among them
     inputs: tuple[int, ...]  # network sizes trained: 7 and/or 13
     hidden: int  # neurons per hidden layer
     activations: tuple[str, ...]  # one per hidden layer
@@ -71,6 +97,7 @@ class GroupParams:
     lambda_front: float  # foot: lambdas of eqs. 5.6-5.7
     lambda_rear: float
     lambda_sum: float
+    lambda_cut: float  # several sensors: lambda of each cut set's sum term
     n_trials: int  # Optuna trials per network (the first: these params)
     search: Mapping[str, Any]  # key -> [choices] or {low, high, log}
     tpe_startup_trials: int  # random trials before TPE
@@ -81,12 +108,24 @@ class GroupParams:
 
     def __post_init__(self) -> None:
         key = f"train.groups.{self.name}"
-        if (self.sensor is None) == (self.pair is None):
-            raise ConfigError(f"{key} must have exactly one of 'sensor' or 'pair'")
+        if sum(v is not None for v in (self.sensor, self.pair, self.sensors)) != 1:
+            raise ConfigError(f"{key} must have exactly one of 'sensor', 'pair' or 'sensors'")
         for attr in ("sensor", "pair"):
             value = getattr(self, attr)
             if value is not None and (not isinstance(value, str) or not value.strip()):
                 raise ConfigError(f"{key}.{attr} must be a non-empty string, got {value!r}")
+        if self.sensors is not None:
+            names = self.sensors
+            if (
+                not isinstance(names, list | tuple)
+                or len(names) < 2
+                or any(not isinstance(n, str) or not n.strip() for n in names)
+                or len(set(names)) != len(names)
+            ):
+                raise ConfigError(
+                    f"{key}.sensors must be a list of 2 or more distinct sensor names, got {names!r}"
+                )
+            object.__setattr__(self, "sensors", tuple(names))
         inputs = self.inputs
         if not isinstance(inputs, list | tuple) or not inputs or any(i not in INPUT_SIZES for i in inputs):
             raise ConfigError(f"{key}.inputs must be a non-empty list of {INPUT_SIZES}, got {inputs!r}")
@@ -115,7 +154,15 @@ class GroupParams:
             )
         if not _is_number(self.lr) or self.lr <= 0:
             raise ConfigError(f"{key}.lr must be a positive number, got {self.lr!r}")
-        for attr in ("weight_decay", "lambda_expected", "lambda_front", "lambda_rear", "lambda_sum", "ridge"):
+        for attr in (
+            "weight_decay",
+            "lambda_expected",
+            "lambda_front",
+            "lambda_rear",
+            "lambda_sum",
+            "lambda_cut",
+            "ridge",
+        ):
             value = getattr(self, attr)
             if not _is_number(value) or value < 0:
                 raise ConfigError(f"{key}.{attr} must be a number >= 0, got {value!r}")
@@ -162,7 +209,9 @@ class GroupParams:
 
     @property
     def label(self) -> str:
-        """The sensor or pair name the group trains."""
+        """The sensor or pair name the group trains (several sensors: the group's name)."""
+        if self.sensors is not None:
+            return self.name
         return self.sensor if self.sensor is not None else str(self.pair)
 
     def hyperparameters(self) -> dict[str, Any]:
@@ -171,7 +220,7 @@ class GroupParams:
 
 
 _GROUP_KEYS = {f.name for f in fields(GroupParams)} - {"name"}
-_DEFAULT_KEYS = _GROUP_KEYS - {"sensor", "pair"}
+_DEFAULT_KEYS = _GROUP_KEYS - {"sensor", "pair", "sensors"}
 
 
 def check_storage(url: Any, where: str = "train.storage") -> None:
@@ -196,6 +245,7 @@ class TrainParams:
     threads: int  # torch CPU threads
     storage: str | None  # Optuna studies: None = journal file, else a database URL (calib.studies)
     heartbeat: int  # s between heartbeats of a trial on a database; stale (retried) after twice that
+    selection_margin: float  # a more complex model is chosen only if its validation error is this much lower
     defaults: Mapping[str, Any]  # every group's params ...
     groups: Mapping[str, Any]  # ... updated per group: name -> {sensor | pair, overrides}
 
@@ -207,6 +257,10 @@ class TrainParams:
         check_storage(self.storage)
         if not _is_int(self.heartbeat) or self.heartbeat < 1:
             raise ConfigError(f"train.heartbeat must be an integer >= 1 (s), got {self.heartbeat!r}")
+        if not _is_number(self.selection_margin) or not 0 <= self.selection_margin < 1:
+            raise ConfigError(
+                f"train.selection_margin must be a number in [0, 1), got {self.selection_margin!r}"
+            )
         if not isinstance(self.defaults, Mapping):
             raise ConfigError(f"train.defaults must be a mapping, got {self.defaults!r}")
         unknown = sorted(set(self.defaults) - _DEFAULT_KEYS)
@@ -234,5 +288,5 @@ class TrainParams:
             raise ConfigError(
                 f"unknown key train.groups.{name}.{unknown[0]} (allowed: {', '.join(sorted(_GROUP_KEYS))})"
             )
-        merged = {"sensor": None, "pair": None, **self.defaults, **own}
+        merged = {"sensor": None, "pair": None, "sensors": None, **self.defaults, **own}
         return GroupParams(name=name, **merged)

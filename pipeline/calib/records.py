@@ -16,6 +16,7 @@ import pyarrow as pa
 import pyarrow.parquet as pq
 import torch
 
+from pipeline.calib.cuts import cut_sums_np
 from pipeline.calib.data import Group, GroupData
 from pipeline.calib.models import (
     GroupNet,
@@ -58,7 +59,15 @@ def write_predictions(
         for a, c in enumerate(S.wrench_cols(S.EXPECTED, group.pair)):
             cols[c] = pa.array(data.sum_label[:, a])
         cols[S.switch_col(group.pair)] = pa.array(data.sum_switch.astype(np.uint8))
+    for c, cut in enumerate(group.cuts):
+        for a, col in enumerate(S.wrench_cols(S.EXPECTED, cut.label)):
+            cols[col] = pa.array(data.cut_labels[:, c, a])
+        cols[S.switch_col(cut.label)] = pa.array(data.cut_switches[:, c].astype(np.uint8))
     for model, pred in preds.items():
+        sums = cut_sums_np(group.cuts, pred, data.poses) if group.cuts else None
+        for c, cut in enumerate(group.cuts):
+            for a, col in enumerate(S.prediction_cols(model, cut.label)):
+                cols[col] = pa.array(sums[:, c, a])
         for s, sensor in enumerate(group.sensors):
             for a, c in enumerate(S.prediction_cols(model, sensor)):
                 cols[c] = pa.array(pred[:, s, a])
@@ -104,7 +113,10 @@ def log_trial_run(
         )
         now = int(time.time() * 1000)
         metrics = [
-            Metric(k, float(h[k]), now, int(h["epoch"])) for h in history for k in ("loss", "val_rmse")
+            Metric(k, float(h[k]), now, int(h["epoch"]))
+            for h in history
+            if h["epoch"] >= 0  # epoch -1 (the affine start) is in best_val_rmse
+            for k in ("loss", "val_rmse")
         ]
         metrics.append(Metric("seconds", seconds, now, 0))
         if history:

@@ -15,7 +15,7 @@ import torch
 
 from pipeline.calib.fit import Prepared, fit_baselines, mlflow_metrics, network_info, prepare, score
 from pipeline.calib.models import WRENCH, LinearBaseline, save_model
-from pipeline.calib.params import RAW, nn_name
+from pipeline.calib.params import AFFINE, RAW, nn_name
 from pipeline.calib.records import TrainResult, log_network, log_trial_run, write_predictions
 from pipeline.calib.search import NetResult, code_digest, data_digest, search_network
 from pipeline.calib.studies import open_storage, storage_url
@@ -78,6 +78,7 @@ def fit_models(params: Params, prep: Prepared, studies: Path, ui: ProgressLog) -
             identity,
             ui,
             log_trial_run(group.name, name),
+            fitted.baselines[AFFINE],
         )
         for k, d in data.items():
             fitted.preds[k][name] = predict(fitted.nets[name].model, d)

@@ -26,6 +26,7 @@ import numpy as np
 from pipeline.calib.data import Group, GroupData, derive_seed
 from pipeline.calib.models import (
     GroupNet,
+    LinearBaseline,
 )
 from pipeline.calib.params import SEARCHABLE, GroupParams, nn_name
 from pipeline.calib.studies import (
@@ -101,6 +102,7 @@ class _Search:
         gp: GroupParams,
         group: Group,
         data: tuple[GroupData, GroupData],
+        start: LinearBaseline | None,
         n_inputs: int,
         seed: int,
         storage: Any,
@@ -108,7 +110,7 @@ class _Search:
         progress: ProgressLog,
         log_trial: TrialLog | None,
     ) -> None:
-        self.gp, self.group, (self.train, self.val) = gp, group, data
+        self.gp, self.group, (self.train, self.val), self.start = gp, group, data, start
         self.n_inputs, self.seed, self.storage = n_inputs, seed, storage  # storage: studies.open_storage
         self.progress, self.log_trial = progress, log_trial
         self.name = nn_name(n_inputs)
@@ -181,7 +183,9 @@ class _Search:
                 raise optuna.TrialPruned()
 
         try:
-            model, history = train_network(self.group, self.train, self.val, setting, trial_seed, on_epoch)
+            model, history = train_network(
+                self.group, self.train, self.val, setting, trial_seed, on_epoch, self.start
+            )
         except optuna.TrialPruned:
             last = history[-1]["val_rmse"]
             ui.line(f"{where}: pruned at epoch {len(history)} (val RMSE {last:.4g}) {_fmt(values)}")
@@ -252,10 +256,14 @@ def search_network(
     identity: Mapping[str, Any],
     progress: ProgressLog,
     log_trial: TrialLog | None = None,
+    start: LinearBaseline | None = None,
 ) -> NetResult:
     """Optuna search of one network (see the module docstring) in `storage` (`studies.open_storage`);
-    returns the best trial's model."""
-    search = _Search(gp, group, (train, val), n_inputs, seed, storage, identity, progress, log_trial)
+    returns the best trial's model.
+
+    `start`: the affine baseline the networks correct (see `pipeline.calib.training.train_network`).
+    """
+    search = _Search(gp, group, (train, val), start, n_inputs, seed, storage, identity, progress, log_trial)
     search.open()
     return search.best(*search.run())
 

@@ -10,10 +10,12 @@ from typing import Any
 import numpy as np
 import torch
 
+from pipeline.calib.cuts import cut_sums
 from pipeline.calib.data import Group, GroupData, group_errors
 from pipeline.calib.models import (
     WRENCH,
     GroupNet,
+    LinearBaseline,
     NetConfig,
     normalisation_constants,
     switched_loss,
@@ -35,11 +37,17 @@ class NetSetting:
     weight_decay: float
     lambdas: tuple[float, ...]  # per sensor
     lambda_sum: float
+    lambda_cut: float  # each cut set's sum term (groups of several sensors)
 
     @classmethod
     def of(cls, gp: GroupParams, n_inputs: int, values: Mapping[str, Any] | None = None) -> NetSetting:
         v = {**gp.hyperparameters(), **(values or {})}
-        lambdas = (gp.lambda_expected,) if gp.sensor is not None else (v["lambda_front"], v["lambda_rear"])
+        if gp.sensors is not None:
+            lambdas = (gp.lambda_expected,) * len(gp.sensors)
+        elif gp.sensor is not None:
+            lambdas = (gp.lambda_expected,)
+        else:
+            lambdas = (v["lambda_front"], v["lambda_rear"])
         return cls(
             n_inputs,
             int(v["hidden"]),
@@ -51,6 +59,7 @@ class NetSetting:
             float(v["weight_decay"]),
             tuple(map(float, lambdas)),
             float(v["lambda_sum"]),
+            float(gp.lambda_cut),
         )
 
 
@@ -61,20 +70,27 @@ class Tensors:
     switches: torch.Tensor  # (N, S) bool
     sum_label: torch.Tensor | None
     alpha_sum: torch.Tensor | None
+    cut_labels: torch.Tensor | None = None  # (N, C, 6)
+    cut_alpha: torch.Tensor | None = None  # (N, C) bool
+    poses: torch.Tensor | None = None  # (N, P, 12)
 
 
 def flat_inputs(data: GroupData, n_inputs: int) -> np.ndarray:
     return data.x[:, :, :n_inputs].reshape(len(data), -1)
 
 
-def to_tensors(data: GroupData, n_inputs: int) -> Tensors:
+def to_tensors(data: GroupData, n_inputs: int, group: Group | None = None) -> Tensors:
     f32 = torch.float32
+    cuts = group is not None and bool(group.cuts)
     return Tensors(
         x=torch.as_tensor(flat_inputs(data, n_inputs), dtype=f32),
         labels=torch.as_tensor(data.labels, dtype=f32),
         switches=torch.as_tensor(data.switches),
         sum_label=None if data.sum_label is None else torch.as_tensor(data.sum_label, dtype=f32),
         alpha_sum=None if data.sum_switch is None else torch.as_tensor(data.alpha_sum),
+        cut_labels=torch.as_tensor(data.cut_labels, dtype=f32) if cuts else None,
+        cut_alpha=torch.as_tensor(data.cut_alpha(group.cuts)) if cuts else None,
+        poses=torch.as_tensor(data.poses, dtype=f32) if cuts else None,
     )
 
 
@@ -84,6 +100,56 @@ def predict(model: GroupNet, data: GroupData) -> np.ndarray:
         x = torch.as_tensor(flat_inputs(data, model.config.n_inputs), dtype=torch.float32)
         out = model.eval()(x).numpy().astype(np.float64)
     return out.reshape(len(data), model.n_sensors, WRENCH)
+
+
+def _batch_loss(
+    group: Group,
+    model: GroupNet,
+    t: Tensors,
+    idx: torch.Tensor,
+    lambdas: torch.Tensor,
+    transforms: torch.Tensor | None,
+    setting: NetSetting,
+) -> torch.Tensor:
+    """The switched loss of the samples `idx` (a batch)."""
+    pred = model(t.x[idx]).view(len(idx), model.n_sensors, WRENCH)
+    cuts = None
+    if t.cut_labels is not None:
+        cuts = (cut_sums(group.cuts, pred, t.poses[idx]), t.cut_labels[idx], t.cut_alpha[idx])
+    loss, _ = switched_loss(
+        pred,
+        t.labels[idx],
+        t.switches[idx],
+        lambdas,
+        None if t.sum_label is None else t.sum_label[idx],
+        None if t.alpha_sum is None else t.alpha_sum[idx],
+        transforms,
+        setting.lambda_sum,
+        cuts,
+        setting.lambda_cut,
+    )
+    return loss
+
+
+def _train_loss(
+    group: Group,
+    model: GroupNet,
+    t: Tensors,
+    lambdas: torch.Tensor,
+    transforms: torch.Tensor | None,
+    setting: NetSetting,
+) -> float:
+    """The switched loss over every training sample (the loss of epoch -1, before any step)."""
+    with torch.no_grad():
+        return float(
+            _batch_loss(group, model.eval(), t, torch.arange(len(t.x)), lambdas, transforms, setting)
+        )
+
+
+def _val_error(group: Group, val: GroupData, model: GroupNet) -> float:
+    """Validation rmse_labelled of `model`; inf for a diverged network (the worst, not NaN)."""
+    err = group_errors(group, val, predict(model, val))["rmse_labelled"]
+    return err if math.isfinite(err) else math.inf
 
 
 EpochCallback = Callable[[int, float, float], None]  # (epoch, mean training loss, validation error)
@@ -96,12 +162,15 @@ def train_network(
     setting: NetSetting,
     seed: int,
     on_epoch: EpochCallback | None = None,
+    start: LinearBaseline | None = None,
 ) -> tuple[GroupNet, list[dict[str, float]]]:
     """Train one group network with Adam on the switched loss; keep the epoch of lowest validation error.
 
     `train` holds only samples with at least one term in the loss. Weight init and batch order come from
-    `seed`. `on_epoch` may raise (e.g. optuna.TrialPruned) to stop. Returns the model at its best epoch
-    (eval mode) and the per-epoch history [{epoch, loss, val_rmse}].
+    `seed`. `start` is the affine baseline the networks correct (`pipeline.calib.models`); the untrained
+    network equals it, scored as epoch -1 (loss NaN) and kept if no epoch beats it on validation.
+    `on_epoch` may raise (e.g. optuna.TrialPruned) to stop. Returns the model at its best epoch (eval mode)
+    and the per-epoch history [{epoch, loss, val_rmse}].
     """
     torch.manual_seed(seed)
     generator = torch.Generator().manual_seed(seed)
@@ -113,12 +182,24 @@ def train_network(
         offset, scale = normalisation_constants(x, setting.normalisation)
         out_scale = normalisation_constants(x[:, :WRENCH], "standard")[1]
         net.set_constants(offset, scale, out_scale)
-    t = to_tensors(train, setting.n_inputs)
-    lambdas = torch.tensor(setting.lambdas, dtype=torch.float32)
-    transforms = None if group.transforms is None else torch.as_tensor(group.transforms, dtype=torch.float32)
+        if start is not None:
+            net.set_affine(*start.affine_map(s))
     optimiser = torch.optim.Adam(model.parameters(), lr=setting.lr, weight_decay=setting.weight_decay)
     history: list[dict[str, float]] = []
     best_state, best_err = None, math.inf
+    t = to_tensors(train, setting.n_inputs, group)
+    lambdas = torch.tensor(setting.lambdas, dtype=torch.float32)
+    transforms = None if group.transforms is None else torch.as_tensor(group.transforms, dtype=torch.float32)
+    if start is not None:
+        best_err = _val_error(group, val, model)
+        best_state = {k: v.detach().clone() for k, v in model.state_dict().items()}
+        history.append(
+            {
+                "epoch": -1,
+                "loss": _train_loss(group, model, t, lambdas, transforms, setting),
+                "val_rmse": best_err,
+            }
+        )
     n = len(train)
     for epoch in range(setting.epochs):
         model.train()
@@ -126,24 +207,13 @@ def train_network(
         total, batches = 0.0, 0
         for start in range(0, n, setting.batch_size):
             idx = order[start : start + setting.batch_size]
-            pred = model(t.x[idx]).view(-1, n_sensors, WRENCH)
-            loss, _ = switched_loss(
-                pred,
-                t.labels[idx],
-                t.switches[idx],
-                lambdas,
-                None if t.sum_label is None else t.sum_label[idx],
-                None if t.alpha_sum is None else t.alpha_sum[idx],
-                transforms,
-                setting.lambda_sum,
-            )
+            loss = _batch_loss(group, model, t, idx, lambdas, transforms, setting)
             optimiser.zero_grad(set_to_none=True)
             loss.backward()
             optimiser.step()
             total += float(loss.detach())
             batches += 1
-        err = group_errors(group, val, predict(model, val))["rmse_labelled"]
-        err = err if math.isfinite(err) else math.inf  # a diverged network: the worst, not NaN
+        err = _val_error(group, val, model)
         history.append({"epoch": epoch, "loss": total / max(batches, 1), "val_rmse": err})
         if err < best_err:
             best_err = err

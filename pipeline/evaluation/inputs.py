@@ -52,6 +52,7 @@ class GroupInputs:
     transforms: np.ndarray | None  # (2, 6, 6) sole_X_front, sole_X_rear
     has_truth: bool
     experiments: list[str]  # experiment types of the test logs, in log order
+    headlines: list[str] | None = None  # several headlines (legs and feet trained together), else None
 
 
 def _read_json(path: Path) -> dict[str, Any]:
@@ -80,11 +81,11 @@ def wrench_of(df: pd.DataFrame, quantity: str, name: str) -> np.ndarray:
 
 
 def _read_log_extras(
-    log: str, labelled_dir: Path, truth_dir: Path | None, sensors: Sequence[str], pair: str | None
-) -> tuple[pd.DataFrame, str, np.ndarray | None, bool]:
+    log: str, labelled_dir: Path, truth_dir: Path | None, sensors: Sequence[str], pairs: Sequence[str]
+) -> tuple[pd.DataFrame, str, dict[str, np.ndarray], bool]:
     """A test log's labelled extras (stamp, gyroscopes, contacts, guard) joined with its truth if any.
 
-    Returns (table keyed by stamp_ns, experiment type, pair transforms or None, truth found).
+    Returns (table keyed by stamp_ns, experiment type, pair -> transforms, truth found).
     """
     path = labelled_dir / f"{log}{S.PARQUET_SUFFIX}"
     if not path.is_file():
@@ -100,7 +101,7 @@ def _read_log_extras(
         raise DataError(f"{path}: cannot read Parquet table: {exc}") from None
     experiment = S.read_metadata(schema, S.META_EXPERIMENT) or {}
     kind = str(experiment.get("type", "")).strip() or "unknown"
-    transforms = _pair_transforms(schema, pair, path) if pair is not None else None
+    transforms = {pair: _pair_transforms(schema, pair, path) for pair in pairs}
     found = False
     truth_path = truth_dir / f"{log}{S.TRUTH_SUFFIX}{S.PARQUET_SUFFIX}" if truth_dir is not None else None
     if truth_path is not None and truth_path.is_file():
@@ -140,12 +141,14 @@ def load_group(
     """
     train, frame, names, models = _read_predictions(group, gdir)
     sensors, pair = tuple(train["sensors"]), train.get("pair")
+    pairs = {pair: list(sensors)} if pair else dict(train.get("pairs") or {})
     pred_path = gdir / PREDICTIONS
-    frame, kinds, transforms, any_truth = _join_extras(
-        frame, pred_path, labelled_dir, truth_dir, sensors, pair
+    frame, kinds, all_transforms, any_truth = _join_extras(
+        frame, pred_path, labelled_dir, truth_dir, sensors, list(pairs)
     )
     frame[EXPERIMENT] = frame[LOG].map(kinds)
-    frame = _truth_and_oracle(frame, sensors, pair, names, transforms)
+    frame = _truth_and_oracle(frame, sensors, pairs, names, all_transforms)
+    transforms = all_transforms.get(pair) if pair else None
     if any_truth:
         models.append(ORACLE)
     segments, fs = segment_ids(frame[LOG].to_numpy(), frame[S.STAMP].to_numpy())
@@ -166,6 +169,7 @@ def load_group(
         transforms=transforms,
         has_truth=any_truth,
         experiments=list(dict.fromkeys(kinds[log] for log in logs)),
+        headlines=[str(h) for h in train["headlines"]] if len(train.get("headlines") or []) > 1 else None,
     )
 
 
@@ -187,6 +191,9 @@ def _read_predictions(group: str, gdir: Path) -> tuple[dict[str, Any], pd.DataFr
     except (OSError, pa.ArrowException, ValueError) as exc:
         raise DataError(f"{pred_path}: cannot read the predictions: {exc}") from None
     names = [pair, *sensors] if pair else list(sensors)
+    headlines = [str(h) for h in train.get("headlines") or []]
+    if len(headlines) > 1:  # several sensors trained together: the headlines (legs, foot sums) first
+        names = [*headlines, *(s for s in sensors if s not in headlines)]
     models = list(meta.get("models") or [])
     if not models:
         prefix = f"{PRED}."
@@ -217,22 +224,22 @@ def _join_extras(
     labelled_dir: Path,
     truth_dir: Path | None,
     sensors: tuple[str, ...],
-    pair: str | None,
-) -> tuple[pd.DataFrame, dict[str, str], np.ndarray | None, bool]:
+    pairs: Sequence[str],
+) -> tuple[pd.DataFrame, dict[str, str], dict[str, np.ndarray], bool]:
     """The predictions joined with each test log's labelled and truth extras; (frame, log -> experiment
-    type, the pair's transforms, whether any truth was found)."""
-    parts, kinds, transforms, any_truth = [], {}, None, False
+    type, pair -> transforms, whether any truth was found)."""
+    parts, kinds, transforms, any_truth = [], {}, {}, False
     logs = list(dict.fromkeys(frame[LOG].tolist()))
     for log in logs:
-        extras, kind, t, found = _read_log_extras(log, labelled_dir, truth_dir, sensors, pair)
+        extras, kind, ts, found = _read_log_extras(log, labelled_dir, truth_dir, sensors, pairs)
         kinds[log] = kind
         any_truth |= found
-        if t is not None:
-            if transforms is not None and not np.allclose(t, transforms, rtol=1e-9, atol=1e-12):
+        for pair, t in ts.items():
+            if pair in transforms and not np.allclose(t, transforms[pair], rtol=1e-9, atol=1e-12):
                 raise DataError(
                     f"{labelled_dir / log}{S.PARQUET_SUFFIX}: pairs.{pair} transforms differ between logs"
                 )
-            transforms = t
+            transforms[pair] = t
         extras.insert(0, LOG, log)
         parts.append(extras)
     extras = pd.concat(parts, ignore_index=True)
@@ -250,11 +257,12 @@ def _join_extras(
 def _truth_and_oracle(
     frame: pd.DataFrame,
     sensors: tuple[str, ...],
-    pair: str | None,
+    pairs: dict[str, list[str]],
     names: list[str],
-    transforms: np.ndarray | None,
+    transforms: dict[str, np.ndarray],
 ) -> pd.DataFrame:
-    """Truth and oracle columns per name (a pair's sums in the sole frame); the oracle as a model's."""
+    """Truth and oracle columns per name (a pair's sums in the sole frame); the oracle as a model's.
+    `pairs`: foot pair -> its (front, rear) sensors."""
     n = len(frame)
     new_cols: dict[str, np.ndarray] = {}
     for quantity in (S.TRUE, S.ORACLE):
@@ -262,9 +270,9 @@ def _truth_and_oracle(
         for s in sensors:
             cols = S.wrench_cols(quantity, s)
             per_sensor[s] = frame[cols].to_numpy(np.float64) if cols[0] in frame else np.full((n, 6), np.nan)
-        if pair is not None:
-            stacked = np.stack([per_sensor[s] for s in sensors], axis=1)
-            per_sensor[pair] = np.einsum("sij,nsj->ni", transforms, stacked)
+        for pair, members in pairs.items():
+            stacked = np.stack([per_sensor[s] for s in members], axis=1)
+            per_sensor[pair] = np.einsum("sij,nsj->ni", transforms[pair], stacked)
         target = S.TRUE if quantity == S.TRUE else f"{PRED}.{ORACLE}"
         for name in names:
             for a, c in enumerate(S.wrench_cols(target, name)):

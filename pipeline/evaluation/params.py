@@ -46,7 +46,8 @@ class EvaluateParams:
     highpass_order: int  # Butterworth order (applied forward and backward)
     still_gyro_rad_s: float  # rad/s: quasi-static below this angular speed of the FT boards
     still_min_s: float  # s: shortest quasi-static run
-    noise_threshold: float  # noise amplification above this (worst axis) flags a model
+    noise_threshold: float  # noise amplification above this (worst axis) flags a model ...
+    noise_margin: float  # ... by more than this fraction of it (so last-bit differences cannot flip it)
     zoom_s: float  # s: length of the per-experiment zoom of the time-series plots
     target_raw_over_nn7: float  # acceptance: raw RMSE / NN7 RMSE at least this
     target_nn7_over_oracle: float  # acceptance: NN7 RMSE / oracle RMSE at most this
@@ -57,6 +58,7 @@ class EvaluateParams:
             "still_gyro_rad_s",
             "still_min_s",
             "noise_threshold",
+            "noise_margin",
             "zoom_s",
             "target_raw_over_nn7",
             "target_nn7_over_oracle",

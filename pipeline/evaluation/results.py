@@ -102,9 +102,13 @@ class GroupReport:
         default_factory=dict
     )  # network -> {name, version, model_id}
     figures: dict[str, Any] = field(default_factory=dict)
+    headlines: list[str] | None = None  # several headlines (legs and feet trained together), else None
 
-    def headline_rmse(self, ref: str, model: str | None, key: str = "rmse") -> float | None:
-        value = self.tables.get(self.headline, {}).get(ref, {}).get(model, {}).get(key)
+    def headline_rmse(
+        self, ref: str, model: str | None, key: str = "rmse", name: str | None = None
+    ) -> float | None:
+        """`key` of `model` against `ref` for the headline (or another name of the group)."""
+        value = self.tables.get(name or self.headline, {}).get(ref, {}).get(model, {}).get(key)
         return None if value is None or not math.isfinite(value) else float(value)
 
     def ratios(self) -> dict[str, dict[str, float | None]]:
@@ -220,7 +224,8 @@ def noise_check(g: GroupInputs, cfg: EvaluateParams) -> NoiseResult:
             result.ratio_rms[model] = float(np.sqrt(np.mean(r[finite] ** 2)))
         else:
             result.ratio[model] = result.ratio_rms[model] = result.worst_channel[model] = None
-        if model != ORACLE and result.ratio[model] is not None and result.ratio[model] > cfg.noise_threshold:
+        limit = cfg.noise_threshold * (1.0 + cfg.noise_margin)
+        if model != ORACLE and result.ratio[model] is not None and result.ratio[model] > limit:
             result.flagged.append(model)
     if g.has_truth:
         sig = noise_ratio(hf(S.TRUE), raw_hf, mask)
@@ -258,6 +263,7 @@ def evaluate_group(g: GroupInputs, cfg: EvaluateParams) -> GroupResult:
         validation_ranking=ranking,
         recommended=recommend(ranking, noise.flagged, g.models),
         inputs=g,
+        headlines=g.headlines,
     )
 
 
@@ -272,15 +278,21 @@ def group_metrics(r: GroupReport) -> dict[str, Any]:
     networks and the flagged models.
     """
     shown = {"raw": RAW, "recommended": r.recommended, "nn7": NN7, "nn13": NN13, "oracle": ORACLE}
-    rmse = {}
-    for ref in (LABELS, TRUTH):
-        row = {k: r.headline_rmse(ref, m) for k, m in shown.items() if m is not None}
-        row = {k: round(v, 6) for k, v in row.items() if v is not None}
-        if row:
-            rmse[ref] = row
+
+    def rows(name: str | None) -> dict[str, dict[str, float]]:
+        rmse = {}
+        for ref in (LABELS, TRUTH):
+            row = {k: r.headline_rmse(ref, m, name=name) for k, m in shown.items() if m is not None}
+            row = {k: round(v, 6) for k, v in row.items() if v is not None}
+            if row:
+                rmse[ref] = row
+        return rmse
+
+    several = {"rmse_by_headline": {h: rows(h) for h in r.headlines}} if r.headlines else {}
     return {
         "recommended": r.recommended or "none",
-        "rmse": rmse,
+        "rmse": rows(None),
+        **several,
         "noise_ratio": {m: round(v, 4) for m in (NN7, NN13) if (v := r.noise.ratio.get(m)) is not None},
         "noise_flagged": len(r.noise.flagged),
     }

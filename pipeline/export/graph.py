@@ -7,7 +7,8 @@ N and Nm, each in its sensor frame), sensor after sensor. N is dynamic (1 in a c
 
 Per sensor, with x its columns (the forms of `pipeline.export.trained`):
 
-- network: ``x[:, :6] + out_scale * mlp((x - in_offset) / in_scale)``, mlp = Gemm layers with their
+- network: ``x[:, :6] + x[:, :7] @ A^T + a + out_scale * mlp((x - in_offset) / in_scale)`` (A, a: the
+  affine map the network corrects), mlp = Gemm layers with their
   activations, the operations in torch's order (so float32 matches torch's float32 closely); networks of
   one architecture (the sensors of a foot, or of every group in the fused graph) are evaluated together,
   one batched MatMul per layer (fewer operations per call: the latency of a control loop's single sample
@@ -155,6 +156,17 @@ def _sensor(b: _Builder, x: str, part: Any, hint: str) -> str:
     if isinstance(part, IdentityPart):
         return b.op("Identity", [raw], f"{hint}_calibrated")
     if isinstance(part, NetworkPart):
+        affine = b.op(
+            "Gemm",
+            [
+                b.columns(x, 0, 7, f"{hint}_raw7"),
+                b.const(f"{hint}_affine_w", part.affine_weight),
+                b.const(f"{hint}_affine_b", part.affine_bias),
+            ],
+            f"{hint}_affine",
+            transB=1,
+        )
+        raw = b.op("Add", [raw, affine], f"{hint}_start")
         correction = _network(b, x, part, hint)
     elif isinstance(part, LinearPart) and b.dtype == np.float32:
         # The project computes these models in float64 (a 4th-order polynomial in float32 loses 1e-3 N):
@@ -195,6 +207,12 @@ def _stack(
     inputs = b.op("Reshape", [x, b.const("shape", [0, s_count, n_inputs], np.int64)], "stack_inputs")
     bounds = (b.const(k, v, np.int64) for k, v in (("lo", [0]), ("hi", [WRENCH]), ("ax", [2])))
     raw = b.op("Slice", [inputs, *bounds], "stack_raw")
+    bounds7 = (b.const(k, v, np.int64) for k, v in (("lo", [0]), ("hi7", [7]), ("ax", [2])))
+    raw7 = b.op("Transpose", [b.op("Slice", [inputs, *bounds7])], perm=[1, 0, 2])  # (S, N, 7)
+    affine_w = b.const("affine_w", np.stack([p.affine_weight.T for p in parts]))  # (S, 7, 6)
+    affine_b = b.const("affine_b", np.stack([p.affine_bias[None, :] for p in parts]))  # (S, 1, 6)
+    affine = b.op("Add", [b.op("MatMul", [raw7, affine_w]), affine_b])
+    raw = b.op("Add", [raw, b.op("Transpose", [affine], perm=[1, 0, 2])], "stack_start")
     offset = b.const("in_offset", np.stack([p.in_offset for p in parts]))  # (S, n)
     scale = b.const("in_scale", np.stack([p.in_scale for p in parts]))
     h = b.op("Div", [b.op("Sub", [inputs, offset]), scale])

@@ -47,12 +47,15 @@ class Dense:
 
 @dataclass(frozen=True)
 class NetworkPart:
-    """``f = x[:6] + out_scale * mlp((x - in_offset) / in_scale)``; x (n_inputs,), constants float64."""
+    """``f = x[:6] + affine_weight @ x[:7] + affine_bias + out_scale * mlp((x - in_offset) / in_scale)``;
+    x (n_inputs,), constants float64 (the affine map the network corrects, `pipeline.calib.models`)."""
 
     in_offset: np.ndarray  # (n_inputs,)
     in_scale: np.ndarray  # (n_inputs,)
     out_scale: np.ndarray  # (6,) N / Nm
     layers: tuple[Dense, ...]
+    affine_weight: np.ndarray  # (6, 7)
+    affine_bias: np.ndarray  # (6,) N / Nm
 
 
 @dataclass(frozen=True)
@@ -165,6 +168,8 @@ def _network(model_dir: Path, name: str, group: str, sensors: tuple[str, ...]) -
                 net.in_scale.double().numpy().copy(),
                 net.out_scale.double().numpy().copy(),
                 tuple(layers),
+                net.affine_weight.double().numpy().copy(),
+                net.affine_bias.double().numpy().copy(),
             )
         )
     reference_model = model.double().eval()

@@ -117,13 +117,14 @@ def _cmd(args: argparse.Namespace) -> int:
     params = load_params(args.params)
     r = run(params, args.group, args.models, args.labelled, args.out, args.truth)
     flags = f"; noisy: {', '.join(r.noise.flagged)}" if r.noise.flagged else ""
-    parts = []
-    for ref in (LABELS, TRUTH):
-        values = [(m, r.headline_rmse(ref, m)) for m in (RAW, NN7, r.recommended)]
-        if all(v is not None for _, v in values):
-            parts.append(f"vs {ref}: " + ", ".join(f"{m} {_fmt(v)}" for m, v in values))
     deploy = f"deploy {r.recommended}{flags} ({r.seconds:.0f} s)"
-    print(f"{r.group}: RMSE of {r.headline} {'; '.join(parts)}; {deploy}")
+    for name in r.headlines or [r.headline]:
+        parts = []
+        for ref in (LABELS, TRUTH):
+            values = [(m, r.headline_rmse(ref, m, name=name)) for m in (RAW, NN7, r.recommended)]
+            if all(v is not None for _, v in values):
+                parts.append(f"vs {ref}: " + ", ".join(f"{m} {_fmt(v)}" for m, v in values))
+        print(f"{r.group}: RMSE of {name} {'; '.join(parts)}; {deploy}")
     return 0
 
 

@@ -6,7 +6,9 @@ Optuna search, scores every model and writes ``OUT_DIR``:
 
 - ``metrics.json``: per model (raw, affine, poly1-4, nn7, nn13), validation and test errors against the
   labels (MSE/MAE/RMSE global, force, torque, per axis; per sensor and, for a foot, of the sum in the sole
-  frame), and ``best_on_validation``: the model with the lowest validation error, the one to deploy.
+  frame; a group of several sensors: also each cut set's sum), and ``best_on_validation``: the model to
+  deploy, the simplest (raw < affine < poly < nn7 < nn13) unless a more complex one's validation error is
+  lower by more than ``train.selection_margin``.
 - ``nn7.json`` + ``nn7.pt``, ``nn13.json`` + ``nn13.pt``: the best networks (`calib.models.load_model`
   rebuilds them from the JSON and a weights-only state dict; normalisation constants are in the weights).
 - ``baselines.json``: the fitted affine and polynomial coefficients.
@@ -77,11 +79,11 @@ def _cmd(args: argparse.Namespace) -> int:
     result = train_group(params, args.group, args.inputs, args.out, args.studies)
     m = result.metrics
     test = m["test"]
-    head = m["headline"]
+    head = " + ".join(m.get("headlines") or [m["headline"]])
     summary = ", ".join(f"{name} {test[name]['rmse']:.3g}" for name in test)
     print(
         f"{result.group}: test RMSE of {head} (N, Nm pooled): {summary}; "
-        f"lowest validation error: {m['best_on_validation']} ({result.seconds:.0f} s)"
+        f"chosen on validation: {m['best_on_validation']} ({result.seconds:.0f} s)"
     )
     return 0
 

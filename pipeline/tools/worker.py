@@ -54,10 +54,13 @@ def run_worker_group(
         ConfigError: no database storage is configured (a journal file is not shared).
         StudyError: the stage did not open a study within `wait` s, or the database is unreachable.
     """
+    from dataclasses import replace
+
     import torch
 
     from pipeline.calib import studies
-    from pipeline.calib.fit import prepare
+    from pipeline.calib.fit import fit_baselines, prepare
+    from pipeline.calib.params import AFFINE
     from pipeline.calib.run import study_identity
     from pipeline.calib.search import _Search  # the stage's search of one network, joined here
     from pipeline.core.config import load_params
@@ -76,11 +79,14 @@ def run_worker_group(
     storage = studies.open_storage(url, Path(), prep.cfg.heartbeat)
     identity = study_identity(params, prep)
     ui = ProgressLog()
+    # the networks correct the group's affine map: fitted as the stage fits it (deterministic least squares)
+    start = fit_baselines(replace(prep.gp, poly_orders=()), prep.group, prep.train)[AFFINE]
     ran: dict[str, int] = {}
     with ui.running():
         for n_inputs in prep.gp.inputs:
             data = (prep.train, prep.val)
-            search = _Search(prep.gp, prep.group, data, n_inputs, params.seed, storage, identity, ui, None)
+            gp, group, seed = prep.gp, prep.group, params.seed
+            search = _Search(gp, group, data, start, n_inputs, seed, storage, identity, ui, None)
             search.join(wait)
             search.log_trial = _trial_logger(prep.group.name, search.name, search.study)
             ran[search.name], _ = search.run()
