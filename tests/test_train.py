@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import copy
 import json
+import math
 from pathlib import Path
 from typing import Any
 
@@ -457,3 +458,26 @@ def test_several_sensors_group_trains_with_its_cut_sets(
     leg, front, rear = (pred[prediction_cols("nn7", s)].to_numpy() for s in (LEG, FRONT, REAR))
     want = map_wrenches(poses, leg) - front @ TRANSFORMS[0].T - rear @ TRANSFORMS[1].T
     np.testing.assert_allclose(pred[prediction_cols("nn7", SHANK)].to_numpy(), want, rtol=1e-6, atol=1e-6)
+
+
+def test_without_imu_a_7_input_network_trains_and_a_13_input_one_says_why(
+    tmp_path: Path, labelled: Path, mlflow_uri: str
+) -> None:
+    """Logs whose FT board has no IMU stream (ingest: NaN columns, ok.imu false everywhere)."""
+    import pyarrow.compute as pc
+
+    no_imu = tmp_path / "labelled"
+    no_imu.mkdir()
+    for path in sorted(labelled.glob("*.parquet")):
+        table = pq.read_table(path)
+        for c in S.vector_cols(S.ACC, LEG) + S.vector_cols(S.GYR, LEG):
+            table = table.set_column(table.schema.get_field_index(c), c, pc.multiply(table[c], float("nan")))
+        flag = S.ok_col(S.IMU_STREAM, LEG)
+        table = table.set_column(table.schema.get_field_index(flag), flag, pa.array([False] * len(table)))
+        pq.write_table(table, no_imu / path.name)
+    params = load_params(write_params(tmp_path, inputs=[7, 13], n_trials=1, epochs=1))
+    with pytest.raises(DataError, match=rf"no IMU .* for {LEG} .*a 13-input network needs it"):
+        train_group(params, LEG, no_imu, tmp_path / "out13", tmp_path / "st13", progress=False)
+    params = load_params(write_params(tmp_path, inputs=[7], n_trials=1, epochs=1))
+    result = train_group(params, LEG, no_imu, tmp_path / "out7", tmp_path / "st7", progress=False)
+    assert math.isfinite(result.metrics["test"]["nn7"]["rmse"])

@@ -17,7 +17,7 @@ from __future__ import annotations
 import math
 import zlib
 from collections.abc import Sequence
-from dataclasses import dataclass, fields
+from dataclasses import dataclass, fields, replace
 from pathlib import Path
 from typing import Any
 
@@ -48,6 +48,7 @@ class Group:
     pair: str | None = None
     transforms: np.ndarray | None = None  # (S, 6, 6) sole_X_sensor, row-major, force first
     cuts: tuple[CutTerm, ...] = ()
+    n_inputs: int = 13  # inputs per sensor of the group's largest network: 7 needs no IMU
 
     @property
     def headlines(self) -> tuple[str, ...]:
@@ -170,6 +171,11 @@ def find_logs(in_dir: Path) -> list[LogInfo]:
 
 
 def resolve_group(gp: GroupParams, params: Params, logs: Sequence[LogInfo]) -> Group:
+    """The group `gp` trains, checked against the labelled tables (see `_resolve_group`)."""
+    return replace(_resolve_group(gp, params, logs), n_inputs=max(gp.inputs))
+
+
+def _resolve_group(gp: GroupParams, params: Params, logs: Sequence[LogInfo]) -> Group:
     """The sensors (and transforms) of a group, checked against robot.foot_pairs and the tables."""
     first = pq.read_schema(logs[0].path)
     names = set(first.names)
@@ -247,6 +253,29 @@ def _cut_terms(sensors: Sequence[str], logs: Sequence[LogInfo]) -> tuple[CutTerm
     return tuple(out)
 
 
+def _input_ok(log: LogInfo, group: Group, sensor: str, col: Any) -> np.ndarray:
+    """(N,) bool: the sensor's input streams the group's networks need are ok (wrench, temperature, and
+    the FT board's IMU for 13 inputs). A needed stream absent from the whole log is an error naming it."""
+    streams = [S.WRENCH_STREAM, S.TEMPERATURE_STREAM] + ([S.IMU_STREAM] if group.n_inputs == 13 else [])
+    ok = np.ones(len(col(S.STAMP)), dtype=bool)
+    for stream in streams:
+        flag = col(S.ok_col(stream, sensor)).astype(bool)
+        if len(flag) and not flag.any():
+            what = {S.IMU_STREAM: "IMU (accelerometer, gyroscope)", S.TEMPERATURE_STREAM: "temperature"}
+            need = (
+                f"a 13-input network needs it (train.groups.{group.name}.inputs: [7] trains without it)"
+                if stream == S.IMU_STREAM
+                else "every model of the group needs it"
+            )
+            flag_col = S.ok_col(stream, sensor)
+            raise DataError(
+                f"{log.path}: no {what.get(stream, stream)} for {sensor} ({flag_col} is false on every "
+                f"sample): {need}"
+            )
+        ok &= flag
+    return ok
+
+
 def _read_log(log: LogInfo, group: Group, index: int) -> GroupData:
     wanted = [S.STAMP, S.TIME]
     for sensor in group.sensors:
@@ -279,8 +308,7 @@ def _read_log(log: LogInfo, group: Group, index: int) -> GroupData:
     ok = np.ones(n, dtype=bool)
     x, labels, switches = [], [], []
     for sensor in group.sensors:
-        for c in _ok_cols(sensor):
-            ok &= col(c).astype(bool)
+        ok &= _input_ok(log, group, sensor, col)
         x.append(block(input_cols(sensor)))
         labels.append(block(S.wrench_cols(S.EXPECTED, sensor)))
         switches.append(col(S.switch_col(sensor)).astype(bool))
@@ -306,7 +334,7 @@ def _read_log(log: LogInfo, group: Group, index: int) -> GroupData:
                 data.cut_switches[:, c] &= np.isfinite(data.poses[:, p]).all(axis=1)
                 p += 1
         data.poses = np.nan_to_num(data.poses)
-    ok &= np.isfinite(data.x).all(axis=(1, 2))
+    ok &= np.isfinite(data.x[:, :, : group.n_inputs]).all(axis=(1, 2))
     data = data.subset(ok)
     for s, sensor in enumerate(group.sensors):
         if not np.isfinite(data.labels[data.switches[:, s], s]).all():
