@@ -114,7 +114,8 @@ def _train_params(tmp_path: Path) -> Path:
     train = copy.deepcopy(TRAIN_PARAMS)
     train["heartbeat"] = 2
     train["groups"] = {LEG: {"sensor": LEG}}
-    train["defaults"].update(n_trials=8, epochs=6, tpe_startup_trials=3, prune_startup_trials=3)
+    # trials long enough (a few s) that the workers, which start in a few s, take part under load
+    train["defaults"].update(n_trials=8, epochs=40, tpe_startup_trials=3, prune_startup_trials=3)
     return write_params(tmp_path, train)
 
 
