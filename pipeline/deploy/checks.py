@@ -36,12 +36,13 @@ def _wrench(df: pd.DataFrame, quantity: str, name: str) -> np.ndarray:
 def standing_noise(
     log: DeployLog, models: Path, cfg: EvaluateParams, deployed: dict[str, str]
 ) -> dict[str, Any]:
-    """Test A on a standing-still log: per group and model, noise ratio per axis and the verdict."""
+    """Test A on a standing-still log: per deployed group (`deployed`: the export's) and each of its trained
+    models, noise ratio per axis and the verdict."""
     table = pd.read_parquet(log.labelled)
     stamps = table[S.STAMP].to_numpy()
     seg, fs = segment_ids(np.zeros(len(table), dtype=np.int64), stamps)
     out: dict[str, Any] = {}
-    for group_dir in sorted(p for p in models.iterdir() if (p / "metrics.json").is_file()):
+    for group_dir in (models / group for group in sorted(deployed)):
         sensors, predictors = group_models(group_dir)
         gyro = [table[S.vector_cols(S.GYR, s)].to_numpy(np.float64) for s in sensors]
         speed = board_speed(gyro, seg, fs, cfg.highpass_hz, cfg.highpass_order)
