@@ -27,11 +27,12 @@ RECOMMENDED = {LEG: "nn13", PAIR: "nn7"}
 
 
 def _metrics_dir(tmp: Path, recommended: dict[str, str]) -> Path:
-    """evaluate's reports/metrics directory: <group>.json naming the recommended model."""
+    """evaluate's reports/metrics directory: <group>/<headline>.json naming the recommended model."""
     path = tmp / "metrics"
     path.mkdir(exist_ok=True)
     for group, model in recommended.items():
-        (path / f"{group}.json").write_text(json.dumps({"recommended": model}))
+        (path / group).mkdir(exist_ok=True)
+        (path / group / f"{group}.json").write_text(json.dumps({"recommended": model}))
     return path
 
 

@@ -79,7 +79,7 @@ def test_every_stage_hands_over_to_the_next(pipeline_run: dict[str, Any]) -> Non
     assert result.recommended in result.models and result.histories["nn7"]
     raw, best = (result.headline_rmse("truth", m) for m in ("raw", result.recommended))
     assert raw > 5.0 and best < raw / 3  # the simulated leg sensor is miscalibrated; the fit corrects it
-    small = json.loads((d["reports"] / "metrics" / f"{GROUP}.json").read_text())
+    small = json.loads((d["reports"] / "metrics" / GROUP / f"{GROUP}.json").read_text())
     assert small["recommended"] == result.recommended
     page = (d["reports"] / "index.html").read_text()
     assert GROUP in page and f"groups/{GROUP}/plots/loss.png" in page

@@ -115,11 +115,12 @@ def _params(trained: dict, tmp_path: Path, **export: Any) -> Path:
 
 
 def _report(tmp_path: Path, recommended: dict[str, Any]) -> Path:
-    """evaluate's reports/metrics directory: <group>.json with the recommended model ("none": flagged)."""
+    """evaluate's reports/metrics: <group>/<headline>.json with the recommended model ("none": flagged)."""
     path = tmp_path / "metrics"
     path.mkdir(exist_ok=True)
     for group, model in recommended.items():
-        (path / f"{group}.json").write_text(json.dumps({"recommended": model or "none", "rmse": {}}))
+        (path / group).mkdir(exist_ok=True)
+        (path / group / f"{group}.json").write_text(json.dumps({"recommended": model or "none", "rmse": {}}))
     return path
 
 

@@ -88,7 +88,7 @@ def day_section(day: str, result: dict[str, Any], figures: dict[str, str]) -> st
     ]
     parts += ["<h3>Test A: output noise standing still (HF std / raw's, worst axis)</h3>"]
     parts += [_table(["group", "model", "noise ratio", "verdict", ""], rows)]
-    parts += ["<h3>Test B: walking (RMSE, N and Nm pooled; per axis in deployment.json)</h3>"]
+    parts += ["<h3>Test B: walking (RMSE, N and Nm pooled; per axis in deployment/details.json)</h3>"]
     rows = []
     for name, e in result.get("test_b", {}).items():
         lab, tru = e["labels"], e.get("truth", {})

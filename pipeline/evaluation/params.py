@@ -22,7 +22,7 @@ REFERENCE_TITLES = {
 }
 NN7, NN13 = nn_name(7), nn_name(13)
 # Outputs, under the reports directory: evaluate@<group> writes GROUPS_DIR/<group>/ (GROUP_REPORT and
-# PLOTS_DIR), METRICS_DIR/<group>.json (for `dvc metrics`) and PLOTS_DATA_DIR/*/<group>*.csv (for
+# PLOTS_DIR), METRICS_DIR/<group>/<headline>.json (for `dvc metrics`) and PLOTS_DATA_DIR/*/<group>*.csv (for
 # `dvc plots`); the report stage writes REPORT_FILE and PLOTS_DIR (the overview figures).
 GROUPS_DIR = "groups"
 GROUP_REPORT = "report.json"

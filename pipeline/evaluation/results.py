@@ -270,32 +270,25 @@ def evaluate_group(g: GroupInputs, cfg: EvaluateParams) -> GroupResult:
 # --- metrics.json --------------------------------------------------------------------------------
 
 
-def group_metrics(r: GroupReport) -> dict[str, Any]:
-    """The few numbers a user compares between runs (reports/metrics/<group>.json, one `dvc metrics` row).
+def group_metrics(r: GroupReport, name: str | None = None) -> dict[str, Any]:
+    """The few numbers a user compares between runs, for one headline `name` (default: the group's first):
+    reports/metrics/<group>/<name>.json, one row of `dvc metrics show` (short keys, so the table fits).
 
-    Headline RMSE (global, N and Nm pooled) of raw, the recommended model, NN7, NN13 and the oracle
-    against the labels and, on simulated logs, the truth on every test sample; the noise ratios of the
-    networks and the flagged models.
+    ``labels``/``truth``: the headline's RMSE (global, N and Nm pooled) of raw, the recommended model
+    (``rec``), NN7, NN13 and the oracle against the labels and, on simulated logs, the truth on every test
+    sample; ``recommended``: the group's model to deploy; ``noise``: its networks' noise ratios;
+    ``flagged``: how many of its models are noise-flagged.
     """
-    shown = {"raw": RAW, "recommended": r.recommended, "nn7": NN7, "nn13": NN13, "oracle": ORACLE}
-
-    def rows(name: str | None) -> dict[str, dict[str, float]]:
-        rmse = {}
-        for ref in (LABELS, TRUTH):
-            row = {k: r.headline_rmse(ref, m, name=name) for k, m in shown.items() if m is not None}
-            row = {k: round(v, 6) for k, v in row.items() if v is not None}
-            if row:
-                rmse[ref] = row
-        return rmse
-
-    several = {"rmse_by_headline": {h: rows(h) for h in r.headlines}} if r.headlines else {}
-    return {
-        "recommended": r.recommended or "none",
-        "rmse": rows(None),
-        **several,
-        "noise_ratio": {m: round(v, 4) for m in (NN7, NN13) if (v := r.noise.ratio.get(m)) is not None},
-        "noise_flagged": len(r.noise.flagged),
-    }
+    shown = {"raw": RAW, "rec": r.recommended, "nn7": NN7, "nn13": NN13, "oracle": ORACLE}
+    out: dict[str, Any] = {"recommended": r.recommended or "none"}
+    for ref in (LABELS, TRUTH):
+        row = {k: r.headline_rmse(ref, m, name=name) for k, m in shown.items() if m is not None}
+        row = {k: round(v, 4) for k, v in row.items() if v is not None}
+        if row:
+            out[ref] = row
+    out["noise"] = {m: round(v, 3) for m in (NN7, NN13) if (v := r.noise.ratio.get(m)) is not None}
+    out["flagged"] = len(r.noise.flagged)
+    return out
 
 
 def mlflow_metrics(r: GroupReport) -> dict[str, float]:

@@ -5,7 +5,8 @@ of ``deploy.real_logs`` if that folder holds any) is ingested, smoothed and labe
 calibrated with the deployed models, and tested: A on its standing log (output noise of every model vs
 raw), B on its walking log (error tables vs labels and truth), C on its pushed pole log (leg joint torques
 from raw vs calibrated leg sensors against the true torques). Writes ``<reports>/deployment.html``,
-``deployment.json`` (the numbers, `dvc metrics`) and ``deployment/*.png``; logs one MLflow run.
+``deployment.json`` (per day the few numbers and the verdict, `dvc metrics`), ``deployment/details.json``
+(every table) and ``deployment/*.png``; logs one MLflow run.
 """
 
 from __future__ import annotations
@@ -99,6 +100,25 @@ def summarize(result: dict[str, Any], dp: Any, target_b: float, joint: str) -> d
     return out
 
 
+def _headline(summary: dict[str, Any]) -> dict[str, Any]:
+    """A day's few numbers for `dvc metrics show`: the verdict (``fit``), the smallest Test B and Test C
+    ratios (raw / calibrated against truth: ``b_min``, ``c_min``), the largest output noise ratio of a
+    deployed model (``a_max``); every number is in deployment/details.json."""
+
+    def pick(prefix: str, suffix: str) -> list[float]:
+        return [v for k, v in summary.items() if k.startswith(prefix) and k.endswith(suffix)]
+
+    out: dict[str, Any] = {"fit": summary["fit_to_deploy"]}
+    for key, values, best in (
+        ("b_min", pick("b.", ".ratio"), min),
+        ("c_min", pick("c.", ".ratio"), min),
+        ("a_max", pick("a.", ".deployed_noise_ratio"), max),
+    ):
+        if values:
+            out[key] = round(float(best(values)), 4)
+    return out
+
+
 def run(params: Any, models: Path, exported: Path, days: dict[str, Path], reports: Path) -> dict[str, Any]:
     """Run the tests on every day of `days` (name -> folder of logs) and the real logs; write the reports."""
     import mlflow
@@ -138,10 +158,12 @@ def run(params: Any, models: Path, exported: Path, days: dict[str, Path], report
         verdict = "; ".join(
             f"{day}: {'fit to deploy' if s['fit_to_deploy'] else 'recalibrate'}" for day, s in summary.items()
         )
-        write_json(reports / "deployment.json", {"summary": summary, "details": results})
+        write_json(reports / "deployment.json", {day: _headline(s) for day, s in summary.items()})
+        write_json(figs / "details.json", {"summary": summary, "details": results})
         write_page(reports / "deployment.html", results, figures, verdict)
         mlflow.log_artifact(str(reports / "deployment.html"))
         mlflow.log_artifact(str(reports / "deployment.json"))
+        mlflow.log_artifact(str(figs / "details.json"))
         mlflow.log_artifacts(str(figs), artifact_path="deployment")
     return {"summary": summary, "details": results}
 

@@ -83,8 +83,12 @@ def run(
         files = figures.write_plot_data(out, result)
         report_path = out / GROUPS_DIR / group / GROUP_REPORT
         write_json(report_path, result.report().to_dict())
-        metrics = results.group_metrics(result)
-        write_json(out / METRICS_DIR / f"{group}.json", metrics)
+        metrics_dir = out / METRICS_DIR / group  # one file (one `dvc metrics` row) per headline
+        metrics_dir.mkdir(parents=True, exist_ok=True)
+        for old in metrics_dir.glob("*.json"):
+            old.unlink()
+        for name in result.headlines or [result.headline]:
+            write_json(metrics_dir / f"{name}.json", results.group_metrics(result, name))
         tags = {"group": group, "recommended": result.recommended or "none"}
         tags["flagged"] = ",".join(result.noise.flagged) or "none"
         if result.train_run:

@@ -63,7 +63,7 @@ def group_names(params: Any) -> list[str]:
 
 def choose_models(groups: list[str], report: Path, overrides: dict[str, str]) -> dict[str, str]:
     """group -> model to export: ``export.models`` where given, else evaluate's recommendation
-    (``recommended`` of ``<report>/<group>.json``, the evaluate@<group> metrics)."""
+    (``recommended`` of the files ``<report>/<group>/*.json``, the evaluate@<group> metrics)."""
     unknown = sorted(set(overrides) - set(groups))
     if unknown:
         raise ConfigError(f"export.models.{unknown[0]}: not a group of train.groups ({', '.join(groups)})")
@@ -71,7 +71,8 @@ def choose_models(groups: list[str], report: Path, overrides: dict[str, str]) ->
     for group in groups:
         name = overrides.get(group)
         if not name:
-            path = report / f"{group}.json"
+            files = sorted((report / group).glob("*.json"))
+            path = files[0] if files else report / group / "<headline>.json"
             try:
                 name = json.loads(path.read_text(encoding="utf-8")).get("recommended")
             except FileNotFoundError:
