@@ -250,7 +250,9 @@ def test_missing_inputs_are_data_errors(trained_models: dict, tmp_path: Path) ->
     report = _report(tmp_path, {LEG: "nn7", PAIR: "nn7"})
     with pytest.raises(DataError, match="models directory not found"):
         E.run(params, tmp_path / "none", report, trained_models["labelled"], tmp_path / "o")
-    with pytest.raises(DataError, match=r"r_leg_ft\.json: not found"):
+    with pytest.raises(
+        DataError, match=r"r_leg_ft/<headline>\.json: not found \(run `dvc repro evaluate@r_leg_ft`\)"
+    ):
         E.run(
             params,
             trained_models["models"],
