@@ -19,8 +19,8 @@ from pipeline.calib.models import (
     save_model,
     sum_in_sole,
     switched_loss,
-    wrench_errors,
 )
+from pipeline.calib.scores import wrench_errors
 from pipeline.core.errors import DataError
 
 NAN = float("nan")

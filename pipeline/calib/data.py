@@ -26,10 +26,8 @@ import pyarrow as pa
 import pyarrow.parquet as pq
 
 from pipeline.calib.cuts import CutTerm, cut_sums_np
-from pipeline.calib.models import (
-    wrench_errors,
-)
 from pipeline.calib.params import GroupParams
+from pipeline.calib.scores import wrench_errors
 from pipeline.core.config import Params
 from pipeline.core.errors import ConfigError, DataError
 from pipeline.logs import schema as S

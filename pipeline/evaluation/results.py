@@ -9,8 +9,8 @@ from typing import Any
 
 import numpy as np
 
-from pipeline.calib.models import wrench_errors
 from pipeline.calib.params import RAW
+from pipeline.calib.scores import wrench_errors
 from pipeline.evaluation.inputs import GroupInputs, wrench_of
 from pipeline.evaluation.noise import highpass, noise_ratio, quasi_static_mask
 from pipeline.evaluation.params import (
