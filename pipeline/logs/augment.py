@@ -27,6 +27,7 @@ import numpy as np
 
 from pipeline.core.errors import DataError
 from pipeline.logs.cdr import MAGIC, SCHEMAS, STANDARD_LAYOUTS, schema_layout
+from pipeline.logs.mcap_chunks import message_index_records
 from pipeline.logs.mcap_read import LogReader
 
 _FOOTER = 1 + 8 + 20  # opcode, length, summary_start, summary_offset_start, crc
@@ -233,16 +234,11 @@ class LogAugmenter:
         out = [struct.pack("<BQ", 0x06, len(body) + len(compressed)), body, compressed]
         chunk_length = 9 + len(body) + len(compressed)
         index_offsets, pos = {}, start + chunk_length
-        for cid in np.unique(channel).tolist():
-            sel = channel == cid
-            entries = np.empty((int(sel.sum()), 2), dtype="<u8")
-            entries[:, 0] = log_time[sel].view(np.uint64)
-            entries[:, 1] = offset[sel]
-            record = struct.pack("<BQHI", 0x07, 6 + entries.nbytes, cid, entries.nbytes) + entries.tobytes()
+        for cid, record, count in message_index_records(channel, log_time, offset):
             index_offsets[cid] = pos
             pos += len(record)
             out.append(record)
-            self._counts[cid] = self._counts.get(cid, 0) + len(entries)
+            self._counts[cid] = self._counts.get(cid, 0) + count
         self._new_chunk_indexes.append(
             ChunkIndex(
                 message_start_time=t0,

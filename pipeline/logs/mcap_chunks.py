@@ -30,6 +30,28 @@ def write_record(file: BinaryIO, record: Any) -> int:
     return offset
 
 
+def message_index_records(
+    channel: np.ndarray, log_time: np.ndarray, offset: np.ndarray
+) -> list[tuple[int, bytes, int]]:
+    """The MessageIndex records of one chunk: per channel id (ascending), (id, record bytes, messages).
+
+    channel (n,) ids, log_time (n,) int64 ns, offset (n,) uint64 offsets of the messages in the chunk's
+    uncompressed records; each channel's entries keep the messages' order (log-time order).
+    """
+    out = []
+    by_channel = np.argsort(channel, kind="stable")
+    ids, first = np.unique(channel[by_channel], return_index=True)
+    bounds = [*first.tolist(), len(channel)]
+    for k, cid in enumerate(ids.tolist()):
+        sel = by_channel[bounds[k] : bounds[k + 1]]
+        entries = np.empty((len(sel), 2), dtype="<u8")
+        entries[:, 0] = log_time[sel].view(np.uint64)
+        entries[:, 1] = offset[sel]
+        record = struct.pack("<BQHI", 0x07, 6 + entries.nbytes, cid, entries.nbytes) + entries.tobytes()
+        out.append((int(cid), record, len(sel)))
+    return out
+
+
 @dataclass
 class Pending:
     """A batch of encoded MCAP Message records of one channel, all of the same size."""
@@ -161,18 +183,10 @@ class ChunkSink:
         # Message indexes: per channel, (log time, offset), in log-time order.
         index_offsets: dict[int, int] = {}
         index_start = self._file.tell()
-        by_channel = np.argsort(channel, kind="stable")
-        ids, first = np.unique(channel[by_channel], return_index=True)
-        bounds = [*first.tolist(), len(channel)]
-        for k, cid in enumerate(ids.tolist()):
-            sel = by_channel[bounds[k] : bounds[k + 1]]
-            entries = np.empty((len(sel), 2), dtype="<u8")
-            entries[:, 0] = time[sel].view(np.uint64)
-            entries[:, 1] = offset[sel]
+        for cid, record, count in message_index_records(channel, time, offset):
             index_offsets[cid] = self._file.tell()
-            self._file.write(struct.pack("<BQHI", 0x07, 6 + entries.nbytes, cid, entries.nbytes))
-            self._file.write(entries.tobytes())
-            self._message_counts[cid] = self._message_counts.get(cid, 0) + len(sel)
+            self._file.write(record)
+            self._message_counts[cid] = self._message_counts.get(cid, 0) + count
         self._chunk_indexes.append(
             ChunkIndex(
                 message_start_time=t0,
