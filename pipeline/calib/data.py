@@ -2,7 +2,8 @@
 
 Split: logs whose ``ftcal.experiment`` metadata says ``role: test`` are the test set; ``train.val_logs``
 training logs are held out as validation, whole logs, chosen by a seeded draw that takes at most one log
-per experiment kind (type, foot, part) and never a kind's last training log (the same for every group).
+per experiment kind (type, foot, part) and never a kind's last training log (the same for every group);
+the cross-validation folds (``train.folds``) hold out the next logs of the same kinds.
 
 Samples: a sample is used when every input stream of the group's sensors is ok (wrench, temperature, IMU:
 the same samples for every model); training keeps those with at least one switch set (the others
