@@ -34,6 +34,7 @@ TRAIN_METRICS = "metrics.json"  # in models/<group>/
 PREDICTIONS = "predictions.parquet"
 # In-memory columns that evaluate adds to a group's prediction table (never written to Parquet).
 EXPERIMENT = "experiment"  # experiment type of the sample's log (pole, balancing, ...)
+PHASE = "phase"  # contact phase of the sample (pipeline.evaluation.phases: single, double, pole, air, other)
 SPEED = "speed"  # rad/s: angular speed of the group's FT boards (gyroscope norm, low-passed; max over boards)
 MAX_STEP = 1.5  # a stamp step above this many nominal periods splits a contiguous stretch
 
