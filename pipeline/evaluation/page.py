@@ -289,7 +289,10 @@ def render_html(
         _flags_box(results, cfg),
         summary_table(results, cfg),
         _SUMMARY_NOTE.format(a=cfg.target_raw_over_nn7, b=cfg.target_nn7_over_oracle),
-        _img(figures["overview"], "Headline test RMSE (6 axes pooled) of every model per group, log scale"),
+        _img(
+            figures["overview"],
+            "Headline test RMSE (6 axes pooled) of every model per group and headline, log scale",
+        ),
         "<h2 id='noise'>Deployment noise check</h2>",
         _NOISE_NOTE.format(speed=cfg.still_gyro_rad_s, min_s=cfg.still_min_s, hz=cfg.highpass_hz),
         f'<table class="num"><thead><tr>{head}</tr></thead><tbody>{"".join(noise_rows)}</tbody></table>',

@@ -10,7 +10,7 @@ from typing import TYPE_CHECKING, Any
 from pipeline.evaluation.availability import CUT, PAIR, SENSOR
 from pipeline.evaluation.html import esc, fmt, table
 from pipeline.evaluation.params import LABELS, ORACLE, TRUTH
-from pipeline.evaluation.phases import AIR, PHASE_KEYS, PHASE_TITLES
+from pipeline.evaluation.phases import AIR, DOUBLE, PHASE_KEYS, PHASE_TITLES
 
 if TYPE_CHECKING:
     from pipeline.evaluation.results import GroupReport
@@ -31,6 +31,12 @@ def _bold_min(values: Sequence[Any], models: Sequence[str]) -> list[str]:
     return [f"<b>{esc(fmt(v))}</b>" if v is not None and v == best else esc(fmt(v)) for v in values]
 
 
+def _model_title(model: str, recommended: str | None) -> str:
+    if model == recommended:
+        return f"{model} (deploy)"
+    return f"{model} (best polynomial on val.)" if model.startswith("poly") else model
+
+
 def phase_section(r: GroupReport, name: str) -> str:
     """The RMSE per contact phase of headline `name` (empty if the report has none): one table per
     reference; rows phase x (global, force, torque), columns the group's `phase_models`."""
@@ -38,7 +44,7 @@ def phase_section(r: GroupReport, name: str) -> str:
     if not refs:
         return ""
     models = list(r.phase_models)
-    head = ["phase", "samples", "RMSE", *(f"{m} (deploy)" if m == r.recommended else m for m in models)]
+    head = ["phase", "samples", "RMSE", *(_model_title(m, r.recommended) for m in models)]
     tables, empty = [], set()
     for ref, title in _PHASE_REFS.items():
         if ref not in refs:
@@ -47,7 +53,9 @@ def phase_section(r: GroupReport, name: str) -> str:
         for phase, entry in refs[ref].items():
             n = int(entry.get("samples") or 0)
             if n == 0:
-                empty.add(phase)
+                empty.add((ref, phase))
+                rows.append([esc(PHASE_TITLES.get(phase, phase)), "0", "", *("" for _ in models)])
+                continue
             for k, key in enumerate(PHASE_KEYS):
                 values = [(entry["models"].get(m) or {}).get(key) for m in models]
                 first = [esc(PHASE_TITLES.get(phase, phase)), esc(n)] if k == 0 else ["", ""]
@@ -60,8 +68,13 @@ def phase_section(r: GroupReport, name: str) -> str:
         "included; against the labels only samples where this headline's switch is 1. Lowest per row "
         "(oracle excluded) in bold; force in N, torque in Nm, global pools the 6 components."
     )
-    if AIR in empty:
-        note += " In the air: no test sample has no contact at all (the row is kept with 0 samples)."
+    if (TRUTH, AIR) in empty or (LABELS, AIR) in empty and TRUTH not in refs:
+        note += " In the air: no test sample without any contact (the row is kept with 0 samples)."
+    if (LABELS, DOUBLE) in empty and (TRUTH, DOUBLE) not in empty:
+        note += (
+            " Double support against the labels: 0 samples, this headline has no exact label there (both "
+            "sides of its cut touch); its error there is measurable against the truth only."
+        )
     return (
         f"<h4>RMSE per contact phase</h4><div class='tables'>{''.join(tables)}</div>"
         f"<p class='note'>{esc(note)}</p>"
