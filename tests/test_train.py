@@ -21,7 +21,7 @@ from pipeline.calib import search as calib_search
 from pipeline.calib.cuts import CutTerm, cut_sums_np
 from pipeline.calib.data import LogInfo, find_logs, input_cols, load_group_data, resolve_group, split_logs
 from pipeline.calib.models import load_model
-from pipeline.calib.params import TrainParams, select_simplest
+from pipeline.calib.params import TrainParams, select_by_folds, select_simplest
 from pipeline.calib.training import train_network
 from pipeline.cli import main
 from pipeline.core.config import load_params, stage_section
@@ -46,6 +46,7 @@ def labelled(tmp_path_factory: pytest.TempPathFactory) -> Path:
 
 TRAIN_PARAMS = {
     "val_logs": 1,
+    "folds": 2,
     "threads": 1,
     "storage": None,
     "heartbeat": 10,
@@ -58,6 +59,7 @@ TRAIN_PARAMS = {
         "batch_size": 128,
         "epochs": 3,
         "lr": 0.01,
+        "average_epochs": 1.0,
         "weight_decay": 0.0,
         "lambda_expected": 1.0,
         "lambda_front": 1.0,
@@ -131,6 +133,7 @@ def test_repo_params_resolve_every_group() -> None:
         ({"defaults": {"search": {"lr": {"low": 0.1, "high": 0.01}}}}, "search.lr needs low < high"),
         ({"defaults": {"inputs": [6]}}, "inputs must be a non-empty list of (7, 13)"),
         ({"val_logs": 0}, "train.val_logs must be an integer >= 1"),
+        ({"folds": 0}, "train.folds must be an integer >= 1"),
     ],
 )
 def test_bad_params_name_the_key(tmp_path: Path, change: dict[str, Any], message: str) -> None:
@@ -179,6 +182,36 @@ def test_split_is_by_whole_logs_one_per_kind_never_a_kinds_last() -> None:
         assert split == split_logs(logs, val_logs=5, seed=seed)  # seeded
     picks = {tuple(split_logs(logs, val_logs=1, seed=s)["val"]) for s in range(20)}
     assert len(picks) > 1  # the seed does choose
+
+
+def test_folds_hold_out_disjoint_logs_of_the_same_kinds() -> None:
+    logs = _logs(
+        ("p1", "pole", "train"),
+        ("p2", "pole", "train"),
+        ("p3", "pole", "train"),
+        ("b1", "balancing/l_foot", "train"),
+        ("w1", "walking", "train"),
+        ("w2", "walking", "train"),
+        ("t1", "pole", "test"),
+    )
+    for seed in range(10):
+        split = split_logs(logs, val_logs=2, seed=seed, folds=2)
+        folds = split["folds"]
+        assert folds[0] == {"train": split["train"], "val": split["val"]}  # fold 0 is the split
+        assert not set(folds[0]["val"]) & set(folds[1]["val"])
+        for fold in folds:
+            assert {v[0] for v in fold["val"]} == {"p", "w"}
+            assert sorted(fold["train"] + fold["val"]) == ["b1", "p1", "p2", "p3", "w1", "w2"]
+    with pytest.raises(DataError, match="kind 'walking' has only 2 training logs"):
+        split_logs(logs, val_logs=2, seed=0, folds=3)
+
+
+def test_selection_over_folds_needs_a_gain_beyond_the_spread() -> None:
+    scores = {"raw": [20.0, 21.0], "affine": [1.0, 1.0], "poly2": [0.7, 1.05], "nn7": [0.8, 0.85]}
+    assert select_by_folds(scores, 0.1) == "nn7"  # poly2 is 12 % better on average but worse on fold 2
+    assert select_by_folds({**scores, "nn7": [0.5, 0.99]}, 0.1) == "nn7"  # better on both, 26 % on average
+    assert select_by_folds({**scores, "nn7": [0.5, 1.01]}, 0.1) == "affine"  # 25 % better on average only
+    assert select_by_folds({"raw": [1.0], "affine": [0.5]}, 0.1) == "affine"  # one fold: the margin alone
 
 
 @pytest.mark.parametrize(
@@ -343,7 +376,17 @@ def test_end_to_end_resumes_registers_and_repeats(
             assert {FRONT, REAR, PAIR, "rmse", "rmse_labelled"} <= set(errors)
             assert errors["rmse"] == errors[PAIR]["rmse"]
     errors = {k: v["rmse_labelled"] for k, v in m["val"].items()}
-    assert m["best_on_validation"] == select_simplest(errors, 0.1)
+    cv = m["cv"]
+    held = [f["val"] for f in cv["folds"]]  # val_logs 1: one log of pole or walking, another per fold
+    assert sorted(held) in (
+        [["00_pole_train"], ["01_pole_train"]],
+        [["03_walking_train"], ["04_walking_train"]],
+    )
+    assert set(cv["scores"]) == set(errors)
+    for model, scores in cv["scores"].items():
+        assert len(scores) == 2 and scores[0] == pytest.approx(errors[model], rel=1e-6)
+        assert cv["mean"][model] == pytest.approx(np.mean(scores))
+    assert m["best_on_validation"] == cv["chosen"] == select_by_folds(cv["scores"], 0.1)
     assert m["validation_ranking"][0] == m["best_on_validation"]
     for name in ("nn7", "nn13"):  # trained from the affine map: epoch -1 is the affine baseline
         first = m["networks"][name]["history"][0]

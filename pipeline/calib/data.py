@@ -2,7 +2,8 @@
 
 Split: logs whose ``ftcal.experiment`` metadata says ``role: test`` are the test set; ``train.val_logs``
 training logs are held out as validation, whole logs, chosen by a seeded draw that takes at most one log
-per experiment kind (type, foot, part) and never a kind's last training log (the same for every group).
+per experiment kind (type, foot, part) and never a kind's last training log (the same for every group);
+the cross-validation folds (``train.folds``) hold out the next logs of the same kinds.
 
 Samples: a sample is used when every input stream of the group's sensors is ok (wrench, temperature, IMU:
 the same samples for every model); training keeps those with at least one switch set (the others
@@ -369,15 +370,18 @@ def derive_seed(seed: int, *parts: str | int) -> int:
     return int(np.random.SeedSequence(words).generate_state(1)[0])
 
 
-def split_logs(logs: Sequence[LogInfo], val_logs: int, seed: int) -> dict[str, list[str]]:
+def split_logs(logs: Sequence[LogInfo], val_logs: int, seed: int, folds: int = 1) -> dict[str, Any]:
     """Whole-log split: test = role test; validation = `val_logs` training logs; train = the rest.
 
     Validation takes at most one log per experiment kind (type, supporting foot and part), never a
     kind's only training log, drawn with a generator seeded from `seed` (kinds in a seeded order, then a
-    seeded log of each): every kind of experiment stays in the training set.
+    seeded log of each): every kind of experiment stays in the training set. That is fold 0 of the
+    cross-validation; fold k (k < `folds`) holds out, of the same kinds, the k-th next log of each in
+    sorted order, so the folds' validation logs are disjoint. ``folds``: one {train, val} per fold.
 
     Raises:
-        DataError: no training or no test logs, or too few training logs for a validation set.
+        DataError: no training or no test logs, too few training logs for a validation set, or a held-out
+            kind with fewer training logs than `folds`.
     """
     train = [log for log in logs if log.role == ROLE_TRAIN]
     test = [log.name for log in logs if log.role == ROLE_TEST]
@@ -391,17 +395,24 @@ def split_logs(logs: Sequence[LogInfo], val_logs: int, seed: int) -> dict[str, l
         by_kind.setdefault(log.kind, []).append(log.name)
     candidates = sorted(k for k, names in by_kind.items() if len(names) >= 2)
     order = [candidates[i] for i in rng.permutation(len(candidates))]
-    val = [sorted(by_kind[k])[int(rng.integers(len(by_kind[k])))] for k in order[:val_logs]]
-    if not val:
+    first = {k: int(rng.integers(len(by_kind[k]))) for k in order[:val_logs]}
+    if not first:
         raise DataError(
             f"cannot hold out a validation log: no experiment kind has 2 or more training logs "
             f"(training logs: {', '.join(log.name for log in train)})"
         )
-    return {
-        "train": sorted(n.name for n in train if n.name not in val),
-        "val": sorted(val),
-        "test": sorted(test),
-    }
+    short = [k for k in first if len(by_kind[k]) < folds]
+    if short:
+        raise DataError(
+            f"cannot make {folds} cross-validation folds by whole logs: experiment kind {short[0]!r} has "
+            f"only {len(by_kind[short[0]])} training logs (train.folds at most that)"
+        )
+    names = sorted(log.name for log in train)
+    cv = []
+    for k in range(folds):
+        val = sorted(sorted(by_kind[kind])[(j + k) % len(by_kind[kind])] for kind, j in first.items())
+        cv.append({"train": [n for n in names if n not in val], "val": val})
+    return {**cv[0], "test": sorted(test), "folds": cv}
 
 
 def load_group_data(group: Group, logs: Sequence[LogInfo]) -> GroupData:

@@ -3,7 +3,7 @@
 from __future__ import annotations
 
 from collections.abc import Mapping
-from dataclasses import asdict, dataclass
+from dataclasses import asdict, dataclass, field
 from pathlib import Path
 from typing import Any
 
@@ -12,6 +12,7 @@ import numpy as np
 from pipeline.calib.data import (
     Group,
     GroupData,
+    concat,
     find_logs,
     group_errors,
     input_cols,
@@ -23,7 +24,7 @@ from pipeline.calib.models import (
     LinearBaseline,
     fit_linear_baseline,
 )
-from pipeline.calib.params import AFFINE, GroupParams, TrainParams, poly_name, select_simplest
+from pipeline.calib.params import AFFINE, GroupParams, TrainParams, poly_name
 from pipeline.calib.records import flatten_metrics
 from pipeline.calib.search import NetResult
 from pipeline.calib.training import NetSetting
@@ -44,6 +45,8 @@ class Prepared:
     train: GroupData  # training samples with at least one loss term
     val: GroupData  # every validation sample with ok inputs
     test: GroupData  # every test sample with ok inputs
+    # the other cross-validation folds (1..folds-1): (training samples with a loss term, validation samples)
+    folds: list[tuple[GroupData, GroupData]] = field(default_factory=list)
 
 
 def prepare(params: Params, group_name: str, in_dir: Path) -> Prepared:
@@ -57,22 +60,30 @@ def prepare(params: Params, group_name: str, in_dir: Path) -> Prepared:
     gp = cfg.group(group_name)
     logs = find_logs(in_dir)
     group = resolve_group(gp, params, logs)
-    split = split_logs(logs, cfg.val_logs, params.seed)
+    split = split_logs(logs, cfg.val_logs, params.seed, cfg.folds)
     log_names = [log.name for log in logs]
     data = {}
-    for k, names in split.items():
-        part = load_group_data(group, [logs[log_names.index(n)] for n in names])
-        part.log = np.array([log_names.index(n) for n in names])[part.log]  # split-local -> global index
+    for k in ("train", "val", "test"):
+        part = load_group_data(group, [logs[log_names.index(n)] for n in split[k]])
+        part.log = np.array([log_names.index(n) for n in split[k]])[part.log]  # split-local -> global index
         data[k] = part
     train = data["train"].subset(data["train"].labelled())
     if len(train) == 0:
         names = (*group.sensors, *([group.pair] if group.pair else []))
         switch = " or ".join(S.switch_col(n) for n in names)
         raise DataError(f"{group.name}: no training sample with an exact label ({switch} = 1) in {in_dir}")
-    val = data["val"]
-    if not (val.switches.any() or (val.sum_switch is not None and val.sum_switch.any())):
-        raise DataError(f"{group.name}: the validation logs ({', '.join(split['val'])}) have no exact label")
-    return Prepared(cfg, gp, group, split, log_names, train, val, data["test"])
+    folds = []
+    every = concat([data["train"], data["val"]])
+    for k, fold in enumerate(split["folds"]):
+        held = np.isin(every.log, [log_names.index(n) for n in fold["val"]])
+        val, fold_train = every.subset(held), every.subset(~held)
+        if not (val.switches.any() or (val.sum_switch is not None and val.sum_switch.any())):
+            raise DataError(
+                f"{group.name}: the validation logs ({', '.join(fold['val'])}) have no exact label"
+            )
+        if k:
+            folds.append((fold_train.subset(fold_train.labelled()), val))
+    return Prepared(cfg, gp, group, split, log_names, train, data["val"], data["test"], folds)
 
 
 def fit_baselines(gp: GroupParams, group: Group, train: GroupData) -> dict[str, LinearBaseline]:
@@ -150,9 +161,13 @@ def _fit_baselines_by_part(gp: GroupParams, group: Group, train: GroupData) -> d
 
 
 def score(
-    prep: Prepared, preds: Mapping[str, Mapping[str, np.ndarray]], nets: Mapping[str, NetResult]
+    prep: Prepared,
+    preds: Mapping[str, Mapping[str, np.ndarray]],
+    nets: Mapping[str, NetResult],
+    cv: Mapping[str, Any],
 ) -> dict[str, Any]:
-    """metrics.json: validation and test errors of every model, the model to deploy, the chosen networks."""
+    """metrics.json: validation and test errors of every model, the cross-validation (`cv`, from
+    `pipeline.calib.crossval.cross_validate`) and the model to deploy it chooses, the chosen networks."""
     group = prep.group
     metrics: dict[str, Any] = {
         "group": group.name,
@@ -166,17 +181,15 @@ def score(
         "cut_sets": [c.label for c in group.cuts],
         "logs": prep.split,
         "samples": {"train": len(prep.train), "val": len(prep.val), "test": len(prep.test)},
-        "selection": (
-            f"simplest model (raw < affine < poly < nn7 < nn13) unless a more complex one has a validation "
-            f"rmse_labelled lower by more than {prep.cfg.selection_margin:.0%}"
-        ),
+        "selection": cv["rule"],
+        "cv": dict(cv),
     }
     for k, data in (("val", prep.val), ("test", prep.test)):
         metrics[k] = {name: group_errors(group, data, pred) for name, pred in preds[k].items()}
-    errors = {m: metrics["val"][m]["rmse_labelled"] for m in metrics["val"]}
-    chosen = select_simplest(errors, prep.cfg.selection_margin)
-    ranked = sorted(errors, key=lambda m: errors[m])
-    # the chosen model first, then the others by validation error (the fallbacks if it is noise-flagged)
+    means = cv["mean"]
+    chosen = cv["chosen"]
+    ranked = sorted(means, key=lambda m: (not np.isfinite(means[m]), means[m]))
+    # the chosen model first, then the others by mean fold error (the fallbacks if it is noise-flagged)
     metrics["best_on_validation"] = chosen
     metrics["lowest_on_validation"] = ranked[0]
     metrics["validation_ranking"] = [chosen, *(m for m in ranked if m != chosen)]

@@ -7,7 +7,7 @@ stage runs, so a typo under `train:` surfaces at once.
 from __future__ import annotations
 
 import math
-from collections.abc import Mapping
+from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, fields, replace
 from typing import Any
 
@@ -46,11 +46,38 @@ def select_simplest(errors: Mapping[str, float], margin: float) -> str:
     """The model to deploy from validation errors {model: rmse}: walking from the simplest model to the
     most complex, a model replaces the current choice only if its error is below (1 - margin) times the
     current choice's (NaN errors never win). `errors` must not be empty."""
-    ordered = sorted(errors, key=complexity)
+    return select_by_folds({m: [e] for m, e in errors.items()}, margin)
+
+
+def fold_spread(values: Sequence[float]) -> float:
+    """Spread of per-fold values: their standard deviation (ddof 0; with two folds, half their distance)."""
+    if len(values) < 2:
+        return 0.0
+    mean = sum(values) / len(values)
+    return math.sqrt(sum((v - mean) ** 2 for v in values) / len(values))
+
+
+def beats(simple: Sequence[float], complex_: Sequence[float], margin: float) -> bool:
+    """Whether a more complex model with per-fold errors `complex_` replaces a simpler one (`simple`):
+    its mean error is below (1 - margin) times the simpler one's, and the mean of the per-fold
+    improvements exceeds their spread (with two folds: better on both). NaN never wins."""
+    if not all(math.isfinite(v) for v in complex_):
+        return False
+    if not all(math.isfinite(v) for v in simple):
+        return True
+    gain = [x - y for x, y in zip(simple, complex_, strict=True)]
+    mean_a, mean_b, mean_gain = (sum(v) / len(v) for v in (simple, complex_, gain))
+    return mean_b < (1.0 - margin) * mean_a and mean_gain > fold_spread(gain)
+
+
+def select_by_folds(scores: Mapping[str, Sequence[float]], margin: float) -> str:
+    """The model to deploy from per-fold validation errors {model: [rmse per fold]}: walking from the
+    simplest model to the most complex, a model replaces the current choice only if it `beats` it.
+    `scores` must not be empty."""
+    ordered = sorted(scores, key=complexity)
     choice = ordered[0]
     for model in ordered[1:]:
-        better = not math.isfinite(errors[choice]) or errors[model] < (1.0 - margin) * errors[choice]
-        if math.isfinite(errors[model]) and better:
+        if beats(scores[choice], scores[model], margin):
             choice = model
     return choice
 
@@ -93,6 +120,7 @@ class GroupParams:
     epochs: int  # passes over the training samples
     lr: float  # Adam learning rate
     weight_decay: float  # Adam weight decay
+    average_epochs: float  # horizon of the exponential moving average of the weights, epochs (0: none)
     lambda_expected: float  # single sensor: lambda of eq. 5.4
     lambda_front: float  # foot: lambdas of eqs. 5.6-5.7
     lambda_rear: float
@@ -156,6 +184,7 @@ class GroupParams:
             raise ConfigError(f"{key}.lr must be a positive number, got {self.lr!r}")
         for attr in (
             "weight_decay",
+            "average_epochs",
             "lambda_expected",
             "lambda_front",
             "lambda_rear",
@@ -242,6 +271,7 @@ class TrainParams:
     """Section `train` of params.yaml (see the comments there)."""
 
     val_logs: int  # training logs held out as validation
+    folds: int  # cross-validation folds by whole logs (fold 0: the validation logs above)
     threads: int  # torch CPU threads
     storage: str | None  # Optuna studies: None = journal file, else a database URL (calib.studies)
     heartbeat: int  # s between heartbeats of a trial on a database; stale (retried) after twice that
@@ -252,6 +282,8 @@ class TrainParams:
     def __post_init__(self) -> None:
         if not _is_int(self.val_logs) or self.val_logs < 1:
             raise ConfigError(f"train.val_logs must be an integer >= 1, got {self.val_logs!r}")
+        if not _is_int(self.folds) or self.folds < 1:
+            raise ConfigError(f"train.folds must be an integer >= 1, got {self.folds!r}")
         if not _is_int(self.threads) or self.threads < 1:
             raise ConfigError(f"train.threads must be an integer >= 1, got {self.threads!r}")
         check_storage(self.storage)

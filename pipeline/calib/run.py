@@ -13,6 +13,7 @@ from typing import Any
 import numpy as np
 import torch
 
+from pipeline.calib.crossval import cross_validate
 from pipeline.calib.fit import Prepared, fit_baselines, mlflow_metrics, network_info, prepare, score
 from pipeline.calib.models import WRENCH, LinearBaseline, save_model
 from pipeline.calib.params import AFFINE, RAW, nn_name
@@ -33,6 +34,7 @@ class Fitted:
     nets: dict[str, NetResult]
     preds: dict[str, dict[str, np.ndarray]]  # split (val, test) -> model -> predictions
     timings: dict[str, float] = field(default_factory=dict)
+    cv: dict[str, Any] = field(default_factory=dict)  # `pipeline.calib.crossval.cross_validate`
 
 
 def study_identity(params: Params, prep: Prepared) -> dict[str, Any]:
@@ -42,7 +44,7 @@ def study_identity(params: Params, prep: Prepared) -> dict[str, Any]:
         "group": {k: v for k, v in asdict(prep.gp).items() if k != "n_trials"},
         "seed": params.seed,
         "threads": prep.cfg.threads,
-        "split": prep.split,
+        "split": {k: prep.split[k] for k in ("train", "val", "test")},  # the search runs on fold 0
         "data": data_digest(prep.train, prep.val),
         "code": code_digest(),
         "torch": torch.__version__,
@@ -83,6 +85,9 @@ def fit_models(params: Params, prep: Prepared, studies: Path, ui: ProgressLog) -
         for k, d in data.items():
             fitted.preds[k][name] = predict(fitted.nets[name].model, d)
         fitted.timings[name] = time.perf_counter() - t
+    t = time.perf_counter()
+    fitted.cv = cross_validate(prep, fitted.preds["val"], fitted.nets, prep.cfg.selection_margin, ui)
+    fitted.timings["cross_validation"] = time.perf_counter() - t
     return fitted
 
 
@@ -91,7 +96,7 @@ def write_outputs(prep: Prepared, fitted: Fitted, out: Path, run_id: str, t0: fl
     import mlflow
 
     group, timings = prep.group, fitted.timings
-    metrics = score(prep, fitted.preds, fitted.nets)
+    metrics = score(prep, fitted.preds, fitted.nets, fitted.cv)
     out.mkdir(parents=True, exist_ok=True)
     files = ["metrics.json", "baselines.json", "predictions.parquet"]
     example = prep.test.subset(np.arange(min(5, len(prep.test))))
@@ -141,7 +146,13 @@ def train_group(
     ui = ProgressLog(progress)
     own = {k: v for k, v in asdict(prep.gp).items() if k != "name"}
     stage_params = {
-        "train": {"group": group_name, "val_logs": prep.cfg.val_logs, "threads": prep.cfg.threads, **own},
+        "train": {
+            "group": group_name,
+            "val_logs": prep.cfg.val_logs,
+            "folds": prep.cfg.folds,
+            "threads": prep.cfg.threads,
+            **own,
+        },
         "seed": params.seed,
     }
     with stage_run(f"train@{group_name}", stage_params) as run, ui.running():

@@ -3,7 +3,8 @@
 from __future__ import annotations
 
 import math
-from collections.abc import Callable, Mapping
+from collections.abc import Callable, Iterator, Mapping
+from contextlib import contextmanager, nullcontext
 from dataclasses import dataclass
 from typing import Any
 
@@ -35,6 +36,7 @@ class NetSetting:
     epochs: int
     lr: float
     weight_decay: float
+    average_epochs: float  # EMA horizon of the weights, epochs (0: none)
     lambdas: tuple[float, ...]  # per sensor
     lambda_sum: float
     lambda_cut: float  # each cut set's sum term (groups of several sensors)
@@ -57,6 +59,7 @@ class NetSetting:
             int(v["epochs"]),
             float(v["lr"]),
             float(v["weight_decay"]),
+            float(gp.average_epochs),
             tuple(map(float, lambdas)),
             float(v["lambda_sum"]),
             float(gp.lambda_cut),
@@ -155,6 +158,52 @@ def _val_error(group: Group, val: GroupData, model: GroupNet) -> float:
 EpochCallback = Callable[[int, float, float], None]  # (epoch, mean training loss, validation error)
 
 
+class WeightAverage:
+    """Exponential moving average of a model's parameters with a horizon of `steps` optimiser steps
+    (Polyak averaging): the averaged network moves less from one step to the next than the trained one,
+    so which epoch is best, and its error, depend less on the last steps' noise."""
+
+    def __init__(self, model: GroupNet, steps: float) -> None:
+        self.rate = 1.0 / max(steps, 1.0)
+        self.params = list(model.parameters())
+        self.average = [p.detach().clone() for p in self.params]
+
+    def update(self) -> None:
+        with torch.no_grad():
+            for avg, p in zip(self.average, self.params, strict=True):
+                avg.lerp_(p, self.rate)
+
+    @contextmanager
+    def applied(self) -> Iterator[None]:
+        """The model holds the averaged weights inside the block, its trained ones again after it."""
+        saved = [p.detach().clone() for p in self.params]
+        with torch.no_grad():
+            for p, avg in zip(self.params, self.average, strict=True):
+                p.copy_(avg)
+        try:
+            yield
+        finally:
+            with torch.no_grad():
+                for p, value in zip(self.params, saved, strict=True):
+                    p.copy_(value)
+
+
+def _new_network(
+    group: Group, train: GroupData, setting: NetSetting, start: LinearBaseline | None
+) -> GroupNet:
+    """A freshly initialised network with the normalisation of `train`; equal to `start` if given."""
+    model = GroupNet(NetConfig(setting.n_inputs, setting.hidden, setting.activations), len(group.sensors))
+    model.reset_parameters()
+    for s, net in enumerate(model.nets):
+        x = train.x[:, s, : setting.n_inputs]
+        offset, scale = normalisation_constants(x, setting.normalisation)
+        out_scale = normalisation_constants(x[:, :WRENCH], "standard")[1]
+        net.set_constants(offset, scale, out_scale)
+        if start is not None:
+            net.set_affine(*start.affine_map(s))
+    return model
+
+
 def train_network(
     group: Group,
     train: GroupData,
@@ -168,22 +217,15 @@ def train_network(
 
     `train` holds only samples with at least one term in the loss. Weight init and batch order come from
     `seed`. `start` is the affine baseline the networks correct (`pipeline.calib.models`); the untrained
-    network equals it, scored as epoch -1 (loss NaN) and kept if no epoch beats it on validation.
+    network equals it, scored as epoch -1 (loss NaN) and kept if no epoch beats it on validation. With
+    ``setting.average_epochs`` > 0 the network scored and kept at each epoch is the moving average of the
+    weights (`WeightAverage`) over that many epochs of steps.
     `on_epoch` may raise (e.g. optuna.TrialPruned) to stop. Returns the model at its best epoch (eval mode)
     and the per-epoch history [{epoch, loss, val_rmse}].
     """
     torch.manual_seed(seed)
     generator = torch.Generator().manual_seed(seed)
-    n_sensors = len(group.sensors)
-    model = GroupNet(NetConfig(setting.n_inputs, setting.hidden, setting.activations), n_sensors)
-    model.reset_parameters()
-    for s, net in enumerate(model.nets):
-        x = train.x[:, s, : setting.n_inputs]
-        offset, scale = normalisation_constants(x, setting.normalisation)
-        out_scale = normalisation_constants(x[:, :WRENCH], "standard")[1]
-        net.set_constants(offset, scale, out_scale)
-        if start is not None:
-            net.set_affine(*start.affine_map(s))
+    model = _new_network(group, train, setting, start)
     optimiser = torch.optim.Adam(model.parameters(), lr=setting.lr, weight_decay=setting.weight_decay)
     history: list[dict[str, float]] = []
     best_state, best_err = None, math.inf
@@ -193,31 +235,31 @@ def train_network(
     if start is not None:
         best_err = _val_error(group, val, model)
         best_state = {k: v.detach().clone() for k, v in model.state_dict().items()}
-        history.append(
-            {
-                "epoch": -1,
-                "loss": _train_loss(group, model, t, lambdas, transforms, setting),
-                "val_rmse": best_err,
-            }
-        )
+        loss = _train_loss(group, model, t, lambdas, transforms, setting)
+        history.append({"epoch": -1, "loss": loss, "val_rmse": best_err})
     n = len(train)
+    steps = math.ceil(n / setting.batch_size)
+    average = WeightAverage(model, setting.average_epochs * steps) if setting.average_epochs > 0 else None
     for epoch in range(setting.epochs):
         model.train()
         order = torch.randperm(n, generator=generator)
-        total, batches = 0.0, 0
-        for start in range(0, n, setting.batch_size):
-            idx = order[start : start + setting.batch_size]
-            loss = _batch_loss(group, model, t, idx, lambdas, transforms, setting)
+        total = 0.0
+        for first in range(0, n, setting.batch_size):
+            loss = _batch_loss(
+                group, model, t, order[first : first + setting.batch_size], lambdas, transforms, setting
+            )
             optimiser.zero_grad(set_to_none=True)
             loss.backward()
             optimiser.step()
+            if average is not None:
+                average.update()
             total += float(loss.detach())
-            batches += 1
-        err = _val_error(group, val, model)
-        history.append({"epoch": epoch, "loss": total / max(batches, 1), "val_rmse": err})
-        if err < best_err:
-            best_err = err
-            best_state = {k: v.detach().clone() for k, v in model.state_dict().items()}
+        with average.applied() if average is not None else nullcontext():
+            err = _val_error(group, val, model)
+            if err < best_err:
+                best_err = err
+                best_state = {k: v.detach().clone() for k, v in model.state_dict().items()}
+        history.append({"epoch": epoch, "loss": total / max(steps, 1), "val_rmse": err})
         if on_epoch is not None:
             on_epoch(epoch, history[-1]["loss"], err)
     if best_state is not None:

@@ -6,9 +6,11 @@ Optuna search, scores every model and writes ``OUT_DIR``:
 
 - ``metrics.json``: per model (raw, affine, poly1-4, nn7, nn13), validation and test errors against the
   labels (MSE/MAE/RMSE global, force, torque, per axis; per sensor and, for a foot, of the sum in the sole
-  frame; a group of several sensors: also each cut set's sum), and ``best_on_validation``: the model to
-  deploy, the simplest (raw < affine < poly < nn7 < nn13) unless a more complex one's validation error is
-  lower by more than ``train.selection_margin``.
+  frame; a group of several sensors: also each cut set's sum), ``cv``: every model's validation error on
+  each cross-validation fold, their mean and spread, and ``best_on_validation``: the model to deploy, the
+  simplest (raw < affine < poly < nn7 < nn13) unless a more complex one's mean fold error is lower by more
+  than ``train.selection_margin`` and by more than the spread of its per-fold improvements
+  (`pipeline.calib.crossval`).
 - ``nn7.json`` + ``nn7.pt``, ``nn13.json`` + ``nn13.pt``: the best networks (`calib.models.load_model`
   rebuilds them from the JSON and a weights-only state dict; normalisation constants are in the weights).
 - ``baselines.json``: the fitted affine and polynomial coefficients.
@@ -18,8 +20,10 @@ Optuna search, scores every model and writes ``OUT_DIR``:
 Split: logs whose ``ftcal.experiment`` metadata says ``role: test`` are the test set; ``train.val_logs``
 training logs are held out as validation, whole logs, chosen by a seeded draw that takes at most one log
 per experiment kind (type, foot, part) and never a kind's last training log (the same for every group).
-Models are fitted on the remaining training logs only; validation chooses epochs, Optuna trials and the
-model to deploy.
+Models are fitted on the remaining training logs only; validation chooses epochs and Optuna trials. That
+split is fold 0 of a cross-validation by whole logs (``train.folds``): fold k holds out the k-th next log of
+the same kinds, refits the baselines and retrains each network with its search's best hyperparameters; the
+folds' scores choose the model to deploy. The deployed networks are fold 0's.
 
 Samples: a sample is used when every input stream of the group's sensors is ok (wrench, temperature, IMU:
 the same samples for every model); training keeps those with at least one switch set (the others

@@ -1,0 +1,94 @@
+"""Cross-validation by whole training logs: every model of a group scored on every fold.
+
+Fold 0 is the train/validation split the Optuna search uses (`pipeline.calib.data.split_logs`); on each
+other fold the baselines are fitted again and each network is trained again with its search's best
+hyperparameters and seed, its epoch chosen on that fold's validation logs. A model's fold scores are its
+validation ``rmse_labelled`` (N and Nm pooled) per fold; the model to deploy is chosen from them
+(`pipeline.calib.params.select_by_folds`): the simplest, unless a more complex one's mean is lower by more
+than ``train.selection_margin`` and by more than the spread of its per-fold improvements.
+
+Fold 0's network scores are their search's best trial: chosen among trials on that fold, they are slightly
+optimistic there; the other folds' are not.
+"""
+
+from __future__ import annotations
+
+import time
+from collections.abc import Mapping
+from typing import TYPE_CHECKING, Any
+
+import numpy as np
+
+from pipeline.calib.data import GroupData, group_errors
+from pipeline.calib.models import WRENCH
+from pipeline.calib.params import AFFINE, RAW, complexity, fold_spread, select_by_folds
+from pipeline.calib.training import NetSetting, predict, train_network
+from pipeline.core.progress import ProgressLog
+
+if TYPE_CHECKING:
+    from pipeline.calib.fit import Prepared
+    from pipeline.calib.search import NetResult
+
+
+def _fold_predictions(
+    prep: Prepared, nets: Mapping[str, NetResult], k: int, train: GroupData, val: GroupData, ui: ProgressLog
+) -> dict[str, np.ndarray]:
+    """Predictions (N, S, 6) on fold `k`'s validation samples of every model refitted on its training ones."""
+    from pipeline.calib.fit import fit_baselines
+
+    gp, group = prep.gp, prep.group
+    baselines = fit_baselines(gp, group, train)
+    preds = {RAW: val.x[:, :, :WRENCH].copy()}
+    preds.update({name: model.predict(val.x) for name, model in baselines.items()})
+    for name, r in nets.items():
+        setting = NetSetting.of(gp, r.model.config.n_inputs, r.values)
+        bar = ui.task(f"  fold {k + 1} {name} epochs", setting.epochs)
+        t = time.perf_counter()
+        model, history = train_network(
+            group,
+            train,
+            val,
+            setting,
+            r.seed,
+            lambda epoch, loss, err, bar=bar: ui.update(bar, advance=1),
+            baselines[AFFINE],
+        )
+        ui.remove(bar)
+        preds[name] = predict(model, val)
+        best = min(history, key=lambda h: h["val_rmse"])
+        ui.line(
+            f"{group.name} fold {k + 1}: {name} val RMSE {best['val_rmse']:.4g} "
+            f"(epoch {int(best['epoch']) + 1}) {time.perf_counter() - t:.1f} s"
+        )
+    return preds
+
+
+def cross_validate(
+    prep: Prepared,
+    val_preds: Mapping[str, np.ndarray],
+    nets: Mapping[str, NetResult],
+    margin: float,
+    ui: ProgressLog,
+) -> dict[str, Any]:
+    """The ``cv`` entry of metrics.json: folds (their train/val logs), per-fold scores of every model,
+    mean and spread, the rule and the model it chooses. `val_preds`: fold 0's validation predictions."""
+    group = prep.group
+    scores = {m: [group_errors(group, prep.val, p)["rmse_labelled"]] for m, p in val_preds.items()}
+    for k, (train, val) in enumerate(prep.folds, start=1):
+        preds = _fold_predictions(prep, nets, k, train, val, ui)
+        for m in scores:
+            scores[m].append(group_errors(group, val, preds[m])["rmse_labelled"])
+    scores = {m: scores[m] for m in sorted(scores, key=complexity)}
+    chosen = select_by_folds(scores, margin)
+    return {
+        "folds": prep.split["folds"],
+        "scores": scores,
+        "mean": {m: float(np.mean(v)) for m, v in scores.items()},
+        "spread": {m: fold_spread(v) for m, v in scores.items()},
+        "rule": (
+            f"simplest model (raw < affine < poly < nn7 < nn13) unless a more complex one's mean validation "
+            f"rmse_labelled over the {len(prep.split['folds'])} folds is lower by more than {margin:.0%} and "
+            f"its mean improvement exceeds the spread (std over folds) of its improvements"
+        ),
+        "chosen": chosen,
+    }
