@@ -171,7 +171,7 @@ def summary_table(results: Sequence[GroupReport], cfg: EvaluateParams) -> str:
             row += _cell(b, None if b is None else b <= cfg.target_nn7_over_oracle)
         for m in (NN7, NN13):
             v = r.noise.ratio.get(m)
-            row += _cell(v, None if v is None else v <= cfg.noise_threshold * (1.0 + cfg.noise_margin))
+            row += _cell(v, None if v is None else v <= cfg.noise_limit)
         rec = r.recommended or "none"
         notes = ["best on validation is noisy"] if rec != best else []
         rec_rmse, raw_rmse = r.headline_rmse(LABELS, rec), r.headline_rmse(LABELS, "raw")
