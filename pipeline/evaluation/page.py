@@ -140,7 +140,7 @@ def summary_table(results: Sequence[GroupReport], cfg: EvaluateParams) -> str:
         group_cells = ""
         for m in (NN7, NN13):
             v = r.noise.ratio.get(m)
-            cell = _cell(v, None if v is None else v <= cfg.noise_threshold * (1.0 + cfg.noise_margin))
+            cell = _cell(v, None if v is None else v <= cfg.noise_limit)
             group_cells += cell.replace("<td", f"<td{span}", 1)
         notes = ["best on validation is noisy"] if rec != best else []
         worse = [

@@ -76,3 +76,10 @@ class EvaluateParams:
         order = self.highpass_order
         if isinstance(order, bool) or not isinstance(order, int) or not 1 <= order <= 8:
             raise ConfigError(f"evaluate.highpass_order must be an integer in [1, 8], got {order!r}")
+
+    @property
+    def noise_limit(self) -> float:
+        """Output-noise ratio (worst axis, model / raw) above which a model is flagged: the threshold
+        widened by the margin (2.0 with 0.25 -> 2.5), so ratios that move in the last bits between runs
+        cannot flip a flag. The one rule of `evaluate` and of the deployment's Test A."""
+        return self.noise_threshold * (1.0 + self.noise_margin)

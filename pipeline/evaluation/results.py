@@ -249,7 +249,7 @@ def noise_check(g: GroupInputs, cfg: EvaluateParams) -> NoiseResult:
             result.ratio_rms[model] = float(np.sqrt(np.mean(r[finite] ** 2)))
         else:
             result.ratio[model] = result.ratio_rms[model] = result.worst_channel[model] = None
-        limit = cfg.noise_threshold * (1.0 + cfg.noise_margin)
+        limit = cfg.noise_limit
         if model != ORACLE and result.ratio[model] is not None and result.ratio[model] > limit:
             result.flagged.append(model)
     if g.has_truth:
