@@ -154,8 +154,12 @@ def test_c_uses_the_push_window_of_the_params(stage: dict[str, Any]) -> None:
     for v in entry["joints"].values():
         assert v["raw"]["max"] >= v["raw"]["rmse"] > 0 and np.isfinite(v["calibrated"]["max"])
         assert v["ratio_max"] == pytest.approx(v["raw"]["max"] / v["calibrated"]["max"])
+        assert v["ratio_rmse"] == pytest.approx(v["raw"]["rmse"] / v["calibrated"]["rmse"])
     summary = stage["details"]["summary"]["later"]
     assert "c.r_hip_pitch.ratio" in summary and not any(k.startswith("c.l_") for k in summary)
+    # the verdict's Test C ratio is the RMSE ratio of the hip pitch joint (the max one is reported)
+    assert summary["c.r_hip_pitch.ratio"] == entry["joints"]["r_hip_pitch"]["ratio_rmse"]
+    assert summary["c.r_hip_pitch.ratio_max"] == entry["joints"]["r_hip_pitch"]["ratio_max"]
 
 
 def test_unmeasured_noise_is_not_a_pass() -> None:

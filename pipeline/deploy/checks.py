@@ -190,9 +190,10 @@ def push_torques(
                 }
                 for kind, e in est.items()
             }
-            per_joint[j]["ratio_max"] = per_joint[j]["raw"]["max"] / max(
-                per_joint[j]["calibrated"]["max"], 1e-12
-            )
+            for stat in ("rmse", "max"):
+                per_joint[j][f"ratio_{stat}"] = per_joint[j]["raw"][stat] / max(
+                    per_joint[j]["calibrated"][stat], 1e-12
+                )
         results[sensor] = {"joints": per_joint, "samples_pushed": int(ok.sum())}
         series[sensor] = {"joints": joints, "true": true, **est}
     return results, series

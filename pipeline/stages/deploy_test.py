@@ -91,9 +91,10 @@ def summarize(result: dict[str, Any], dp: Any, target_b: float, joint: str) -> d
     for c in result.get("test_c", {}).values():
         for j, v in c["joints"].items():
             if j.endswith(joint):
-                out[f"c.{j}.max_raw"] = v["raw"]["max"]
-                out[f"c.{j}.max_calibrated"] = v["calibrated"]["max"]
-                out[f"c.{j}.ratio"] = v["ratio_max"]
+                out[f"c.{j}.rmse_raw"] = v["raw"]["rmse"]
+                out[f"c.{j}.rmse_calibrated"] = v["calibrated"]["rmse"]
+                out[f"c.{j}.ratio"] = v["ratio_rmse"]
+                out[f"c.{j}.ratio_max"] = v["ratio_max"]
     # a deployed model whose noise could not be measured (no quasi-static stretch) has not passed Test A
     deployed = [a["models"][a["deployed"]] for a in result.get("test_a", {}).values()]
     ok_a = all(not r["flagged"] and math.isfinite(r["worst"]) for r in deployed)
