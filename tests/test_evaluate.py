@@ -168,6 +168,26 @@ LOGS = [("08_pole_test", "pole", 0.01, None), ("11_walking_test", "walking", 0.8
 N = 600
 
 
+CV = {
+    "folds": [
+        {"val": ["01_walking_train"], "train": ["00_pole_train"]},
+        {"val": ["00_pole_train"], "train": []},
+    ],
+    "scores": {"nn7": [0.51, 0.73], "nn13": [0.42, 0.97]},
+    "mean": {"nn7": 0.62, "nn13": 0.695},
+    "spread": {"nn7": 0.11, "nn13": 0.275},
+    "rule": "the lowest mean unless within the spread",
+    "chosen": "nn7",
+}
+
+
+def _metadata(kind: str, log: str) -> dict[bytes, Any]:
+    """The factories' labelled metadata (the r_foot pair) with a left foot (sole only) for the phases."""
+    meta = labelled_metadata(kind, "test", log)
+    meta[S.META_LABEL]["pairs"]["l_foot"] = {"sole": "l_sole"}
+    return meta
+
+
 def build_fixture(root: Path) -> dict[str, Path]:
     """labelled/, ingested/ (truth) and models/<group>/ for a leg sensor and a foot pair.
 
@@ -202,19 +222,21 @@ def build_fixture(root: Path) -> dict[str, Path]:
                 for c, v in zip(S.wrench_cols(quantity, s), value.T, strict=True):
                     tru[c] = v
                 tru[S.ok_col(quantity, s)] = np.ones(N, dtype=bool)
-        if period is None:
-            contacts = np.full(N, "l_sole", dtype=object)
-        else:
-            contacts = np.where((np.arange(N) // period) % 2 == 0, "l_sole", "l_sole,r_sole").astype(object)
+        if period is None:  # on the pole
+            contacts = np.full(N, "root_link", dtype=object)
+        else:  # single support on the right foot, double support
+            contacts = np.where((np.arange(N) // period) % 2 == 0, "r_sole", "l_sole,r_sole").astype(object)
+        changed = np.r_[False, contacts[1:] != contacts[:-1]]
+        guard = changed | np.r_[changed[1:], False]  # the samples on either side of a contact change
         lab[S.CONTACTS] = contacts
-        lab[S.GUARD] = np.zeros(N, dtype=bool)
+        lab[S.GUARD] = guard
         tru[S.CONTACTS] = contacts
-        write_table(
-            dirs["labelled"] / f"{log}.parquet", lab, S.KIND_LABELLED, labelled_metadata(kind, "test", log)
-        )
+        switch = (contacts != "l_sole,r_sole") & ~guard
+        lab[S.switch_col(LEG)] = switch.astype(np.uint8)
+        lab[S.switch_col(PAIR)] = np.ones(N, dtype=np.uint8)
+        write_table(dirs["labelled"] / f"{log}.parquet", lab, S.KIND_LABELLED, _metadata(kind, log))
         write_table(dirs["ingested"] / f"{log}{S.TRUTH_SUFFIX}.parquet", tru, S.KIND_TRUTH, {})
         extra = rng.normal(size=(N, 6)) * 3 * NOISE
-        switch = np.ones(N, dtype=np.uint8) if period is None else (contacts == "l_sole").astype(np.uint8)
         for group, names in ((LEG, (LEG,)), (PAIR, (PAIR, FRONT, REAR))):
             cols: dict[str, Any] = {
                 "log": np.full(keep.sum(), log, dtype=object),
@@ -235,7 +257,7 @@ def build_fixture(root: Path) -> dict[str, Path]:
                 PAIR: true[FRONT] @ TRANSFORMS[0].T + true[REAR] @ TRANSFORMS[1].T,
             }
             for name in names:
-                sw = switch if name != PAIR else np.ones(N, dtype=np.uint8)
+                sw = lab[S.switch_col(LEG)] if name != PAIR else lab[S.switch_col(PAIR)]
                 for c, v in zip(
                     S.wrench_cols(S.EXPECTED, name),
                     np.where(sw[:, None] == 1, label_of[name], np.nan).T,
@@ -278,6 +300,8 @@ def build_fixture(root: Path) -> dict[str, Path]:
             "validation_ranking": ["nn13", "nn7", "affine", "raw"],
             "networks": networks,
         }
+        if group == PAIR:  # train's cross-validation record (the leg group has none)
+            metrics["cv"] = CV
         (out / "metrics.json").write_text(json.dumps(metrics))
     return dirs
 
@@ -306,7 +330,7 @@ def evaluated(tmp_path_factory: pytest.TempPathFactory) -> dict[str, Any]:
             g: E.run(params, g, dirs["models"] / g, dirs["labelled"], out, dirs["ingested"], progress=False)
             for g in (LEG, PAIR)
         }
-        REPORT.run(params, out)
+        REPORT.run(params, out, dirs["labelled"])
     finally:
         mp.undo()
     return {"results": results, "out": out, "dirs": dirs, "root": root}
@@ -471,3 +495,69 @@ def test_missing_labelled_test_log_is_a_data_error(tmp_path: Path) -> None:
         DataError, match=r"11_walking_test\.parquet: labelled table of test log 11_walking_test not found"
     ):
         load_group(LEG, dirs["models"] / LEG, dirs["labelled"], dirs["ingested"], cfg)
+
+
+# --- contact phases, cross-validation, exact-label availability ----------------------------------
+
+
+def test_phase_tables_match_an_independent_computation(evaluated: dict[str, Any]) -> None:
+    dirs, r = evaluated["dirs"], evaluated["results"][LEG]
+    pred = pd.read_parquet(dirs["models"] / LEG / "predictions.parquet")
+    parts = []
+    for log, *_ in LOGS:
+        lab = pq.read_table(dirs["labelled"] / f"{log}.parquet", columns=[S.STAMP, S.CONTACTS]).to_pandas()
+        tru = pq.read_table(dirs["ingested"] / f"{log}{S.TRUTH_SUFFIX}.parquet").to_pandas()
+        parts.append(lab.merge(tru[[S.STAMP, *S.wrench_cols(S.TRUE, LEG)]], on=S.STAMP))
+    ref = pd.concat(parts, ignore_index=True).set_index(S.STAMP).loc[pred[S.STAMP]]
+    phase = (
+        ref[S.CONTACTS].map({"root_link": "pole", "r_sole": "single", "l_sole,r_sole": "double"}).to_numpy()
+    )
+    assert r.phase_models == ["raw", "affine", "nn7", "nn13", "oracle"]  # no polynomial in this group
+    truth, labels = r.phases[LEG]["truth"], r.phases[LEG]["labels"]
+    assert list(truth) == ["single", "double", "pole", "air"]
+    assert truth["pole"]["samples"] == N - 1 and truth["air"]["samples"] == 0
+    assert truth["single"]["samples"] + truth["double"]["samples"] == N - 1
+    labelled = pred[S.switch_col(LEG)].to_numpy() == 1
+    assert (
+        labels["double"]["samples"] == 0
+        and labels["single"]["samples"] == (labelled & (phase == "single")).sum()
+    )
+    true = ref[S.wrench_cols(S.TRUE, LEG)].to_numpy()
+    for name in ("single", "double"):
+        m = phase == name
+        err = pred[prediction_cols("nn7", LEG)].to_numpy()[m] - true[m]
+        got = truth[name]["models"]["nn7"]
+        assert got["rmse"] == pytest.approx(math.sqrt(np.mean(err**2)))
+        assert got["rmse_torque"] == pytest.approx(math.sqrt(np.mean(err[:, 3:] ** 2)))
+    assert truth["air"]["models"]["nn7"]["rmse"] is None
+    page = (evaluated["out"] / "index.html").read_text()
+    assert page.count("RMSE per contact phase") == 2  # one per headline (LEG, PAIR)
+
+
+def test_cv_passes_through_to_the_page_only_where_train_wrote_it(evaluated: dict[str, Any]) -> None:
+    assert _report(evaluated, PAIR)["cv"] == CV and _report(evaluated, LEG)["cv"] is None
+    page = (evaluated["out"] / "index.html").read_text()
+    assert page.count("Cross-validation behind the recommendation") == 1
+    section = page[page.index("Cross-validation behind") :]
+    assert "<td>0.42</td><td>0.97</td><td>0.695</td><td>0.275</td>" in section  # nn13: folds, mean, spread
+    assert "<b>nn7</b> (chosen)" in page
+
+
+def test_label_availability_counts_every_labelled_log(evaluated: dict[str, Any]) -> None:
+    from pipeline.evaluation.availability import label_availability
+
+    avail = label_availability(evaluated["dirs"]["labelled"])
+    walking = pq.read_table(evaluated["dirs"]["labelled"] / f"{LOGS[1][0]}.parquet").to_pandas()
+    double = walking[S.CONTACTS].to_numpy() == "l_sole,r_sole"
+    guard = walking[S.GUARD].to_numpy()
+    leg = walking[S.switch_col(LEG)].to_numpy() == 1
+    assert avail["labels"] == {LEG: "sensor", PAIR: "foot pair"}
+    assert avail["types"]["pole"] == {"logs": 1, "samples": N, "guard": 0, "exact": {LEG: N, PAIR: N}}
+    assert avail["types"]["walking"]["exact"][LEG] == leg.sum() < N
+    assert avail["types"]["walking"]["guard"] == guard.sum() > 0
+    ds = avail["double"]["walking"]
+    assert ds["samples"] == (double & ~guard).sum() and ds["guard"] == (double & guard).sum() > 0
+    assert ds["exact"] == {LEG: 0, PAIR: ds["samples"]}
+    assert list(avail["double"]) == ["walking"]
+    page = (evaluated["out"] / "index.html").read_text()
+    assert "Exact-label availability" in page and "double support outside guard bands" in page

@@ -115,6 +115,7 @@ def day_section(day: str, result: dict[str, Any], figures: dict[str, str]) -> st
             j,
             v["raw"]["rmse"],
             v["calibrated"]["rmse"],
+            v["ratio_rmse"],
             v["raw"]["max"],
             v["calibrated"]["max"],
             v["ratio_max"],
@@ -123,7 +124,19 @@ def day_section(day: str, result: dict[str, Any], figures: dict[str, str]) -> st
         for j, v in r["joints"].items()
     ]
     parts += [
-        _table(["sensor", "joint", "RMSE raw", "RMSE cal.", "max raw", "max cal.", "max raw/cal"], rows)
+        _table(
+            [
+                "sensor",
+                "joint",
+                "RMSE raw",
+                "RMSE cal.",
+                "RMSE raw/cal",
+                "max raw",
+                "max cal.",
+                "max raw/cal",
+            ],
+            rows,
+        )
     ]
     parts += [
         f'<p><img src="{html.escape(src)}" alt="{html.escape(k)}" style="max-width:100%"></p>'

@@ -38,7 +38,7 @@ class DeployParams:
     drifted: Drift
     torque_limbs: dict[str, str]  # leg FT sensor -> limb end link (its joints are estimated)
     figure_joint: str  # suffix of the joint drawn in the Test C figure (e.g. hip_pitch)
-    torque_target: float  # Test C passes when raw max-error / calibrated max-error on it is >= this
+    torque_target: float  # Test C passes when raw RMSE / calibrated RMSE of the joint torque is >= this
 
 
 def _num(value: Any, key: str, lo: float, hi: float) -> float:

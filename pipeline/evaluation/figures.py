@@ -370,26 +370,29 @@ def plot_noise_summary(results: Sequence[GroupReport], cfg: EvaluateParams, path
 
 
 def plot_overview(results: Sequence[GroupReport], path: Path) -> None:
-    """Headline RMSE (global) of every model per group, against labels and truth (log scale)."""
+    """Global RMSE of every model per headline of every group, against labels and truth (log scale)."""
 
     plt = _plt()
-    refs = [ref for ref in REFERENCES if any(ref in r.tables[r.headline] for r in results)]
+    bars = [(r, name) for r in results for name in (r.headlines or [r.headline])]
+    refs = [ref for ref in REFERENCES if any(ref in r.tables[name] for r, name in bars)]
     models = list(dict.fromkeys(m for r in results for m in r.models))
-    fig, axes = plt.subplots(1, len(refs), figsize=(7.5 * len(refs) + 1.5, 4.8), squeeze=False)
     width = 0.8 / max(len(models), 1)
+    fig, axes = plt.subplots(
+        1, len(refs), figsize=(max(7.5, 1.3 * len(bars)) * len(refs) + 1.5, 4.8), squeeze=False
+    )
     for i, ref in enumerate(refs):
         ax = axes[0, i]
         for k, m in enumerate(models):
-            values = [r.headline_rmse(ref, m) for r in results]
+            values = [r.headline_rmse(ref, m, name=name) for r, name in bars]
             values = [math.nan if v is None else v for v in values]
             ax.bar(
-                np.arange(len(results)) + (k - (len(models) - 1) / 2) * width,
+                np.arange(len(bars)) + (k - (len(models) - 1) / 2) * width,
                 values,
                 width,
                 color=_color(m),
                 label=m,
             )
-        ax.set_xticks(np.arange(len(results)), [r.headline for r in results], rotation=20)
+        ax.set_xticks(np.arange(len(bars)), [name for _, name in bars], rotation=20)
         ax.set_yscale("log")
         ax.set_ylabel("RMSE, 6 axes pooled [N, Nm]")
         ax.set_title(f"test RMSE against {REFERENCE_TITLES[ref]}")

@@ -21,7 +21,16 @@ import pyarrow.parquet as pq
 from pipeline.calib.params import RAW
 from pipeline.core.errors import DataError
 from pipeline.evaluation.noise import board_speed, segment_ids
-from pipeline.evaluation.params import EXPERIMENT, ORACLE, PREDICTIONS, SPEED, TRAIN_METRICS, EvaluateParams
+from pipeline.evaluation.params import (
+    EXPERIMENT,
+    ORACLE,
+    PHASE,
+    PREDICTIONS,
+    SPEED,
+    TRAIN_METRICS,
+    EvaluateParams,
+)
+from pipeline.evaluation.phases import feet_of, phases_of
 from pipeline.logs import schema as S
 from pipeline.logs.schema import LOG, PRED, prediction_cols
 
@@ -35,8 +44,8 @@ class GroupInputs:
     `frame` holds, per test sample (rows of predictions.parquet, sorted by log and stamp): ``log``,
     ``stamp_ns``, ``time_s``, labels ``exp.<name>.<axis>`` and switches ``sw.<name>``, predictions
     ``pred.<model>.<name>.<axis>`` (the oracle's too where truth exists), ``true.<name>.<axis>`` (NaN
-    without truth), EXPERIMENT, SPEED, ``contacts`` and ``guard``. Names: the sensor, or the pair (sum in
-    the sole frame) then front and rear.
+    without truth), EXPERIMENT, SPEED, PHASE (`pipeline.evaluation.phases`), ``contacts`` and ``guard``.
+    Names: the sensor, or the pair (sum in the sole frame) then front and rear.
     """
 
     group: str
@@ -102,6 +111,9 @@ def _read_log_extras(
     experiment = S.read_metadata(schema, S.META_EXPERIMENT) or {}
     kind = str(experiment.get("type", "")).strip() or "unknown"
     transforms = {pair: _pair_transforms(schema, pair, path) for pair in pairs}
+    table[PHASE] = phases_of(
+        table[S.CONTACTS].to_numpy(object), feet_of(S.read_metadata(schema, S.META_LABEL) or {})
+    )
     found = False
     truth_path = truth_dir / f"{log}{S.TRUTH_SUFFIX}{S.PARQUET_SUFFIX}" if truth_dir is not None else None
     if truth_path is not None and truth_path.is_file():

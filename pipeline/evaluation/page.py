@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import html
 import math
 import subprocess
 from collections.abc import Mapping, Sequence
@@ -11,6 +10,11 @@ from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
 from pipeline.core.io import write_text
+from pipeline.evaluation.html import cell as _cell
+from pipeline.evaluation.html import esc as _e
+from pipeline.evaluation.html import fmt
+from pipeline.evaluation.html import img as _img
+from pipeline.evaluation.html import table as _table
 from pipeline.evaluation.params import (
     LABELS,
     NN7,
@@ -21,6 +25,7 @@ from pipeline.evaluation.params import (
     REFERENCES,
     REPORT_FILE,
 )
+from pipeline.evaluation.sections import availability_section, cv_section, phase_section
 from pipeline.logs import schema as S
 
 if TYPE_CHECKING:
@@ -29,36 +34,6 @@ if TYPE_CHECKING:
 
 
 # --- the page ------------------------------------------------------------------------------------
-
-
-def fmt(value: Any) -> str:
-    """A table number: 2 decimals from 1 up (as the thesis), 3 significant digits below; n/a if missing."""
-    if value is None or (isinstance(value, float) and not math.isfinite(value)):
-        return "n/a"
-    if isinstance(value, bool):
-        return "yes" if value else "no"
-    if isinstance(value, int):
-        return str(value)
-    v = float(value)
-    if abs(v) >= 1e5:
-        return f"{v:.3e}"
-    if abs(v) >= 1:
-        return f"{v:.2f}"
-    return f"{v:.3g}"
-
-
-def _e(text: Any) -> str:
-    return html.escape(str(text))
-
-
-def _table(
-    header: Sequence[str], rows: Sequence[Sequence[str]], cls: str = "", raw_html: bool = False
-) -> str:
-    """An HTML table; cells are escaped unless `raw_html` (then the caller escaped them)."""
-    cell = (lambda c: c) if raw_html else _e
-    head = "".join(f"<th>{_e(h)}</th>" for h in header)
-    body = "".join("<tr>" + "".join(f"<td>{cell(c)}</td>" for c in row) + "</tr>" for row in rows)
-    return f'<table class="{cls}"><thead><tr>{head}</tr></thead><tbody>{body}</tbody></table>'
 
 
 _METRIC_ROWS = [("global", ""), ("force", "_force"), ("torque", "_torque")] + [
@@ -90,14 +65,6 @@ def thesis_table(tables: Mapping[str, Mapping[str, float]], models: Sequence[str
 
 def _count(value: Any) -> int | None:
     return None if value is None or not math.isfinite(value) else int(value)
-
-
-def _img(src: str, alt: str) -> str:
-    src, alt = _e(src), _e(alt)
-    return (
-        f'<figure><a href="{src}"><img src="{src}" alt="{alt}" loading="lazy"></a>'
-        f"<figcaption>{alt}</figcaption></figure>"
-    )
 
 
 def _git_commit() -> str:
@@ -132,19 +99,27 @@ nav a{display:block} .note{font-size:13px;color:#444;max-width:1100px}
 """
 
 
-def _cell(value: Any, good: bool | None = None, bold: bool = False) -> str:
-    """A <td> with a number, green/red when `good` says whether it meets its target."""
-    text = _e(fmt(value))
-    text = f"<b>{text}</b>" if bold else text
-    cls = "" if good is None else (' class="ok"' if good else ' class="bad"')
-    return f"<td{cls}>{text}</td>"
+def _headline_cells(r: GroupReport, name: str, refs: Sequence[str], cfg: EvaluateParams) -> str:
+    """The RMSE and ratio cells of one headline of a summary row."""
+    ratios, best, row = r.ratios(name), r.best_on_validation, ""
+    for ref in refs:
+        row += _cell(r.headline_rmse(ref, "raw", name=name))
+        row += _cell(r.headline_rmse(ref, best, name=name) if best else None)
+        row += _cell(r.headline_rmse(ref, NN7, name=name)) + _cell(r.headline_rmse(ref, ORACLE, name=name))
+    for ref in refs:
+        a, b = ratios["raw_over_nn7"][ref], ratios["nn7_over_oracle"][ref]
+        row += _cell(a, None if a is None else a >= cfg.target_raw_over_nn7)
+        row += _cell(b, None if b is None else b <= cfg.target_nn7_over_oracle)
+    return row
 
 
 def summary_table(results: Sequence[GroupReport], cfg: EvaluateParams) -> str:
-    """One row per group: headline RMSE of raw, the best-on-validation model, NN7 and the oracle against
-    labels and truth; the acceptance ratios; the networks' noise ratios; the model to deploy."""
+    """One row per headline of every group (a group with several headlines, e.g. both legs and feet
+    trained together, spans several rows): headline RMSE of raw, the best-on-validation model, NN7 and the
+    oracle against labels and truth; the acceptance ratios; then per group the networks' noise ratios
+    and the model to deploy."""
 
-    refs = [ref for ref in REFERENCES if any(ref in r.tables[r.headline] for r in results)]
+    refs = [ref for ref in REFERENCES if any(ref in r.tables[h] for r in results for h in _headlines(r))]
     head1 = "<tr><th rowspan=2>group</th><th rowspan=2>sensor / sum</th>"
     head2 = "<tr>"
     for ref in refs:
@@ -159,30 +134,37 @@ def summary_table(results: Sequence[GroupReport], cfg: EvaluateParams) -> str:
     head2 += "<th>NN7</th><th>NN13</th></tr>"
     body = []
     for r in results:
-        ratios = r.ratios()
-        best = r.best_on_validation
-        row = f"<tr><td>{_e(r.group)}</td><td>{_e(r.headline)}</td>"
-        for ref in refs:
-            row += _cell(r.headline_rmse(ref, "raw")) + _cell(r.headline_rmse(ref, best) if best else None)
-            row += _cell(r.headline_rmse(ref, NN7)) + _cell(r.headline_rmse(ref, ORACLE))
-        for ref in refs:
-            a, b = ratios["raw_over_nn7"][ref], ratios["nn7_over_oracle"][ref]
-            row += _cell(a, None if a is None else a >= cfg.target_raw_over_nn7)
-            row += _cell(b, None if b is None else b <= cfg.target_nn7_over_oracle)
+        names = _headlines(r)
+        span = f" rowspan={len(names)}" if len(names) > 1 else ""
+        best, rec = r.best_on_validation, r.recommended or "none"
+        group_cells = ""
         for m in (NN7, NN13):
             v = r.noise.ratio.get(m)
-            row += _cell(v, None if v is None else v <= cfg.noise_threshold * (1.0 + cfg.noise_margin))
-        rec = r.recommended or "none"
+            cell = _cell(v, None if v is None else v <= cfg.noise_limit)
+            group_cells += cell.replace("<td", f"<td{span}", 1)
         notes = ["best on validation is noisy"] if rec != best else []
-        rec_rmse, raw_rmse = r.headline_rmse(LABELS, rec), r.headline_rmse(LABELS, "raw")
-        worse = rec_rmse is not None and raw_rmse is not None and rec_rmse > raw_rmse
+        worse = [
+            n
+            for n in names
+            if (a := r.headline_rmse(LABELS, rec, name=n)) is not None
+            and (b := r.headline_rmse(LABELS, "raw", name=n)) is not None
+            and a > b
+        ]
         if worse:
-            notes.append("worse than raw on the test logs: validation does not cover them")
+            what = f" ({', '.join(worse)})" if len(names) > 1 else ""
+            notes.append(f"worse than raw on the test logs{what}: validation does not cover them")
         note = f" <small>({'; '.join(notes)})</small>" if notes else ""
         cls = "deploy bad" if worse else "deploy"
-        row += f"<td>{_e(best)}</td><td class='{cls}'><b>{_e(rec)}</b>{note}</td></tr>"
-        body.append(row)
+        group_cells += f"<td{span}>{_e(best)}</td><td{span} class='{cls}'><b>{_e(rec)}</b>{note}</td>"
+        for i, name in enumerate(names):
+            row = f"<tr><td{span}>{_e(r.group)}</td>" if i == 0 else "<tr>"
+            row += f"<td>{_e(name)}</td>" + _headline_cells(r, name, refs, cfg)
+            body.append(row + (group_cells if i == 0 else "") + "</tr>")
     return f'<table class="num summary"><thead>{head1}{head2}</thead><tbody>{"".join(body)}</tbody></table>'
+
+
+def _headlines(r: GroupReport) -> list[str]:
+    return list(r.headlines or [r.headline])
 
 
 def _flags_box(results: Sequence[GroupReport], cfg: EvaluateParams) -> str:
@@ -238,6 +220,7 @@ def _group_section(r: GroupReport) -> list[str]:
         f"deploy: <b>{_e(r.recommended)}</b> · {' · '.join(links)}</p>",
         _img(r.figures["loss"], f"{g.group}: training loss and validation RMSE per epoch"),
         _img(r.figures["noise"], f"{g.group}: output noise on a quasi-static stretch"),
+        cv_section(r.cv),
     ]
     for name in g.names:
         if name == g.pair:
@@ -256,6 +239,7 @@ def _group_section(r: GroupReport) -> list[str]:
             rows = [[f"{kind} ({ref})"] + [fmt(by_kind[kind].get(m)) for m in g.models] for kind in by_kind]
             parts.append(_table(["experiment", *g.models], rows, "num"))
         parts.append("</div>")
+        parts.append(phase_section(r, name))
         fig = r.figures["names"][name]
         parts += [
             _img(fig["rmse"], f"{name}: RMSE per axis of every model (thesis fig. 5.8)"),
@@ -268,8 +252,14 @@ def _group_section(r: GroupReport) -> list[str]:
     return parts
 
 
-def render_html(results: Sequence[GroupReport], cfg: EvaluateParams, figures: Mapping[str, Any]) -> str:
-    """The report page: summary, flags and overview figures, the noise check, then one section per group."""
+def render_html(
+    results: Sequence[GroupReport],
+    cfg: EvaluateParams,
+    figures: Mapping[str, Any],
+    availability: Mapping[str, Any] | None = None,
+) -> str:
+    """The report page: summary, flags and overview figures, the noise check, the exact-label
+    availability (`pipeline.evaluation.availability`, if given), then one section per group."""
     now = datetime.now(timezone.utc).strftime("%Y-%m-%d %H:%M UTC")
     groups = ", ".join(r.group for r in results)
     nav = "".join(f"<a href='#{_e(r.group)}'>{_e(r.group)}</a>" for r in results)
@@ -285,6 +275,8 @@ def render_html(results: Sequence[GroupReport], cfg: EvaluateParams, figures: Ma
     head = "".join(
         f"<th>{_e(h)}</th>" for h in ["group", "quasi-static s", "stretches", "signal share", *models]
     )
+    labels = availability_section(availability)
+    labels_link = "<a href='#labels'>Exact-label availability</a>" if labels else ""
     parts = [
         "<!DOCTYPE html><html lang='en'><head><meta charset='utf-8'>",
         f"<title>ftcal evaluation report</title><style>{_CSS}</style></head><body>",
@@ -292,18 +284,22 @@ def render_html(results: Sequence[GroupReport], cfg: EvaluateParams, figures: Ma
         f"<p class='meta'>generated {now} · git {_e(_git_commit())} · groups: {_e(groups)} · "
         "errors in N and Nm; global = the 6 components pooled, as in the thesis</p>",
         "<nav><a href='#summary'>Summary and recommendation</a><a href='#noise'>Deployment noise check</a>"
-        f"{nav}</nav>",
+        f"{labels_link}{nav}</nav>",
         "<h2 id='summary'>Summary and recommendation</h2>",
         _flags_box(results, cfg),
         summary_table(results, cfg),
         _SUMMARY_NOTE.format(a=cfg.target_raw_over_nn7, b=cfg.target_nn7_over_oracle),
-        _img(figures["overview"], "Headline test RMSE (6 axes pooled) of every model per group, log scale"),
+        _img(
+            figures["overview"],
+            "Headline test RMSE (6 axes pooled) of every model per group and headline, log scale",
+        ),
         "<h2 id='noise'>Deployment noise check</h2>",
         _NOISE_NOTE.format(speed=cfg.still_gyro_rad_s, min_s=cfg.still_min_s, hz=cfg.highpass_hz),
         f'<table class="num"><thead><tr>{head}</tr></thead><tbody>{"".join(noise_rows)}</tbody></table>',
         _img(
             figures["noise"], "Noise amplification ratio per model and group (worst axis); threshold dashed"
         ),
+        labels,
     ]
     for r in results:
         parts += _group_section(r)
@@ -311,13 +307,21 @@ def render_html(results: Sequence[GroupReport], cfg: EvaluateParams, figures: Ma
     return "\n".join(parts)
 
 
-def write_page(out: Path, reports: Sequence[GroupReport], cfg: EvaluateParams) -> list[str]:
-    """The two overview figures and index.html into `out` (group figures are already under groups/)."""
+def write_page(
+    out: Path,
+    reports: Sequence[GroupReport],
+    cfg: EvaluateParams,
+    availability: Mapping[str, Any] | None = None,
+) -> list[str]:
+    """The two overview figures and index.html into `out` (group figures are already under groups/);
+    `availability`: the exact-label counts of `pipeline.evaluation.availability`, if any."""
     from pipeline.evaluation.figures import plot_noise_summary, plot_overview
 
     overview, noise = f"{PLOTS_DIR}/rmse_overview.png", f"{PLOTS_DIR}/noise_amplification.png"
     (out / PLOTS_DIR).mkdir(parents=True, exist_ok=True)
     plot_overview(reports, out / overview)
     plot_noise_summary(reports, cfg, out / noise)
-    write_text(out / REPORT_FILE, render_html(reports, cfg, {"overview": overview, "noise": noise}))
+    write_text(
+        out / REPORT_FILE, render_html(reports, cfg, {"overview": overview, "noise": noise}, availability)
+    )
     return [overview, noise, REPORT_FILE]

@@ -34,6 +34,7 @@ TRAIN_METRICS = "metrics.json"  # in models/<group>/
 PREDICTIONS = "predictions.parquet"
 # In-memory columns that evaluate adds to a group's prediction table (never written to Parquet).
 EXPERIMENT = "experiment"  # experiment type of the sample's log (pole, balancing, ...)
+PHASE = "phase"  # contact phase of the sample (pipeline.evaluation.phases: single, double, pole, air, other)
 SPEED = "speed"  # rad/s: angular speed of the group's FT boards (gyroscope norm, low-passed; max over boards)
 MAX_STEP = 1.5  # a stamp step above this many nominal periods splits a contiguous stretch
 
@@ -75,3 +76,10 @@ class EvaluateParams:
         order = self.highpass_order
         if isinstance(order, bool) or not isinstance(order, int) or not 1 <= order <= 8:
             raise ConfigError(f"evaluate.highpass_order must be an integer in [1, 8], got {order!r}")
+
+    @property
+    def noise_limit(self) -> float:
+        """Output-noise ratio (worst axis, model / raw) above which a model is flagged: the threshold
+        widened by the margin (2.0 with 0.25 -> 2.5), so ratios that move in the last bits between runs
+        cannot flip a flag. The one rule of `evaluate` and of the deployment's Test A."""
+        return self.noise_threshold * (1.0 + self.noise_margin)

@@ -19,12 +19,14 @@ from pipeline.evaluation.params import (
     NN7,
     NN13,
     ORACLE,
+    PHASE,
     REFERENCES,
     SPEED,
     TRUTH,
     TRUTH_LABELLED,
     EvaluateParams,
 )
+from pipeline.evaluation.phases import phase_models, phase_table
 from pipeline.logs import schema as S
 from pipeline.logs.schema import PRED
 
@@ -103,6 +105,11 @@ class GroupReport:
     )  # network -> {name, version, model_id}
     figures: dict[str, Any] = field(default_factory=dict)
     headlines: list[str] | None = None  # several headlines (legs and feet trained together), else None
+    # headline -> reference (labels, truth) -> phase -> {samples, models: model -> rmse, rmse_force,
+    # rmse_torque}: the error per contact phase (pipeline.evaluation.phases) of the models `phase_models`
+    phases: dict[str, Any] = field(default_factory=dict)
+    phase_models: list[str] = field(default_factory=list)
+    cv: dict[str, Any] | None = None  # the `cv` entry of models/<group>/metrics.json, where train wrote one
 
     def headline_rmse(
         self, ref: str, model: str | None, key: str = "rmse", name: str | None = None
@@ -111,13 +118,13 @@ class GroupReport:
         value = self.tables.get(name or self.headline, {}).get(ref, {}).get(model, {}).get(key)
         return None if value is None or not math.isfinite(value) else float(value)
 
-    def ratios(self) -> dict[str, dict[str, float | None]]:
-        """raw / nn7 and nn7 / oracle of the headline's global RMSE, per reference."""
+    def ratios(self, name: str | None = None) -> dict[str, dict[str, float | None]]:
+        """raw / nn7 and nn7 / oracle of the headline's (or `name`'s) global RMSE, per reference."""
         out: dict[str, dict[str, float | None]] = {"raw_over_nn7": {}, "nn7_over_oracle": {}}
         for ref in REFERENCES:
-            nn7 = self.headline_rmse(ref, NN7)
-            out["raw_over_nn7"][ref] = ratio(self.headline_rmse(ref, RAW), nn7)
-            out["nn7_over_oracle"][ref] = ratio(nn7, self.headline_rmse(ref, ORACLE))
+            nn7 = self.headline_rmse(ref, NN7, name=name)
+            out["raw_over_nn7"][ref] = ratio(self.headline_rmse(ref, RAW, name=name), nn7)
+            out["nn7_over_oracle"][ref] = ratio(nn7, self.headline_rmse(ref, ORACLE, name=name))
         return out
 
     def to_dict(self) -> dict[str, Any]:
@@ -180,6 +187,24 @@ def error_tables(g: GroupInputs) -> tuple[dict, dict]:
     return tables, by_exp
 
 
+def phase_errors(g: GroupInputs, models: Sequence[str]) -> dict[str, Any]:
+    """Headline -> reference -> phase table (`pipeline.evaluation.phases.phase_table`) of `models`:
+    against the labels where the headline's switch is 1, against the truth on every sample of a phase."""
+    f = g.frame
+    phases = f[PHASE].to_numpy(object)
+    out: dict[str, Any] = {}
+    for name in g.headlines or [g.headline]:
+        masks = _masks(g, name)
+        refs = {LABELS: wrench_of(f, S.EXPECTED, name)}
+        if g.has_truth:
+            refs[TRUTH] = wrench_of(f, S.TRUE, name)
+        preds = {m: wrench_of(f, f"{PRED}.{m}", name) for m in models}
+        out[name] = {
+            ref: phase_table(preds, target, masks[ref], phases, score) for ref, target in refs.items()
+        }
+    return out
+
+
 def noise_check(g: GroupInputs, cfg: EvaluateParams) -> NoiseResult:
     """Noise amplification ratios of every model of a group (module docstring)."""
     f = g.frame
@@ -224,7 +249,7 @@ def noise_check(g: GroupInputs, cfg: EvaluateParams) -> NoiseResult:
             result.ratio_rms[model] = float(np.sqrt(np.mean(r[finite] ** 2)))
         else:
             result.ratio[model] = result.ratio_rms[model] = result.worst_channel[model] = None
-        limit = cfg.noise_threshold * (1.0 + cfg.noise_margin)
+        limit = cfg.noise_limit
         if model != ORACLE and result.ratio[model] is not None and result.ratio[model] > limit:
             result.flagged.append(model)
     if g.has_truth:
@@ -248,6 +273,9 @@ def evaluate_group(g: GroupInputs, cfg: EvaluateParams) -> GroupResult:
     best = g.train.get("best_on_validation")
     if best is not None and best not in ranking:
         ranking.insert(0, str(best))
+    recommended = recommend(ranking, noise.flagged, g.models)
+    shown = phase_models(g.models, ranking, recommended)
+    cv = g.train.get("cv")
     return GroupResult(
         group=g.group,
         sensors=list(g.sensors),
@@ -261,9 +289,12 @@ def evaluate_group(g: GroupInputs, cfg: EvaluateParams) -> GroupResult:
         noise=noise,
         best_on_validation=None if best is None else str(best),
         validation_ranking=ranking,
-        recommended=recommend(ranking, noise.flagged, g.models),
+        recommended=recommended,
         inputs=g,
         headlines=g.headlines,
+        phases=phase_errors(g, shown),
+        phase_models=shown,
+        cv=cv if isinstance(cv, dict) else None,
     )
 
 

@@ -12,6 +12,7 @@ from raw vs calibrated leg sensors against the true torques). Writes ``<reports>
 from __future__ import annotations
 
 import argparse
+import math
 import shutil
 import tempfile
 from pathlib import Path
@@ -90,10 +91,13 @@ def summarize(result: dict[str, Any], dp: Any, target_b: float, joint: str) -> d
     for c in result.get("test_c", {}).values():
         for j, v in c["joints"].items():
             if j.endswith(joint):
-                out[f"c.{j}.max_raw"] = v["raw"]["max"]
-                out[f"c.{j}.max_calibrated"] = v["calibrated"]["max"]
-                out[f"c.{j}.ratio"] = v["ratio_max"]
-    ok_a = all(not a["models"][a["deployed"]]["flagged"] for a in result.get("test_a", {}).values())
+                out[f"c.{j}.rmse_raw"] = v["raw"]["rmse"]
+                out[f"c.{j}.rmse_calibrated"] = v["calibrated"]["rmse"]
+                out[f"c.{j}.ratio"] = v["ratio_rmse"]
+                out[f"c.{j}.ratio_max"] = v["ratio_max"]
+    # a deployed model whose noise could not be measured (no quasi-static stretch) has not passed Test A
+    deployed = [a["models"][a["deployed"]] for a in result.get("test_a", {}).values()]
+    ok_a = all(not r["flagged"] and math.isfinite(r["worst"]) for r in deployed)
     ok_b = all(v >= target_b for k, v in out.items() if k.startswith("b.") and k.endswith(".ratio"))
     ok_c = all(v >= dp.torque_target for k, v in out.items() if k.startswith("c.") and k.endswith(".ratio"))
     out["fit_to_deploy"] = bool(ok_a and ok_b and ok_c)

@@ -1,10 +1,12 @@
 """Stage `report`: the page a researcher opens, assembled from every group's evaluation.
 
-``ftcal report REPORTS`` reads ``REPORTS/groups/<group>/report.json`` of every group of ``train.groups``
-(written by evaluate@<group>) and writes ``REPORTS/index.html`` (summary with the model to deploy per
-group, noise check, one section per group with every table and figure) and the two overview figures in
-``REPORTS/plots/``. Nothing is recomputed: a change to one group re-runs its train and evaluate stages and
-this light assembly only.
+``ftcal report REPORTS [--labelled DIR]`` reads ``REPORTS/groups/<group>/report.json`` of every group of
+``train.groups`` (written by evaluate@<group>) and writes ``REPORTS/index.html`` (summary with the model to
+deploy per group and headline, noise check, one section per group with every table and figure) and the
+two overview figures in ``REPORTS/plots/``. Nothing is recomputed: a change to one group re-runs its train
+and evaluate stages and this light assembly only. With ``--labelled``, the page also shows how often each
+label (sensor, foot pair, cut set) is exact per experiment type, over every labelled log: only the switch,
+contact and guard columns are read (`pipeline.evaluation.availability`).
 """
 
 from __future__ import annotations
@@ -43,13 +45,20 @@ def read_reports(reports_dir: Path, groups: list[str]) -> list[Any]:
     return out
 
 
-def run(params: Any, reports_dir: str | Path) -> tuple[list[Any], list[str], float]:
-    """Assemble the page (module docstring) in one MLflow run ``report``; returns (reports, files, s)."""
+def run(
+    params: Any, reports_dir: str | Path, labelled_dir: str | Path | None = None
+) -> tuple[list[Any], list[str], float]:
+    """Assemble the page (module docstring) in one MLflow run ``report``; returns (reports, files, s).
+
+    Raises:
+        DataError: a group's report is missing or unusable, or `labelled_dir` holds no labelled table.
+    """
     import mlflow
 
     from pipeline.calib.params import TrainParams
     from pipeline.core.config import stage_section
     from pipeline.core.tracking import stage_run
+    from pipeline.evaluation.availability import label_availability
     from pipeline.evaluation.page import write_page
     from pipeline.evaluation.params import REPORT_FILE, EvaluateParams
 
@@ -58,8 +67,11 @@ def run(params: Any, reports_dir: str | Path) -> tuple[list[Any], list[str], flo
     groups = list(stage_section(params, "train", TrainParams).groups)
     out = Path(reports_dir)
     reports = read_reports(out, groups)
+    availability = label_availability(Path(labelled_dir)) if labelled_dir is not None else None
     with stage_run(STAGE, {"groups": ",".join(groups)}):
-        files = write_page(out, reports, cfg)
+        files = write_page(out, reports, cfg, availability)
+        if availability is not None:
+            mlflow.log_dict(availability, "label_availability.json")
         mlflow.set_tags({f"recommended.{r.group}": r.recommended or "none" for r in reports})
         mlflow.log_artifact(str(out / REPORT_FILE))
         mlflow.log_metric("seconds", time.perf_counter() - t0)
@@ -69,7 +81,7 @@ def run(params: Any, reports_dir: str | Path) -> tuple[list[Any], list[str], flo
 def _cmd(args: argparse.Namespace) -> int:
     from pipeline.core.config import load_params
 
-    reports, _, seconds = run(load_params(args.params), args.reports)
+    reports, _, seconds = run(load_params(args.params), args.reports, args.labelled)
     for r in reports:
         print(f"{r.group}: deploy {r.recommended}")
     print(f"report: {Path(args.reports) / 'index.html'} ({seconds:.1f} s)")
@@ -77,12 +89,18 @@ def _cmd(args: argparse.Namespace) -> int:
 
 
 def add_cli(subparsers: Any) -> None:
-    """Add `ftcal report REPORTS`."""
+    """Add `ftcal report REPORTS [--labelled DIR]`."""
     parser = subparsers.add_parser(
         STAGE,
         help="assemble the report page of every group's evaluation",
         description=(__doc__ or "").split("\n\n")[0],
     )
     parser.add_argument("reports", type=Path, help="reports directory (groups/<group>/report.json inside)")
+    parser.add_argument(
+        "--labelled",
+        type=Path,
+        default=None,
+        help="directory of labelled <log>.parquet tables (optional): adds the exact-label availability",
+    )
     add_params_option(parser)
     parser.set_defaults(func=_cmd)
