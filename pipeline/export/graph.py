@@ -12,9 +12,10 @@ Per sensor, with x its columns (the forms of `pipeline.export.trained`):
   of the fused graph of a robot) are evaluated together, one operation per layer for all of them: hidden
   widths padded with zero units, the normalisation folded into the first layer's weights and the output
   scale into the last's (exact in real arithmetic; in float32 within an ulp of torch's result), in
-  float32 a grouped 1-D convolution per layer (bias and activation fused by onnxruntime), in float64 a
-  batched MatMul; the affine maps one block-diagonal Gemm; ``(raw + affine) + correction`` in torch's
-  order. A control loop's single sample costs per operation more than arithmetic: few operations;
+  float32 a grouped 1-D convolution per layer over the samples (bias and activation fused by
+  onnxruntime), in float64 a batched MatMul; the affine maps one block-diagonal Gemm;
+  ``(raw + affine) + correction`` in torch's order. A control loop's single sample costs per operation
+  more than arithmetic: few operations;
 - affine / polynomial: ``x[:, :6] + phi((x[:, :7] - offset) / scale) @ W^T``, phi the monomials: the
   standardised inputs padded with a column of ones, gathered by an index table (P, order) and multiplied
   along the last axis (ReduceProd), so one Gather and one ReduceProd compute every monomial; in float64
@@ -199,8 +200,9 @@ def _stack(
     b: _Builder, x: str, width: int, starts: Sequence[int], n_inputs: int, parts: Sequence[NetworkPart]
 ) -> str:
     """Calibrated wrenches (N, 6 S) of S networks of one signature, each layer one operation for all S:
-    a grouped 1-D convolution (group = network, length 1) in float32, bias and activation inside (which
-    onnxruntime fuses); a batched MatMul over (N, S, 1, n) in float64 (onnxruntime's Conv is float32 only).
+    a grouped 1-D convolution in float32 (group = network, samples along the length; bias and activation
+    inside, which onnxruntime fuses), a batched MatMul over (S, N, n) in float64 (onnxruntime's Conv is
+    float32 only): one matrix product per network for a batch of N samples as for one.
     The affine maps are one block-diagonal Gemm on x; ``(raw + affine) + correction`` in torch's order.
     `width`: x's columns; the networks read x[:, starts[s] : starts[s] + n_inputs]."""
     s_count = len(parts)
@@ -216,17 +218,26 @@ def _stack(
     affine = b.op("Gemm", [x, b.const("affine_w", affine_w), b.const("affine_b", affine_b)], "stack_affine")
     start = b.op("Add", [raw, affine], "stack_start")
     conv = b.dtype == np.float32
-    shape = [0, s_count * n_inputs, 1] if conv else [0, s_count, 1, n_inputs]
-    h = b.op("Reshape", [x, b.const("shape", shape, np.int64)], "stack_inputs")
+    if conv:  # (1, S n, N): channels network after network, samples along the length
+        h = b.op("Transpose", [x], perm=[1, 0])
+        h = b.op("Reshape", [h, b.const("shape", [1, s_count * n_inputs, -1], np.int64)], "stack_inputs")
+    else:  # (S, N, n)
+        h = b.op("Reshape", [x, b.const("shape", [0, s_count, n_inputs], np.int64)], "stack_inputs")
+        h = b.op("Transpose", [h], perm=[1, 0, 2])
     for k, (w, bias) in enumerate(stacked_weights(parts)):
-        if conv:  # (N, S width, 1): channels network after network
+        if conv:
             weight, bias = b.const(f"w{k}", w.reshape(-1, w.shape[2], 1)), b.const(f"b{k}", bias.reshape(-1))
             h = b.op("Conv", [h, weight, bias], f"layer{k}", group=s_count)
-        else:  # (N, S, 1, width)
+        else:
             h = b.op("MatMul", [h, b.const(f"w{k}", np.ascontiguousarray(w.transpose(0, 2, 1)))])
             h = b.op("Add", [h, b.const(f"b{k}", bias[:, None, :])], f"layer{k}")
         h = _activation(b, h, parts[0].layers[k], f"act{k}")
-    correction = b.op("Reshape", [h, b.const("shape", [0, s_count * WRENCH], np.int64)])
+    if conv:  # (1, 6 S, N) -> (N, 6 S)
+        h = b.op("Reshape", [h, b.const("shape", [s_count * WRENCH, -1], np.int64)])
+        correction = b.op("Transpose", [h], perm=[1, 0])
+    else:  # (S, N, 6) -> (N, 6 S)
+        h = b.op("Transpose", [h], perm=[1, 0, 2])
+        correction = b.op("Reshape", [h, b.const("shape", [0, s_count * WRENCH], np.int64)])
     return b.op("Add", [start, correction], "stack_calibrated")
 
 
