@@ -4,6 +4,7 @@ real MLflow sqlite store): files, manifest, ONNX metadata, checks, registry; bad
 
 from __future__ import annotations
 
+import dataclasses
 import json
 from pathlib import Path
 from typing import Any
@@ -101,6 +102,52 @@ def test_fused_graph_equals_groups_side_by_side(trained_models: dict, leg: str, 
         fused = run(session(graph.build(models, dtype, {}, "fused")), np.concatenate(x, axis=1))
         separate = np.concatenate([_outputs(m, dtype, xi) for m, xi in zip(models, x, strict=True)], axis=1)
         np.testing.assert_allclose(fused, separate, rtol=0, atol=1e-9 if dtype == "float64" else 2e-3)
+
+
+def _numpy_network(part: Any, x: np.ndarray) -> np.ndarray:
+    """One sensor's network in float64 numpy, as `pipeline.calib.models.SensorNet` writes it."""
+    h = (x - part.in_offset) / part.in_scale
+    for layer in part.layers:
+        h = h @ layer.weight.T + layer.bias
+        if layer.activation == "relu":
+            h = np.maximum(h, 0.0)
+        elif layer.activation == "leaky_relu":
+            h = np.where(h > 0, h, layer.alpha * h)
+        else:
+            assert layer.activation is None, layer.activation
+    return x[:, :6] + x[:, :7] @ part.affine_weight.T + part.affine_bias + part.out_scale * h
+
+
+def test_fused_networks_of_different_widths_equal_numpy(trained_models: dict) -> None:
+    """Networks of different hidden widths are stacked with zero units (an exact extension): a group whose
+    networks keep 7 and 5 of their hidden units, fused with the full-width group."""
+    full = read_group(trained_models["models"] / PAIR, "nn13")
+
+    def narrow(part: Any, keep: int) -> Any:
+        w = [layer.weight for layer in part.layers]
+        w = [w[0][:keep], *(wk[:keep, :keep] for wk in w[1:-1]), w[-1][:, :keep]]
+        layers = tuple(
+            dataclasses.replace(layer, weight=wk, bias=layer.bias[: len(wk)])
+            for layer, wk in zip(part.layers, w, strict=True)
+        )
+        return dataclasses.replace(part, layers=layers)
+
+    small = dataclasses.replace(
+        full, group="small", parts=(narrow(full.parts[0], 7), narrow(full.parts[1], 5))
+    )
+    assert small.parts[1].layers[1].weight.shape == (5, 5)
+    x = _inputs(4, 13, seed=3)
+    expected = np.concatenate(
+        [
+            _numpy_network(part, x[:, 13 * s : 13 * (s + 1)])
+            for s, part in enumerate((*full.parts, *small.parts))
+        ],
+        axis=1,
+    )
+    for dtype, atol in (("float64", 1e-9), ("float32", 2e-3)):
+        fused = graph.build([full, small], dtype, {}, "fused")
+        assert sum(node.op_type in ("Conv", "MatMul") for node in fused.graph.node) == 3  # one stack
+        np.testing.assert_allclose(run(session(fused), x), expected, rtol=0, atol=atol)
 
 
 # --- the stage -----------------------------------------------------------------------------------

@@ -8,19 +8,23 @@ N and Nm, each in its sensor frame), sensor after sensor. N is dynamic (1 in a c
 Per sensor, with x its columns (the forms of `pipeline.export.trained`):
 
 - network: ``x[:, :6] + x[:, :7] @ A^T + a + out_scale * mlp((x - in_offset) / in_scale)`` (A, a: the
-  affine map the network corrects), mlp = Gemm layers with their
-  activations, the operations in torch's order (so float32 matches torch's float32 closely); networks of
-  one architecture (the sensors of a foot, or of every group in the fused graph) are evaluated together,
-  one batched MatMul per layer (fewer operations per call: the latency of a control loop's single sample
-  is per-operation overhead more than arithmetic);
+  affine map the network corrects). Networks of one signature (inputs, depth, activations; every network
+  of the fused graph of a robot) are evaluated together, one operation per layer for all of them: hidden
+  widths padded with zero units, the normalisation folded into the first layer's weights and the output
+  scale into the last's (exact in real arithmetic; in float32 within an ulp of torch's result), in
+  float32 a grouped 1-D convolution per layer over the samples (bias and activation fused by
+  onnxruntime), in float64 a batched MatMul; the affine maps one block-diagonal Gemm;
+  ``(raw + affine) + correction`` in torch's order. A control loop's single sample costs per operation
+  more than arithmetic: few operations;
 - affine / polynomial: ``x[:, :6] + phi((x[:, :7] - offset) / scale) @ W^T``, phi the monomials: the
   standardised inputs padded with a column of ones, gathered by an index table (P, order) and multiplied
   along the last axis (ReduceProd), so one Gather and one ReduceProd compute every monomial; in float64
   also inside a float32 graph (as the project computes them: float32 arithmetic would lose 1e-3 N);
 - raw: ``x[:, :6]``.
 
-The fused graph of several groups slices its input per group and concatenates the groups' outputs, so a
-robot's loop makes one call per sample for all its sensors. Opset 17 (onnxruntime >= 1.14).
+The fused graph of several groups takes every sensor's inputs side by side (networks read their own
+columns, other models theirs; outputs concatenated in sensor order), so a robot's loop makes one call per
+sample for all its sensors. Opset 17 (onnxruntime >= 1.14).
 """
 
 from __future__ import annotations
@@ -102,20 +106,6 @@ def _activation(b: _Builder, x: str, layer: Dense, hint: str) -> str:
     raise ValueError(f"unknown activation {layer.activation!r}")
 
 
-def _network(b: _Builder, x: str, part: NetworkPart, hint: str) -> str:
-    h = b.op(
-        "Div",
-        [
-            b.op("Sub", [x, b.const(f"{hint}_in_offset", part.in_offset)]),
-            b.const(f"{hint}_in_scale", part.in_scale),
-        ],
-    )
-    for k, layer in enumerate(part.layers):
-        w, bias = b.const(f"{hint}_w{k}", layer.weight), b.const(f"{hint}_b{k}", layer.bias)
-        h = _activation(b, b.op("Gemm", [h, w, bias], f"{hint}_layer{k}", transB=1), layer, f"{hint}_act{k}")
-    return b.op("Mul", [b.const(f"{hint}_out_scale", part.out_scale), h], f"{hint}_correction")
-
-
 def monomial_index(powers: np.ndarray) -> np.ndarray:
     """(P, order) column indices into [z, 1] whose product is each monomial z^powers[p] (7 = the ones)."""
     powers = np.asarray(powers, dtype=np.int64)
@@ -155,20 +145,7 @@ def _sensor(b: _Builder, x: str, part: Any, hint: str) -> str:
     raw = b.columns(x, 0, WRENCH, f"{hint}_raw")
     if isinstance(part, IdentityPart):
         return b.op("Identity", [raw], f"{hint}_calibrated")
-    if isinstance(part, NetworkPart):
-        affine = b.op(
-            "Gemm",
-            [
-                b.columns(x, 0, 7, f"{hint}_raw7"),
-                b.const(f"{hint}_affine_w", part.affine_weight),
-                b.const(f"{hint}_affine_b", part.affine_bias),
-            ],
-            f"{hint}_affine",
-            transB=1,
-        )
-        raw = b.op("Add", [raw, affine], f"{hint}_start")
-        correction = _network(b, x, part, hint)
-    elif isinstance(part, LinearPart) and b.dtype == np.float32:
+    if isinstance(part, LinearPart) and b.dtype == np.float32:
         # The project computes these models in float64 (a 4th-order polynomial in float32 loses 1e-3 N):
         # float32 in and out, float64 inside.
         from onnx import TensorProto
@@ -188,51 +165,87 @@ def _sensor(b: _Builder, x: str, part: Any, hint: str) -> str:
 
 
 def _signature(part: Any, n_inputs: int) -> tuple | None:
-    """Networks of one signature (inputs, layer shapes, activations) are evaluated stacked; None: alone."""
+    """Networks of one signature (inputs, depth, activations) are evaluated stacked, hidden widths padded
+    with zeros to the widest; None: not a network."""
     if not isinstance(part, NetworkPart):
         return None
-    return (n_inputs, tuple((layer.weight.shape, layer.activation, layer.alpha) for layer in part.layers))
+    return (n_inputs, tuple((layer.activation, layer.alpha) for layer in part.layers))
+
+
+def stacked_weights(parts: Sequence[NetworkPart]) -> list[tuple[np.ndarray, np.ndarray]]:
+    """Per layer, the (S, out, in) weights and (S, out) biases (float64) of S networks of one signature
+    with the normalisation folded into the first layer (``W / in_scale``, ``b - W @ (in_offset / in_scale)``)
+    and the output scale into the last (``out_scale * W``, ``out_scale * b``); hidden widths padded with
+    zero units (zero weights in and out: an exact extension, act(0) = 0 and its outgoing weights are 0)."""
+    depth = len(parts[0].layers)
+    widths = [max(p.layers[k].weight.shape[0] for p in parts) for k in range(depth)]
+    out = []
+    for k in range(depth):
+        n_in = parts[0].layers[0].weight.shape[1] if k == 0 else widths[k - 1]
+        w = np.zeros((len(parts), widths[k], n_in))
+        bias = np.zeros((len(parts), widths[k]))
+        for s, p in enumerate(parts):
+            wk, bk = p.layers[k].weight, p.layers[k].bias
+            if k == 0:
+                wk = wk / p.in_scale[None, :]
+                bk = bk - wk @ p.in_offset
+            if k == depth - 1:
+                wk, bk = p.out_scale[:, None] * wk, p.out_scale * bk
+            w[s, : wk.shape[0], : wk.shape[1]], bias[s, : len(bk)] = wk, bk
+        out.append((w, bias))
+    return out
 
 
 def _stack(
     b: _Builder, x: str, width: int, starts: Sequence[int], n_inputs: int, parts: Sequence[NetworkPart]
 ) -> str:
-    """Calibrated wrenches (N, 6 S) of S networks of one signature, as one batched MatMul per layer:
-    x[:, starts[s] : starts[s] + n_inputs] -> (S, N, n_inputs) -> layers -> (N, S, 6) -> (N, 6 S), the
-    element-wise steps (normalisation, output scale, residual) as torch does them. `width`: x's columns."""
+    """Calibrated wrenches (N, 6 S) of S networks of one signature, each layer one operation for all S:
+    a grouped 1-D convolution in float32 (group = network, samples along the length; bias and activation
+    inside, which onnxruntime fuses), a batched MatMul over (S, N, n) in float64 (onnxruntime's Conv is
+    float32 only): one matrix product per network for a batch of N samples as for one.
+    The affine maps are one block-diagonal Gemm on x; ``(raw + affine) + correction`` in torch's order.
+    `width`: x's columns; the networks read x[:, starts[s] : starts[s] + n_inputs]."""
     s_count = len(parts)
     columns = np.concatenate([np.arange(lo, lo + n_inputs) for lo in starts])
     if not np.array_equal(columns, np.arange(width)):  # not every column of x, in order
         x = b.op("Gather", [x, b.const("stack_columns", columns, np.int64)], axis=1)
-    inputs = b.op("Reshape", [x, b.const("shape", [0, s_count, n_inputs], np.int64)], "stack_inputs")
-    bounds = (b.const(k, v, np.int64) for k, v in (("lo", [0]), ("hi", [WRENCH]), ("ax", [2])))
-    raw = b.op("Slice", [inputs, *bounds], "stack_raw")
-    bounds7 = (b.const(k, v, np.int64) for k, v in (("lo", [0]), ("hi7", [7]), ("ax", [2])))
-    raw7 = b.op("Transpose", [b.op("Slice", [inputs, *bounds7])], perm=[1, 0, 2])  # (S, N, 7)
-    affine_w = b.const("affine_w", np.stack([p.affine_weight.T for p in parts]))  # (S, 7, 6)
-    affine_b = b.const("affine_b", np.stack([p.affine_bias[None, :] for p in parts]))  # (S, 1, 6)
-    affine = b.op("Add", [b.op("MatMul", [raw7, affine_w]), affine_b])
-    raw = b.op("Add", [raw, b.op("Transpose", [affine], perm=[1, 0, 2])], "stack_start")
-    offset = b.const("in_offset", np.stack([p.in_offset for p in parts]))  # (S, n)
-    scale = b.const("in_scale", np.stack([p.in_scale for p in parts]))
-    h = b.op("Div", [b.op("Sub", [inputs, offset]), scale])
-    # (S, N, n): one (N, n) x (n, out) product per sensor, efficient for batches as for single samples
-    h = b.op("Transpose", [h], perm=[1, 0, 2])
-    for k, layer in enumerate(parts[0].layers):
-        w = b.const(f"w{k}", np.stack([p.layers[k].weight.T for p in parts]))  # (S, in, out)
-        bias = b.const(f"b{k}", np.stack([p.layers[k].bias[None, :] for p in parts]))  # (S, 1, out)
-        h = _activation(b, b.op("Add", [b.op("MatMul", [h, w]), bias], f"layer{k}"), layer, f"act{k}")
-    h = b.op("Transpose", [h], perm=[1, 0, 2])  # (N, S, 6)
-    out_scale = b.const("out_scale", np.stack([p.out_scale for p in parts]))  # (S, 6)
-    calibrated = b.op("Add", [raw, b.op("Mul", [out_scale, h])], "stack_calibrated")
-    return b.op("Reshape", [calibrated, b.const("shape", [0, s_count * WRENCH], np.int64)])
+    raw_columns = (np.arange(s_count)[:, None] * n_inputs + np.arange(WRENCH)).reshape(-1)
+    raw = b.op("Gather", [x, b.const("raw_columns", raw_columns, np.int64)], "stack_raw", axis=1)
+    affine_w = np.zeros((s_count * n_inputs, s_count * WRENCH))  # block-diagonal, on each x[:, :7]
+    for s, p in enumerate(parts):
+        affine_w[s * n_inputs : s * n_inputs + 7, s * WRENCH : (s + 1) * WRENCH] = p.affine_weight.T
+    affine_b = np.concatenate([p.affine_bias for p in parts])
+    affine = b.op("Gemm", [x, b.const("affine_w", affine_w), b.const("affine_b", affine_b)], "stack_affine")
+    start = b.op("Add", [raw, affine], "stack_start")
+    conv = b.dtype == np.float32
+    if conv:  # (1, S n, N): channels network after network, samples along the length
+        h = b.op("Transpose", [x], perm=[1, 0])
+        h = b.op("Reshape", [h, b.const("shape", [1, s_count * n_inputs, -1], np.int64)], "stack_inputs")
+    else:  # (S, N, n)
+        h = b.op("Reshape", [x, b.const("shape", [0, s_count, n_inputs], np.int64)], "stack_inputs")
+        h = b.op("Transpose", [h], perm=[1, 0, 2])
+    for k, (w, bias) in enumerate(stacked_weights(parts)):
+        if conv:
+            weight, bias = b.const(f"w{k}", w.reshape(-1, w.shape[2], 1)), b.const(f"b{k}", bias.reshape(-1))
+            h = b.op("Conv", [h, weight, bias], f"layer{k}", group=s_count)
+        else:
+            h = b.op("MatMul", [h, b.const(f"w{k}", np.ascontiguousarray(w.transpose(0, 2, 1)))])
+            h = b.op("Add", [h, b.const(f"b{k}", bias[:, None, :])], f"layer{k}")
+        h = _activation(b, h, parts[0].layers[k], f"act{k}")
+    if conv:  # (1, 6 S, N) -> (N, 6 S)
+        h = b.op("Reshape", [h, b.const("shape", [s_count * WRENCH, -1], np.int64)])
+        correction = b.op("Transpose", [h], perm=[1, 0])
+    else:  # (S, N, 6) -> (N, 6 S)
+        h = b.op("Transpose", [h], perm=[1, 0, 2])
+        correction = b.op("Reshape", [h, b.const("shape", [0, s_count * WRENCH], np.int64)])
+    return b.op("Add", [start, correction], "stack_calibrated")
 
 
 def _all(b: _Builder, x: str, models: Sequence[GroupModel]) -> tuple[str, int]:
     """Output (N, 6 S) of every sensor of `models` (input columns side by side); the number of inputs.
 
-    Networks of equal signature are stacked (`_stack`); the others run alone; a final Gather restores
-    the sensor order when stacking changed it.
+    Networks of equal signature are stacked (`_stack`, a single network too); the other models run
+    alone; a final Gather restores the sensor order when stacking changed it.
     """
     sensors, start = [], 0  # (input start, n_inputs, part, name)
     for m in models:
@@ -245,7 +258,7 @@ def _all(b: _Builder, x: str, models: Sequence[GroupModel]) -> tuple[str, int]:
         stacks.setdefault(key if key is not None else ("alone", k), []).append(k)
     outs, order = [], []
     for members in stacks.values():
-        if len(members) > 1:
+        if _signature(sensors[members[0]][2], sensors[members[0]][1]) is not None:
             picked = [sensors[k] for k in members]
             outs.append(_stack(b, x, start, [s[0] for s in picked], picked[0][1], [s[2] for s in picked]))
         else:
