@@ -66,6 +66,7 @@ TRAIN_PARAMS = {
         "lambda_rear": 1.0,
         "lambda_sum": 1.0,
         "lambda_cut": 1.0,
+        "lambda_prior": 0.1,
         "n_trials": 3,
         "search": {"lr": {"low": 0.001, "high": 0.03, "log": True}, "hidden": [16, 32]},
         "tpe_startup_trials": 1,
@@ -524,3 +525,46 @@ def test_without_imu_a_7_input_network_trains_and_a_13_input_one_says_why(
     params = load_params(write_params(tmp_path, inputs=[7], n_trials=1, epochs=1))
     result = train_group(params, LEG, no_imu, tmp_path / "out7", tmp_path / "st7", progress=False)
     assert math.isfinite(result.metrics["test"]["nn7"]["rmse"])
+
+
+def test_prior_holds_a_sensor_without_its_own_label_near_the_affine_map(
+    tmp_path: Path, labelled: Path
+) -> None:
+    """lambda_prior: where the leg has no exact label of its own (only the shank's sum), a strong prior
+    keeps its output at the affine map's; without it the network moves freely there."""
+    from dataclasses import replace
+
+    from pipeline.calib.fit import fit_baselines, prepare
+    from pipeline.calib.training import NetSetting, predict
+
+    train = copy.deepcopy(TRAIN_PARAMS)
+    train["groups"] = {"shank": {"sensors": [LEG, FRONT, REAR], "inputs": [7], "epochs": 4, "lr": 0.03}}
+    params = load_params(write_params(tmp_path, train))
+    prep = prepare(params, "shank", labelled)
+    affine = fit_baselines(prep.gp, prep.group, prep.train)["affine"]
+    free = ~prep.train.switches[:, 0]
+    assert free.sum() > 50
+    gaps = {}
+    for lam in (0.0, 100.0):
+        setting = replace(NetSetting.of(prep.gp, 7), lambda_prior=lam, average_epochs=0.0)
+        model, history = train_network(prep.group, prep.train, prep.train, setting, 3, None, affine)
+        gap = predict(model, prep.train)[free, 0] - affine.predict(prep.train.x)[free, 0]
+        gaps[lam] = float(np.sqrt(np.mean(gap**2)))
+    # the free samples' inputs resemble labelled ones, where the labels pull the other way: a clear cut
+    assert gaps[100.0] < 0.75 * gaps[0.0], gaps
+    # the term itself: lambda_prior x the batch mean of the squared distance (mean over axes) to the prior,
+    # summed over the sensors without an exact label
+    from pipeline.calib.training import _batch_loss, to_tensors
+
+    prior = affine.predict(prep.train.x)
+    t = to_tensors(prep.train, 7, prep.group, prior)
+    idx = torch.arange(len(prep.train))
+    lambdas = torch.ones(3)
+    transforms = None  # a group of several sensors: its sums are cut sets
+    setting = replace(NetSetting.of(prep.gp, 7), lambda_prior=2.0)
+    with torch.no_grad():
+        with_prior = _batch_loss(prep.group, model, t, idx, lambdas, transforms, setting)
+        t.prior = None
+        without = _batch_loss(prep.group, model, t, idx, lambdas, transforms, setting)
+    gap = ((predict(model, prep.train) - prior) ** 2).mean(axis=2) * ~prep.train.switches
+    assert float(with_prior - without) == pytest.approx(2.0 * gap.sum(axis=1).mean(), rel=1e-4)

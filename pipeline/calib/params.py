@@ -126,6 +126,7 @@ class GroupParams:
     lambda_rear: float
     lambda_sum: float
     lambda_cut: float  # several sensors: lambda of each cut set's sum term
+    lambda_prior: float  # pull towards the affine map where a sensor has no exact label of its own
     n_trials: int  # Optuna trials per network (the first: these params)
     search: Mapping[str, Any]  # key -> [choices] or {low, high, log}
     tpe_startup_trials: int  # random trials before TPE
@@ -190,6 +191,7 @@ class GroupParams:
             "lambda_rear",
             "lambda_sum",
             "lambda_cut",
+            "lambda_prior",
             "ridge",
         ):
             value = getattr(self, attr)

@@ -40,6 +40,7 @@ class NetSetting:
     lambdas: tuple[float, ...]  # per sensor
     lambda_sum: float
     lambda_cut: float  # each cut set's sum term (groups of several sensors)
+    lambda_prior: float  # pull towards the affine map where a sensor has no exact label of its own
 
     @classmethod
     def of(cls, gp: GroupParams, n_inputs: int, values: Mapping[str, Any] | None = None) -> NetSetting:
@@ -63,6 +64,7 @@ class NetSetting:
             tuple(map(float, lambdas)),
             float(v["lambda_sum"]),
             float(gp.lambda_cut),
+            float(gp.lambda_prior),
         )
 
 
@@ -76,13 +78,17 @@ class Tensors:
     cut_labels: torch.Tensor | None = None  # (N, C, 6)
     cut_alpha: torch.Tensor | None = None  # (N, C) bool
     poses: torch.Tensor | None = None  # (N, P, 12)
+    prior: torch.Tensor | None = None  # (N, S, 6) the affine map's output, N and Nm
 
 
 def flat_inputs(data: GroupData, n_inputs: int) -> np.ndarray:
     return data.x[:, :, :n_inputs].reshape(len(data), -1)
 
 
-def to_tensors(data: GroupData, n_inputs: int, group: Group | None = None) -> Tensors:
+def to_tensors(
+    data: GroupData, n_inputs: int, group: Group | None = None, prior: np.ndarray | None = None
+) -> Tensors:
+    """The tensors of `data` for training; `prior` (N, S, 6): the affine map's output on it, or None."""
     f32 = torch.float32
     cuts = group is not None and bool(group.cuts)
     return Tensors(
@@ -94,6 +100,7 @@ def to_tensors(data: GroupData, n_inputs: int, group: Group | None = None) -> Te
         cut_labels=torch.as_tensor(data.cut_labels, dtype=f32) if cuts else None,
         cut_alpha=torch.as_tensor(data.cut_alpha(group.cuts)) if cuts else None,
         poses=torch.as_tensor(data.poses, dtype=f32) if cuts else None,
+        prior=None if prior is None else torch.as_tensor(prior, dtype=f32),
     )
 
 
@@ -131,6 +138,12 @@ def _batch_loss(
         cuts,
         setting.lambda_cut,
     )
+    if t.prior is not None:
+        # where a sensor has no exact label of its own (a leg in double support), the cut-set sums leave
+        # some directions free (one leg's error cancelled by the other's): take the affine map's there
+        free = (~t.switches[idx]).float()  # (B, S)
+        gap = ((pred - t.prior[idx]) ** 2).mean(dim=2)  # (B, S)
+        loss = loss + setting.lambda_prior * (free * gap).sum(dim=1).mean()
     return loss
 
 
@@ -229,7 +242,8 @@ def train_network(
     optimiser = torch.optim.Adam(model.parameters(), lr=setting.lr, weight_decay=setting.weight_decay)
     history: list[dict[str, float]] = []
     best_state, best_err = None, math.inf
-    t = to_tensors(train, setting.n_inputs, group)
+    prior = start.predict(train.x) if start is not None and setting.lambda_prior > 0 else None
+    t = to_tensors(train, setting.n_inputs, group, prior)
     lambdas = torch.tensor(setting.lambdas, dtype=torch.float32)
     transforms = None if group.transforms is None else torch.as_tensor(group.transforms, dtype=torch.float32)
     if start is not None:
