@@ -88,11 +88,13 @@ def _write_outputs(world: Any, results: list, wall: float, tmp: Path) -> dict[st
         "model_errors": world.model_errors,
     }
     write_json(tmp / "truth.json", truth)
+    # deterministic: the same params give the same bytes (wall-clock times go to MLflow only, so that a
+    # re-run of this stage does not make DVC re-run the stages that read its output)
     summary = {
-        **{k: metrics[k] for k in ("robot_seconds", "wall_seconds", "sim_seconds_per_wall_second")},
+        "robot_seconds": robot_seconds,
         "motion": asdict(world.motions.p),  # the motion params used (URDF-derived where params are null)
         "geometry": asdict(world.motions.geometry),
-        "logs": [asdict(r) for r in results],
+        "logs": [{k: v for k, v in asdict(r).items() if k != "seconds"} for r in results],
     }
     write_json(tmp / "summary.json", summary)
     return metrics
@@ -104,6 +106,7 @@ def _log_mlflow(world: Any, results: list, metrics: dict[str, float], tmp: Path)
     mlflow.log_params({f"derived.motion.{k}": v for k, v in asdict(world.motions.p).items()})
     mlflow.log_metrics(metrics)
     for r in results:
+        mlflow.log_metric(f"{r.name}.seconds", r.seconds)
         for s, e in r.raw_rmse.items():
             mlflow.log_metrics(
                 {
