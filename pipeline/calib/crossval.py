@@ -23,6 +23,7 @@ from pipeline.calib.data import GroupData, group_errors
 from pipeline.calib.models import WRENCH
 from pipeline.calib.params import AFFINE, RAW, complexity, fold_spread, select_by_folds
 from pipeline.calib.training import NetSetting, predict, train_network
+from pipeline.core.parallel import forked_map
 from pipeline.core.progress import ProgressLog
 
 if TYPE_CHECKING:
@@ -40,25 +41,23 @@ def _fold_predictions(
     baselines = fit_baselines(gp, group, train)
     preds = {RAW: val.x[:, :, :WRENCH].copy()}
     preds.update({name: model.predict(val.x) for name, model in baselines.items()})
-    for name, r in nets.items():
+    names = list(nets)
+
+    def fit(name: str) -> tuple[np.ndarray, list[dict[str, float]], float]:
+        r, t = nets[name], time.perf_counter()
         setting = NetSetting.of(gp, r.model.config.n_inputs, r.values)
-        bar = ui.task(f"  fold {k + 1} {name} epochs", setting.epochs)
-        t = time.perf_counter()
-        model, history = train_network(
-            group,
-            train,
-            val,
-            setting,
-            r.seed,
-            lambda epoch, loss, err, bar=bar: ui.update(bar, advance=1),
-            baselines[AFFINE],
-        )
-        ui.remove(bar)
-        preds[name] = predict(model, val)
+        model, history = train_network(group, train, val, setting, r.seed, None, baselines[AFFINE])
+        return predict(model, val), history, time.perf_counter() - t
+
+    # the networks of a fold are independent: one process per core (the same bits as one by one)
+    for name, (pred, history, seconds) in zip(
+        names, forked_map([lambda n=n: fit(n) for n in names]), strict=True
+    ):
+        preds[name] = pred
         best = min(history, key=lambda h: h["val_rmse"])
         ui.line(
             f"{group.name} fold {k + 1}: {name} val RMSE {best['val_rmse']:.4g} "
-            f"(epoch {int(best['epoch']) + 1}) {time.perf_counter() - t:.1f} s"
+            f"(epoch {int(best['epoch']) + 1}) {seconds:.1f} s"
         )
     return preds
 

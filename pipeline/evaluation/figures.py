@@ -11,7 +11,7 @@ Nothing here computes a metric: everything comes from `pipeline.stages.evaluate`
 from __future__ import annotations
 
 import math
-from collections.abc import Iterator, Sequence
+from collections.abc import Sequence
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
@@ -452,39 +452,10 @@ def write_group_figures(
         jobs.append((figs["zoom"], lambda p, n=name: plot_zoom(r, n, cfg.zoom_s, p)))
         jobs.append((figs["residuals"], lambda p, n=name: plot_residuals(r, n, p)))
     task = progress.add_task(f"evaluate {r.group}: plots", total=len(jobs)) if progress is not None else None
-    for _ in run_jobs([(out / path, job) for path, job in jobs]):
+    from pipeline.core.parallel import forked_map
+
+    _plt()  # matplotlib imported once, before the workers fork
+    for _ in forked_map([lambda p=out / path, job=job: job(p) for path, job in jobs]):
         if task is not None:
             progress.advance(task)
     return figures
-
-
-_JOBS: list[tuple[Path, Any]] = []  # the figures being drawn by `run_jobs` (read by forked workers)
-
-
-def _run_job(index: int) -> None:
-    path, job = _JOBS[index]
-    job(path)
-
-
-def run_jobs(jobs: list[tuple[Path, Any]]) -> Iterator[None]:
-    """Draw figures (path, job(path)), one process per core where the OS forks (the workers inherit the
-    data; the PNG files are the same as drawn one by one); yields once per finished figure, in order."""
-    global _JOBS
-    import multiprocessing
-    import os
-    from concurrent.futures import ProcessPoolExecutor
-
-    workers = min(os.cpu_count() or 1, len(jobs))
-    if workers < 2 or "fork" not in multiprocessing.get_all_start_methods():
-        for path, job in jobs:
-            job(path)
-            yield
-        return
-    _plt()  # matplotlib imported before the fork, not by every worker
-    _JOBS = jobs
-    try:
-        with ProcessPoolExecutor(workers, mp_context=multiprocessing.get_context("fork")) as pool:
-            for _ in pool.map(_run_job, range(len(jobs))):
-                yield
-    finally:
-        _JOBS = []
