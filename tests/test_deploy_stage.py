@@ -44,7 +44,7 @@ def stage(trained_models: dict, tmp_path_factory: pytest.TempPathFactory) -> dic
     params.write_text(yaml.safe_dump(data, sort_keys=False))
     day, exported, reports = root / "later", root / "exported", root / "reports"
     patch = pytest.MonkeyPatch()
-    patch.setenv("MLFLOW_TRACKING_URI", trained_models["mlflow_uri"])
+    patch.setenv("MLFLOW_TRACKING_URI", f"sqlite:///{root / 'mlflow.db'}")  # the export registers here
     try:
         assert main(["simulate", str(day), "--deploy", "later", "--quiet", "--params", str(params)]) == 0
         metrics = _report(root, DEPLOYED)
