@@ -9,23 +9,15 @@ from typing import Any
 import numpy as np
 
 from pipeline.core.io import write_text
+from pipeline.evaluation.figures import pyplot, save_figure
 from pipeline.logs import schema as S
-
-
-def _plt() -> Any:
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
-    return plt
 
 
 def plot_walking(
     table: Any, truth: Any, calibrated: dict[str, np.ndarray], sensors: list[str], path: Path
 ) -> None:
     """Thesis figure 6.3: fz of the given sensors while walking: raw, calibrated, label, truth."""
-    plt = _plt()
+    plt = pyplot()
     fig, axes = plt.subplots(len(sensors), 1, figsize=(11, 2.6 * len(sensors)), sharex=True, squeeze=False)
     t = table[S.TIME].to_numpy()
     for ax, s in zip(axes[:, 0], sensors, strict=True):
@@ -41,13 +33,12 @@ def plot_walking(
     axes[0, 0].legend(loc="upper right", ncol=4, fontsize=8)
     axes[-1, 0].set_xlabel("time (s)")
     fig.tight_layout()
-    fig.savefig(path, dpi=90)
-    plt.close(fig)
+    save_figure(fig, path)
 
 
 def plot_torques(series: dict[str, Any], joint_suffix: str, path: Path) -> None:
     """Thesis figure of Test C: the hip pitch torque of each leg from raw and calibrated vs the truth."""
-    plt = _plt()
+    plt = pyplot()
     legs = [k for k in series if isinstance(series[k], dict)]
     fig, axes = plt.subplots(len(legs), 1, figsize=(11, 3 * len(legs)), sharex=True, squeeze=False)
     t = series["time_s"]
@@ -64,8 +55,7 @@ def plot_torques(series: dict[str, Any], joint_suffix: str, path: Path) -> None:
     axes[0, 0].legend(loc="upper right", ncol=3, fontsize=8)
     axes[-1, 0].set_xlabel("time (s); grey: pushes")
     fig.tight_layout()
-    fig.savefig(path, dpi=90)
-    plt.close(fig)
+    save_figure(fig, path)
 
 
 def _f(v: Any) -> str:

@@ -60,7 +60,7 @@ def _color(model: str) -> str:
     return COLORS.get(model, "#9467bd")
 
 
-def _plt() -> Any:
+def pyplot() -> Any:
     import matplotlib
 
     matplotlib.use("Agg")
@@ -69,13 +69,13 @@ def _plt() -> Any:
     return plt
 
 
-def _save(fig: Any, path: Path) -> None:
+def save_figure(fig: Any, path: Path) -> None:
     """Save a figure atomically and close it."""
     try:
         # every figure is laid out with tight_layout (a second pass costs seconds)
         write_atomic(path, lambda tmp: fig.savefig(tmp, dpi=_DPI))
     finally:
-        _plt().close(fig)
+        pyplot().close(fig)
 
 
 # --- the time axis of the whole test set ---------------------------------------------------------
@@ -124,7 +124,7 @@ def plot_timeseries(r: GroupResult, name: str, path: Path) -> None:
     """Prediction vs expected vs raw (and true) of one sensor or sum over the whole test set, 6 axes."""
     PRED = S.PRED
 
-    plt = _plt()
+    plt = pyplot()
     f = r.inputs.frame
     x, spans = concatenated_time(f[S.LOG].to_numpy(), f[S.TIME].to_numpy())
     seg = r.inputs.segments
@@ -150,7 +150,7 @@ def plot_timeseries(r: GroupResult, name: str, path: Path) -> None:
     axes[-1].set_xlabel("time, test logs end to end [s]")
     fig.suptitle(f"{name}: calibrated vs expected (label) vs raw wrench on the test logs")
     fig.tight_layout()
-    _save(fig, path)
+    save_figure(fig, path)
 
 
 def _zoom_window(f: Any, kind: str, zoom_s: float) -> np.ndarray:
@@ -168,7 +168,7 @@ def plot_zoom(r: GroupResult, name: str, zoom_s: float, path: Path) -> None:
     """A `zoom_s` window per experiment type (thesis figs 5.3b-c): 6 axes x experiment types."""
     PRED = S.PRED
 
-    plt = _plt()
+    plt = pyplot()
     f = r.inputs.frame
     kinds = r.inputs.experiments
     fig, axes = plt.subplots(6, len(kinds), figsize=(4.2 * len(kinds) + 1, 14), squeeze=False)
@@ -194,13 +194,13 @@ def plot_zoom(r: GroupResult, name: str, zoom_s: float, path: Path) -> None:
     axes[0, -1].legend(loc="upper right", fontsize=7)
     fig.suptitle(f"{name}: zoom of {zoom_s:g} s per experiment type")
     fig.tight_layout()
-    _save(fig, path)
+    save_figure(fig, path)
 
 
 def plot_residuals(r: GroupResult, name: str, path: Path) -> None:
     """Prediction minus label over the test set (thesis fig. 5.4): with raw (left), models only (right)."""
 
-    plt = _plt()
+    plt = pyplot()
     f = r.inputs.frame
     x, spans = concatenated_time(f[S.LOG].to_numpy(), f[S.TIME].to_numpy())
     seg = r.inputs.segments
@@ -228,12 +228,12 @@ def plot_residuals(r: GroupResult, name: str, path: Path) -> None:
         ax.set_xlabel("time, test logs end to end [s] (only where the label is exact)")
     fig.suptitle(f"{name}: residuals against the labels on the test logs")
     fig.tight_layout()
-    _save(fig, path)
+    save_figure(fig, path)
 
 
 def plot_rmse_axes(r: GroupResult, name: str, path: Path) -> None:
     """RMSE per axis of every model side by side (thesis fig. 5.8), force and torque, labels and truth."""
-    plt = _plt()
+    plt = pyplot()
     refs = list(r.tables[name])
     models = r.inputs.models
     fig, axes = plt.subplots(len(refs), 2, figsize=(15, 4.2 * len(refs)), squeeze=False)
@@ -255,12 +255,12 @@ def plot_rmse_axes(r: GroupResult, name: str, path: Path) -> None:
     axes[0, 1].legend(loc="upper left", bbox_to_anchor=(1.01, 1.0), fontsize=9)
     fig.suptitle(f"{name}: test RMSE per axis of every model (log scale)")
     fig.tight_layout()
-    _save(fig, path)
+    save_figure(fig, path)
 
 
 def plot_losses(r: GroupResult, path: Path) -> None:
     """Training loss and validation RMSE per epoch of each network's best trial (thesis figs 5.2, 5.20)."""
-    plt = _plt()
+    plt = pyplot()
     fig, axes = plt.subplots(1, 2, figsize=(13, 4.2))
     for network, rows in sorted(r.histories.items()):
         epochs = np.array([h["epoch"] for h in rows]) + 1
@@ -283,7 +283,7 @@ def plot_losses(r: GroupResult, path: Path) -> None:
             ax.legend()
     fig.suptitle(f"{r.group}: loss curves of the best trial (source: {r.history_source})")
     fig.tight_layout()
-    _save(fig, path)
+    save_figure(fig, path)
 
 
 def _noise_model(r: GroupResult) -> str | None:
@@ -300,7 +300,7 @@ def plot_noise_example(r: GroupResult, cfg: EvaluateParams, path: Path) -> None:
     """The output of raw, the noisiest model and the recommended one on a quasi-static stretch: signal
     (top) and its high-frequency part (bottom), on the noisiest model's worst axis."""
 
-    plt = _plt()
+    plt = pyplot()
     fig, axes = plt.subplots(2, 1, figsize=(13, 6), sharex=True)
     model = _noise_model(r)
     mask = r.noise.mask
@@ -309,7 +309,7 @@ def plot_noise_example(r: GroupResult, cfg: EvaluateParams, path: Path) -> None:
             0.5, 0.5, "no quasi-static stretch in the test logs", ha="center", transform=axes[0].transAxes
         )
         fig.tight_layout()
-        _save(fig, path)
+        save_figure(fig, path)
         return
     channel = r.noise.worst_channel[model]
     name, axis = channel.rsplit(".", 1)
@@ -339,12 +339,12 @@ def plot_noise_example(r: GroupResult, cfg: EvaluateParams, path: Path) -> None:
         ax.legend(loc="upper right", fontsize=8)
     fig.suptitle(f"{r.group}: output noise on a quasi-static stretch ({name}.{axis})")
     fig.tight_layout()
-    _save(fig, path)
+    save_figure(fig, path)
 
 
 def plot_noise_summary(results: Sequence[GroupReport], cfg: EvaluateParams, path: Path) -> None:
     """Noise amplification ratio (worst axis) of every model of every group, threshold line."""
-    plt = _plt()
+    plt = pyplot()
     models = list(dict.fromkeys(m for r in results for m in r.models))
     fig, ax = plt.subplots(figsize=(max(8, 2.2 * len(results)), 4.8))
     width = 0.8 / max(len(models), 1)
@@ -366,13 +366,13 @@ def plot_noise_summary(results: Sequence[GroupReport], cfg: EvaluateParams, path
     ax.grid(alpha=0.3, axis="y", which="both")
     ax.legend(loc="upper left", bbox_to_anchor=(1.01, 1.0), fontsize=9)
     fig.tight_layout()
-    _save(fig, path)
+    save_figure(fig, path)
 
 
 def plot_overview(results: Sequence[GroupReport], path: Path) -> None:
     """Global RMSE of every model per headline of every group, against labels and truth (log scale)."""
 
-    plt = _plt()
+    plt = pyplot()
     bars = [(r, name) for r in results for name in (r.headlines or [r.headline])]
     refs = [ref for ref in REFERENCES if any(ref in r.tables[name] for r, name in bars)]
     models = list(dict.fromkeys(m for r in results for m in r.models))
@@ -399,7 +399,7 @@ def plot_overview(results: Sequence[GroupReport], path: Path) -> None:
         ax.grid(alpha=0.3, axis="y", which="both")
     axes[0, -1].legend(loc="upper left", bbox_to_anchor=(1.01, 1.0), fontsize=9)
     fig.tight_layout()
-    _save(fig, path)
+    save_figure(fig, path)
 
 
 # --- DVC plot data -------------------------------------------------------------------------------
@@ -454,7 +454,7 @@ def write_group_figures(
     task = progress.add_task(f"evaluate {r.group}: plots", total=len(jobs)) if progress is not None else None
     from pipeline.core.parallel import forked_map
 
-    _plt()  # matplotlib imported once, before the workers fork
+    pyplot()  # matplotlib imported once, before the workers fork
     for _ in forked_map([lambda p=out / path, job=job: job(p) for path, job in jobs]):
         if task is not None:
             progress.advance(task)
