@@ -87,10 +87,16 @@ def test_network_graph_equals_torch_module(trained_models: dict) -> None:
     np.testing.assert_allclose(_outputs(model, "float32", x), expected32, rtol=0, atol=1e-4)
 
 
-@pytest.mark.parametrize(("leg", "pair_first"), [("poly2", False), ("nn7", False), ("poly2", True)])
-def test_fused_graph_equals_groups_side_by_side(trained_models: dict, leg: str, pair_first: bool) -> None:
+@pytest.mark.parametrize(
+    ("leg", "pair_first", "per_sample"),
+    [("poly2", False, False), ("nn7", False, False), ("poly2", True, False), ("nn7", False, True)],
+)
+def test_fused_graph_equals_groups_side_by_side(
+    trained_models: dict, leg: str, pair_first: bool, per_sample: bool
+) -> None:
     """With nn7 on both groups, the three networks are stacked (one MatMul per layer) across groups; stacked
-    networks before another model take only their own input columns."""
+    networks before another model take only their own input columns. Laid out for batches or for one
+    sample per call (`per_sample`, the fused graph of the export), on several samples."""
     models = [
         read_group(trained_models["models"] / LEG, leg),
         read_group(trained_models["models"] / PAIR, "nn7"),
@@ -99,7 +105,8 @@ def test_fused_graph_equals_groups_side_by_side(trained_models: dict, leg: str, 
     if pair_first:
         models, x = models[::-1], x[::-1]
     for dtype in graph.DTYPES:
-        fused = run(session(graph.build(models, dtype, {}, "fused")), np.concatenate(x, axis=1))
+        built = graph.build(models, dtype, {}, "fused", per_sample=per_sample)
+        fused = run(session(built), np.concatenate(x, axis=1))
         separate = np.concatenate([_outputs(m, dtype, xi) for m, xi in zip(models, x, strict=True)], axis=1)
         np.testing.assert_allclose(fused, separate, rtol=0, atol=1e-9 if dtype == "float64" else 2e-3)
 
@@ -118,9 +125,10 @@ def _numpy_network(part: Any, x: np.ndarray) -> np.ndarray:
     return x[:, :6] + x[:, :7] @ part.affine_weight.T + part.affine_bias + part.out_scale * h
 
 
-def test_fused_networks_of_different_widths_equal_numpy(trained_models: dict) -> None:
+@pytest.mark.parametrize("per_sample", [False, True])
+def test_fused_networks_of_different_widths_equal_numpy(trained_models: dict, per_sample: bool) -> None:
     """Networks of different hidden widths are stacked with zero units (an exact extension): a group whose
-    networks keep 7 and 5 of their hidden units, fused with the full-width group."""
+    networks keep 7 and 5 of their hidden units, fused with the full-width group; one sample and four."""
     full = read_group(trained_models["models"] / PAIR, "nn13")
 
     def narrow(part: Any, keep: int) -> Any:
@@ -145,9 +153,36 @@ def test_fused_networks_of_different_widths_equal_numpy(trained_models: dict) ->
         axis=1,
     )
     for dtype, atol in (("float64", 1e-9), ("float32", 2e-3)):
-        fused = graph.build([full, small], dtype, {}, "fused")
+        fused = graph.build([full, small], dtype, {}, "fused", per_sample=per_sample)
         assert sum(node.op_type in ("Conv", "MatMul") for node in fused.graph.node) == 3  # one stack
-        np.testing.assert_allclose(run(session(fused), x), expected, rtol=0, atol=atol)
+        sess = session(fused)
+        np.testing.assert_allclose(run(sess, x), expected, rtol=0, atol=atol)
+        np.testing.assert_allclose(run(sess, x[:1]), expected[:1], rtol=0, atol=atol)
+
+
+def test_leaky_relu_stays_apart_from_its_convolution(trained_models: dict, tmp_path: Path) -> None:
+    """onnxruntime fuses an activation into the convolution before it; for LeakyReLU the fused kernel is
+    slower a call than the two apart (`pipeline.export.graph`), so after onnxruntime's own optimisations
+    the first layer's LeakyReLU still runs on its own while the second layer's ReLU is fused."""
+    import onnxruntime as ort
+
+    model = read_group(trained_models["models"] / PAIR, "nn13")
+    assert [layer.activation for layer in model.parts[0].layers] == ["leaky_relu", "relu", None]
+    options = ort.SessionOptions()
+    options.graph_optimization_level = ort.GraphOptimizationLevel.ORT_ENABLE_EXTENDED
+    options.optimized_model_filepath = str(tmp_path / "optimized.onnx")
+    built = graph.build([model], "float32", {}, "test", per_sample=True)
+    ort.InferenceSession(built.SerializeToString(), options, providers=["CPUExecutionProvider"])
+    nodes = onnx.load(tmp_path / "optimized.onnx").graph.node
+    fused = [
+        onnx.helper.get_attribute_value(a).decode()
+        for n in nodes
+        if n.op_type == "FusedConv"
+        for a in n.attribute
+        if a.name == "activation"
+    ]
+    assert fused == ["Relu"]
+    assert [n.op_type for n in nodes].count("LeakyRelu") == 1
 
 
 # --- the stage -----------------------------------------------------------------------------------

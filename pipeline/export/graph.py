@@ -12,10 +12,16 @@ Per sensor, with x its columns (the forms of `pipeline.export.trained`):
   of the fused graph of a robot) are evaluated together, one operation per layer for all of them: hidden
   widths padded with zero units, the normalisation folded into the first layer's weights and the output
   scale into the last's (exact in real arithmetic; in float32 within an ulp of torch's result), in
-  float32 a grouped 1-D convolution per layer over the samples (bias and activation fused by
-  onnxruntime), in float64 a batched MatMul; the affine maps one block-diagonal Gemm;
-  ``(raw + affine) + correction`` in torch's order. A control loop's single sample costs per operation
-  more than arithmetic: few operations;
+  float32 a grouped 1-D convolution per layer, in float64 a batched MatMul; the affine maps one
+  block-diagonal Gemm; ``(raw + affine) + correction`` in torch's order. A control loop's single sample
+  costs per operation more than arithmetic (onnxruntime: ~0.4 us an operation on this project's
+  reference machine), so few operations. Measured there (`benchmarks/infer_speed.py`), and kept so:
+  onnxruntime fuses a ReLU into its convolution (faster), but its fused convolution + LeakyReLU is
+  ~4 us slower a call than the two apart, so other activations follow a Reshape that keeps them apart;
+  a graph laid out for one sample per call (``per_sample``: samples as the convolutions' batch, (N, C,
+  1)) needs no Transpose but is ~3x slower on large batches than one laid out for batches (samples
+  along the convolutions' length, (1, C, N)): the fused graph of an export is the control loop's,
+  the groups' graphs are for batches (`ftcal calibrate`);
 - affine / polynomial: ``x[:, :6] + phi((x[:, :7] - offset) / scale) @ W^T``, phi the monomials: the
   standardised inputs padded with a column of ones, gathered by an index table (P, order) and multiplied
   along the last axis (ReduceProd), so one Gather and one ReduceProd compute every monomial; in float64
@@ -197,14 +203,21 @@ def stacked_weights(parts: Sequence[NetworkPart]) -> list[tuple[np.ndarray, np.n
 
 
 def _stack(
-    b: _Builder, x: str, width: int, starts: Sequence[int], n_inputs: int, parts: Sequence[NetworkPart]
+    b: _Builder,
+    x: str,
+    width: int,
+    starts: Sequence[int],
+    n_inputs: int,
+    parts: Sequence[NetworkPart],
+    per_sample: bool = False,
 ) -> str:
     """Calibrated wrenches (N, 6 S) of S networks of one signature, each layer one operation for all S:
-    a grouped 1-D convolution in float32 (group = network, samples along the length; bias and activation
-    inside, which onnxruntime fuses), a batched MatMul over (S, N, n) in float64 (onnxruntime's Conv is
-    float32 only): one matrix product per network for a batch of N samples as for one.
-    The affine maps are one block-diagonal Gemm on x; ``(raw + affine) + correction`` in torch's order.
-    `width`: x's columns; the networks read x[:, starts[s] : starts[s] + n_inputs]."""
+    a grouped 1-D convolution in float32 (group = network; samples along the length, or as the batch if
+    `per_sample`; bias inside, and a ReLU, which onnxruntime fuses), a batched MatMul over (S, N, n) in
+    float64 (onnxruntime's Conv is float32 only): one matrix product per network for a batch of N
+    samples as for one. The affine maps are one block-diagonal Gemm on x; ``(raw + affine) +
+    correction`` in torch's order. `width`: x's columns; the networks read
+    x[:, starts[s] : starts[s] + n_inputs]."""
     s_count = len(parts)
     columns = np.concatenate([np.arange(lo, lo + n_inputs) for lo in starts])
     if not np.array_equal(columns, np.arange(width)):  # not every column of x, in order
@@ -218,7 +231,9 @@ def _stack(
     affine = b.op("Gemm", [x, b.const("affine_w", affine_w), b.const("affine_b", affine_b)], "stack_affine")
     start = b.op("Add", [raw, affine], "stack_start")
     conv = b.dtype == np.float32
-    if conv:  # (1, S n, N): channels network after network, samples along the length
+    if conv and per_sample:  # (N, S n, 1): samples as the batch, channels network after network
+        h = b.op("Reshape", [x, b.const("shape", [0, s_count * n_inputs, 1], np.int64)], "stack_inputs")
+    elif conv:  # (1, S n, N): samples along the length
         h = b.op("Transpose", [x], perm=[1, 0])
         h = b.op("Reshape", [h, b.const("shape", [1, s_count * n_inputs, -1], np.int64)], "stack_inputs")
     else:  # (S, N, n)
@@ -228,11 +243,15 @@ def _stack(
         if conv:
             weight, bias = b.const(f"w{k}", w.reshape(-1, w.shape[2], 1)), b.const(f"b{k}", bias.reshape(-1))
             h = b.op("Conv", [h, weight, bias], f"layer{k}", group=s_count)
+            if parts[0].layers[k].activation not in (None, "relu"):  # unfused: see the module's notes
+                h = b.op("Reshape", [h, b.const("shape", [0, s_count * w.shape[1], -1], np.int64)])
         else:
             h = b.op("MatMul", [h, b.const(f"w{k}", np.ascontiguousarray(w.transpose(0, 2, 1)))])
             h = b.op("Add", [h, b.const(f"b{k}", bias[:, None, :])], f"layer{k}")
         h = _activation(b, h, parts[0].layers[k], f"act{k}")
-    if conv:  # (1, 6 S, N) -> (N, 6 S)
+    if conv and per_sample:  # (N, 6 S, 1) -> (N, 6 S)
+        correction = b.op("Reshape", [h, b.const("shape", [0, s_count * WRENCH], np.int64)])
+    elif conv:  # (1, 6 S, N) -> (N, 6 S)
         h = b.op("Reshape", [h, b.const("shape", [s_count * WRENCH, -1], np.int64)])
         correction = b.op("Transpose", [h], perm=[1, 0])
     else:  # (S, N, 6) -> (N, 6 S)
@@ -241,7 +260,7 @@ def _stack(
     return b.op("Add", [start, correction], "stack_calibrated")
 
 
-def _all(b: _Builder, x: str, models: Sequence[GroupModel]) -> tuple[str, int]:
+def _all(b: _Builder, x: str, models: Sequence[GroupModel], per_sample: bool) -> tuple[str, int]:
     """Output (N, 6 S) of every sensor of `models` (input columns side by side); the number of inputs.
 
     Networks of equal signature are stacked (`_stack`, a single network too); the other models run
@@ -260,7 +279,8 @@ def _all(b: _Builder, x: str, models: Sequence[GroupModel]) -> tuple[str, int]:
     for members in stacks.values():
         if _signature(sensors[members[0]][2], sensors[members[0]][1]) is not None:
             picked = [sensors[k] for k in members]
-            outs.append(_stack(b, x, start, [s[0] for s in picked], picked[0][1], [s[2] for s in picked]))
+            starts, parts = [s[0] for s in picked], [s[2] for s in picked]
+            outs.append(_stack(b, x, start, starts, picked[0][1], parts, per_sample))
         else:
             lo, n, part, sensor = sensors[members[0]]
             inputs = x if (lo, n) == (0, start) else b.columns(x, lo, lo + n, f"{sensor}_inputs")
@@ -273,14 +293,17 @@ def _all(b: _Builder, x: str, models: Sequence[GroupModel]) -> tuple[str, int]:
     return out, start
 
 
-def build(models: Sequence[GroupModel], dtype: str, metadata: dict[str, str], name: str) -> Any:
-    """The ONNX ModelProto of `models` (one group, or several fused) in `dtype` with `metadata` props."""
+def build(
+    models: Sequence[GroupModel], dtype: str, metadata: dict[str, str], name: str, per_sample: bool = False
+) -> Any:
+    """The ONNX ModelProto of `models` (one group, or several fused) in `dtype` with `metadata` props;
+    `per_sample`: laid out for one sample per call (a control loop), else for batches."""
     from onnx import TensorProto, checker, helper
 
     if dtype not in DTYPES:
         raise ValueError(f"dtype must be one of {DTYPES}, got {dtype!r}")
     b = _Builder(dtype)
-    out, start = _all(b, INPUT, models)
+    out, start = _all(b, INPUT, models, per_sample)
     if b.nodes[-1].output[0] == out:  # name the last result the graph's output (no extra Identity)
         b.nodes[-1].output[0] = OUTPUT
     else:

@@ -163,7 +163,10 @@ def build_graphs(
         props = metadata(entry, robot)
         out[name] = (
             entry,
-            {dtype: graph.build(members, dtype, props, f"ftcal_{name}") for dtype in graph.DTYPES},
+            {
+                dtype: graph.build(members, dtype, props, f"ftcal_{name}", per_sample=name == FUSED)
+                for dtype in graph.DTYPES
+            },
         )
     return out
 
