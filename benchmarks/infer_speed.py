@@ -41,6 +41,7 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
+import onnx
 import torch
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
@@ -233,8 +234,6 @@ def _measure(args: argparse.Namespace, work: Path) -> None:
     y_ort = run(sessions["float32"], batch)
     y_torch = torch.cat(torch_all(torch.tensor(batch, dtype=torch.float32)), dim=1).numpy()
     print(f"agreement onnxruntime float32 vs torch: max |diff| {np.abs(y_ort - y_torch).max():.2g} N/Nm")
-
-    import onnx
 
     onnx.save_model(_empty_model(n_in), work / "empty.onnx")
     results: dict[str, Any] = {

@@ -19,7 +19,7 @@ Per sensor, with x its columns (the forms of `pipeline.export.trained`):
   onnxruntime fuses a ReLU into its convolution (faster), but its fused convolution + LeakyReLU is
   ~4 us slower a call than the two apart, so other activations follow a Reshape that keeps them apart;
   a graph laid out for one sample per call (``per_sample``: samples as the convolutions' batch, (N, C,
-  1)) needs no Transpose but is ~3x slower on large batches than one laid out for batches (samples
+  1)) needs no Transpose but is ~2x slower on large batches than one laid out for batches (samples
   along the convolutions' length, (1, C, N)): the fused graph of an export is the control loop's,
   the groups' graphs are for batches (`ftcal calibrate`);
 - affine / polynomial: ``x[:, :6] + phi((x[:, :7] - offset) / scale) @ W^T``, phi the monomials: the
@@ -297,7 +297,8 @@ def build(
     models: Sequence[GroupModel], dtype: str, metadata: dict[str, str], name: str, per_sample: bool = False
 ) -> Any:
     """The ONNX ModelProto of `models` (one group, or several fused) in `dtype` with `metadata` props;
-    `per_sample`: laid out for one sample per call (a control loop), else for batches."""
+    `per_sample`: float32 networks laid out for one sample per call (a control loop), else for batches
+    (float64 graphs have one layout)."""
     from onnx import TensorProto, checker, helper
 
     if dtype not in DTYPES:
