@@ -67,6 +67,9 @@ TRAIN_PARAMS = {
         "lambda_sum": 1.0,
         "lambda_cut": 1.0,
         "lambda_prior": 0.1,
+        "lambda_push": 0.1,
+        "push_force_n": 20.0,
+        "push_lever_m": 0.2,
         "n_trials": 3,
         "search": {"lr": {"low": 0.001, "high": 0.03, "log": True}, "hidden": [16, 32]},
         "tpe_startup_trials": 1,
@@ -541,21 +544,23 @@ def test_prior_holds_a_sensor_without_its_own_label_near_the_affine_map(
     train["groups"] = {"shank": {"sensors": [LEG, FRONT, REAR], "inputs": [7], "epochs": 4, "lr": 0.03}}
     params = load_params(write_params(tmp_path, train))
     prep = prepare(params, "shank", labelled)
-    affine = fit_baselines(prep.gp, prep.group, prep.train)["affine"]
+    affine = fit_baselines(prep.gp, prep.group, prep.train, prep.seed)["affine"]
     free = ~prep.train.switches[:, 0]
     assert free.sum() > 50
-    gaps = {}
+    gaps, models = {}, {}
+    no_pushes = replace(prep.gp.push, weight=0.0)  # the prior alone (virtual pushes also hold it near)
     for lam in (0.0, 100.0):
-        setting = replace(NetSetting.of(prep.gp, 7), lambda_prior=lam, average_epochs=0.0)
-        model, history = train_network(prep.group, prep.train, prep.train, setting, 3, None, affine)
-        gap = predict(model, prep.train)[free, 0] - affine.predict(prep.train.x)[free, 0]
+        setting = replace(NetSetting.of(prep.gp, 7), lambda_prior=lam, average_epochs=0.0, push=no_pushes)
+        models[lam], _ = train_network(prep.group, prep.train, prep.train, setting, 3, None, affine)
+        gap = predict(models[lam], prep.train)[free, 0] - affine.predict(prep.train.x)[free, 0]
         gaps[lam] = float(np.sqrt(np.mean(gap**2)))
     # the free samples' inputs resemble labelled ones, where the labels pull the other way: a clear cut
     assert gaps[100.0] < 0.75 * gaps[0.0], gaps
     # the term itself: lambda_prior x the batch mean of the squared distance (mean over axes) to the prior,
-    # summed over the sensors without an exact label
+    # summed over the sensors without an exact label (on the network trained without it: farther away)
     from pipeline.calib.training import _batch_loss, to_tensors
 
+    model = models[0.0]
     prior = affine.predict(prep.train.x)
     t = to_tensors(prep.train, 7, prep.group, prior)
     idx = torch.arange(len(prep.train))

@@ -38,7 +38,7 @@ def _fold_predictions(
     from pipeline.calib.fit import fit_baselines
 
     gp, group = prep.gp, prep.group
-    baselines = fit_baselines(gp, group, train)
+    baselines = fit_baselines(gp, group, train, prep.seed)
     preds = {RAW: val.x[:, :, :WRENCH].copy()}
     preds.update({name: model.predict(val.x) for name, model in baselines.items()})
     names = list(nets)

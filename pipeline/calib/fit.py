@@ -13,6 +13,7 @@ from pipeline.calib.data import (
     Group,
     GroupData,
     concat,
+    derive_seed,
     find_logs,
     group_errors,
     input_cols,
@@ -39,6 +40,7 @@ class Prepared:
 
     cfg: TrainParams
     gp: GroupParams
+    seed: int  # the baselines' virtual pushes (derived from params' seed and the group)
     group: Group
     split: dict[str, list[str]]  # train/val/test -> log names
     log_names: list[str]  # every log, in the order `GroupData.log` indexes
@@ -83,26 +85,35 @@ def prepare(params: Params, group_name: str, in_dir: Path) -> Prepared:
             )
         if k:
             folds.append((fold_train.subset(fold_train.labelled()), val))
-    return Prepared(cfg, gp, group, split, log_names, train, data["val"], data["test"], folds)
+    seed = derive_seed(params.seed, group_name, "pushes")
+    return Prepared(cfg, gp, seed, group, split, log_names, train, data["val"], data["test"], folds)
 
 
-def fit_baselines(gp: GroupParams, group: Group, train: GroupData) -> dict[str, LinearBaseline]:
-    """The affine (least squares) and polynomial (ridge) baselines on the switched loss of the networks.
+def fit_baselines(gp: GroupParams, group: Group, train: GroupData, seed: int) -> dict[str, LinearBaseline]:
+    """The affine (least squares) and polynomial (ridge) baselines on the switched loss of the networks, each
+    with the group's virtual pushes (`pipeline.calib.pushes`; the polynomials' sampled from `seed`).
 
     A group of several sensors is fitted part by part: each foot pair (a cut set with constant transforms)
     jointly with its sum term, every other sensor alone; the cut sets whose transforms depend on the joints
     are left to the networks (per-sample transforms make the normal equations of the polynomials too big).
     """
     if group.cuts:
-        return _fit_baselines_by_part(gp, group, train)
-    return _fit_group_baselines(gp, group, train, NetSetting.of(gp, 7).lambdas, gp.lambda_sum)
+        return _fit_baselines_by_part(gp, group, train, seed)
+    return _fit_group_baselines(gp, group, train, NetSetting.of(gp, 7).lambdas, gp.lambda_sum, seed)
 
 
 def _fit_group_baselines(
-    gp: GroupParams, group: Group, train: GroupData, lambdas: tuple[float, ...], lambda_sum: float
+    gp: GroupParams,
+    group: Group,
+    train: GroupData,
+    lambdas: tuple[float, ...],
+    lambda_sum: float,
+    seed: int,
 ) -> dict[str, LinearBaseline]:
     """The baselines of a group of one sensor or one foot pair (its sum term with `lambda_sum`)."""
     args = {
+        "push": gp.push,
+        "seed": seed,
         "x": train.x,
         "labels": train.labels,
         "switches": train.switches,
@@ -118,7 +129,9 @@ def _fit_group_baselines(
     return out
 
 
-def _fit_baselines_by_part(gp: GroupParams, group: Group, train: GroupData) -> dict[str, LinearBaseline]:
+def _fit_baselines_by_part(
+    gp: GroupParams, group: Group, train: GroupData, seed: int
+) -> dict[str, LinearBaseline]:
     """`fit_baselines` of a group of several sensors: its foot pairs and lone sensors, stacked per sensor."""
     parts: list[tuple[list[int], int | None]] = []  # (sensor indices, fixed cut index or None)
     taken: set[int] = set()
@@ -143,7 +156,12 @@ def _fit_baselines_by_part(gp: GroupParams, group: Group, train: GroupData) -> d
             part.sum_label, part.sum_switch = train.cut_labels[:, c], train.cut_switches[:, c]
         lambdas = (gp.lambda_expected,) * len(members)
         fitted.append(
-            (members, _fit_group_baselines(gp, sub, part.subset(part.labelled()), lambdas, gp.lambda_cut))
+            (
+                members,
+                _fit_group_baselines(
+                    gp, sub, part.subset(part.labelled()), lambdas, gp.lambda_cut, derive_seed(seed, *members)
+                ),
+            )
         )
     out = {}
     for name in fitted[0][1]:

@@ -48,6 +48,7 @@ import os
 import pickle
 from collections.abc import Mapping, Sequence
 from dataclasses import asdict, dataclass
+from functools import partial
 from pathlib import Path
 from typing import Any
 
@@ -56,6 +57,7 @@ import torch
 from torch import nn
 
 from pipeline.calib.params import ACTIVATION_NAMES, INPUT_SIZES, NORMALISATIONS
+from pipeline.calib.pushes import PushPrior, linear_push_gram
 from pipeline.calib.scores import WRENCH
 from pipeline.core.errors import DataError
 
@@ -159,9 +161,13 @@ class SensorNet(nn.Module):
             buffer = getattr(self, name)
             buffer.copy_(torch.as_tensor(np.asarray(value), dtype=buffer.dtype))
 
+    def correction(self, x: torch.Tensor) -> torch.Tensor:
+        """(B, 6) what the network adds to its affine map, N and Nm."""
+        return self.out_scale * self.mlp((x - self.in_offset) / self.in_scale)
+
     def forward(self, x: torch.Tensor) -> torch.Tensor:
         affine = x[:, :AFFINE_INPUTS] @ self.affine_weight.T + self.affine_bias
-        return x[:, :WRENCH] + affine + self.out_scale * self.mlp((x - self.in_offset) / self.in_scale)
+        return x[:, :WRENCH] + affine + self.correction(x)
 
 
 class GroupNet(nn.Module):
@@ -187,6 +193,11 @@ class GroupNet(nn.Module):
     def forward(self, x: torch.Tensor) -> torch.Tensor:
         n = self.config.n_inputs
         return torch.cat([net(x[:, s * n : (s + 1) * n]) for s, net in enumerate(self.nets)], dim=1)
+
+    def correction(self, x: torch.Tensor) -> torch.Tensor:
+        """(B, S * 6) what the networks add to their affine maps (`SensorNet.correction`)."""
+        n = self.config.n_inputs
+        return torch.cat([net.correction(x[:, s * n : (s + 1) * n]) for s, net in enumerate(self.nets)], 1)
 
 
 def save_model(path: str | Path, model: GroupNet, info: Mapping[str, Any] | None = None) -> None:
@@ -393,14 +404,19 @@ def fit_linear_baseline(
     alpha_sum: np.ndarray | None = None,
     transforms: np.ndarray | None = None,
     lambda_sum: float = 1.0,
+    push: PushPrior | None = None,
+    seed: int = 0,
 ) -> LinearBaseline:
     """Minimise the switched loss of `switched_loss` over W in closed form (normal equations).
 
         J(W) = sum_i [sum_s alpha_si lambda_s |r_si - W_s phi_si|^2 + alpha_sum,i lambda_sum
                |r_sum,i - sum_s X_s W_s phi_si|^2] + ridge N sum_s |W_s without its constant column|^2
+               + push.weight sum_i sum_s E_delta |W_s (phi(x_si + delta) - phi(x_si))|^2
 
     with r = label - raw (residuals, so ridge shrinks towards the primary calibration). Sum samples
-    couple the sensors of a foot through X_s; the normal equations are then solved jointly.
+    couple the sensors of a foot through X_s; the normal equations are then solved jointly. The last
+    term is the virtual pushes' prior (`pipeline.calib.pushes`): exact for the affine model, sampled
+    (seeded by `seed`) for the polynomials.
 
     Args:
         x: (N, S, >= 7) raw inputs; labels (N, S, 6); switches (N, S) bool; other arrays as in
@@ -433,24 +449,48 @@ def fit_linear_baseline(
             normal[s * k : (s + 1) * k, s * k : (s + 1) * k] += lambdas[s] * np.kron(eye, phi.T @ phi)
             rhs[s * k : (s + 1) * k] += lambdas[s] * (r.T @ phi).reshape(-1)
     if use_sum:
-        rows = alpha_sum.astype(bool)
-        raw_sum = np.einsum("sij,nsj->ni", transforms, x[rows, :, :WRENCH])
-        r = sum_label[rows] - raw_sum
-        for s in range(n_sensors):
-            # X_s W_s phi = (X_s kron phi^T) vec(W_s)
-            rhs[s * k : (s + 1) * k] += lambda_sum * (transforms[s].T @ r.T @ phis[s][rows]).reshape(-1)
-            for t in range(n_sensors):
-                block = np.kron(transforms[s].T @ transforms[t], phis[s][rows].T @ phis[t][rows])
-                normal[s * k : (s + 1) * k, t * k : (t + 1) * k] += lambda_sum * block
+        _add_sum_term(normal, rhs, phis, x, sum_label, alpha_sum.astype(bool), transforms, lambda_sum)
     penalty = np.tile(np.r_[0.0, np.ones(p - 1)], WRENCH * n_sensors) * ridge * n
     normal[np.diag_indices_from(normal)] += penalty
-    # Unknowns that no sample informs (e.g. a foot sensor with neither part nor sum labels) stay 0.
+    if push is not None and push.active:
+        rng = np.random.default_rng(seed)
+        for s in range(n_sensors):
+            features = partial(model.features, s=s)
+            gram = linear_push_gram(features, model.powers, model.scale[s], x[:, s], push, rng)
+            normal[s * k : (s + 1) * k, s * k : (s + 1) * k] += push.weight * np.kron(eye, gram)
+    model.weights = _solve_informed(normal, rhs).reshape(n_sensors, WRENCH, p)
+    return model
+
+
+def _add_sum_term(
+    normal: np.ndarray,
+    rhs: np.ndarray,
+    phis: Sequence[np.ndarray],
+    x: np.ndarray,
+    sum_label: np.ndarray,
+    rows: np.ndarray,
+    transforms: np.ndarray,
+    lambda_sum: float,
+) -> None:
+    """Add the sum term of `fit_linear_baseline` (samples `rows`) to its normal equations, in place."""
+    k = len(rhs) // len(phis)
+    r = sum_label[rows] - np.einsum("sij,nsj->ni", transforms, x[rows, :, :WRENCH])
+    for s, phi_s in enumerate(phis):
+        # X_s W_s phi = (X_s kron phi^T) vec(W_s)
+        rhs[s * k : (s + 1) * k] += lambda_sum * (transforms[s].T @ r.T @ phi_s[rows]).reshape(-1)
+        for t, phi_t in enumerate(phis):
+            block = np.kron(transforms[s].T @ transforms[t], phi_s[rows].T @ phi_t[rows])
+            normal[s * k : (s + 1) * k, t * k : (t + 1) * k] += lambda_sum * block
+
+
+def _solve_informed(normal: np.ndarray, rhs: np.ndarray) -> np.ndarray:
+    """The normal equations' solution; unknowns that no sample informs (e.g. a foot sensor with neither
+    part nor sum labels) stay 0."""
     informed = np.abs(normal).sum(axis=1) > 0
-    solution = np.zeros(n_sensors * k)
+    solution = np.zeros(len(rhs))
     sub = normal[np.ix_(informed, informed)]
     try:
         solution[informed] = np.linalg.solve(sub, rhs[informed])
     except np.linalg.LinAlgError:
         solution[informed] = np.linalg.lstsq(sub, rhs[informed], rcond=None)[0]
-    model.weights = solution.reshape(n_sensors, WRENCH, p)
-    return model
+    return solution

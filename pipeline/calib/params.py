@@ -11,6 +11,7 @@ from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, fields, replace
 from typing import Any
 
+from pipeline.calib.pushes import PushPrior
 from pipeline.core.errors import ConfigError
 
 INPUT_SIZES = (7, 13)  # raw wrench + temperature (+ accelerometer + gyroscope)
@@ -127,6 +128,9 @@ class GroupParams:
     lambda_sum: float
     lambda_cut: float  # several sensors: lambda of each cut set's sum term
     lambda_prior: float  # pull towards the affine map where a sensor has no exact label of its own
+    lambda_push: float  # weight of the virtual pushes' prior (pipeline.calib.pushes)
+    push_force_n: float  # their force std, N
+    push_lever_m: float  # and lever, m (torque std = force x lever)
     n_trials: int  # Optuna trials per network (the first: these params)
     search: Mapping[str, Any]  # key -> [choices] or {low, high, log}
     tpe_startup_trials: int  # random trials before TPE
@@ -192,6 +196,9 @@ class GroupParams:
             "lambda_sum",
             "lambda_cut",
             "lambda_prior",
+            "lambda_push",
+            "push_force_n",
+            "push_lever_m",
             "ridge",
         ):
             value = getattr(self, attr)
@@ -244,6 +251,11 @@ class GroupParams:
         if self.sensors is not None:
             return self.name
         return self.sensor if self.sensor is not None else str(self.pair)
+
+    @property
+    def push(self) -> PushPrior:
+        """The virtual pushes every model of the group is fitted with."""
+        return PushPrior(self.lambda_push, self.push_force_n, self.push_lever_m)
 
     def hyperparameters(self) -> dict[str, Any]:
         """The searchable values of these params."""

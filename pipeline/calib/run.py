@@ -14,13 +14,15 @@ import numpy as np
 import torch
 
 from pipeline.calib.crossval import cross_validate
+from pipeline.calib.excitation import group_excitation
+from pipeline.calib.fidelity import group_fidelity
 from pipeline.calib.fit import Prepared, fit_baselines, mlflow_metrics, network_info, prepare, score
 from pipeline.calib.models import WRENCH, LinearBaseline, save_model
 from pipeline.calib.params import AFFINE, RAW, nn_name
 from pipeline.calib.records import TrainResult, log_network, log_trial_run, write_predictions
 from pipeline.calib.search import NetResult, code_digest, data_digest, search_network
 from pipeline.calib.studies import open_storage, storage_url
-from pipeline.calib.training import flat_inputs, predict
+from pipeline.calib.training import flat_inputs, predict, predict_inputs
 from pipeline.core.config import Params
 from pipeline.core.io import write_json
 from pipeline.core.progress import ProgressLog
@@ -58,7 +60,7 @@ def fit_models(params: Params, prep: Prepared, studies: Path, ui: ProgressLog) -
     data = {"val": prep.val, "test": prep.test}
     fitted = Fitted({}, {}, {k: {RAW: d.x[:, :, :WRENCH].copy()} for k, d in data.items()})
     t = time.perf_counter()
-    fitted.baselines = fit_baselines(gp, group, prep.train)
+    fitted.baselines = fit_baselines(gp, group, prep.train, prep.seed)
     for name, model in fitted.baselines.items():
         for k, d in data.items():
             fitted.preds[k][name] = model.predict(d.x)
@@ -97,6 +99,15 @@ def write_outputs(prep: Prepared, fitted: Fitted, out: Path, run_id: str, t0: fl
 
     group, timings = prep.group, fitted.timings
     metrics = score(prep, fitted.preds, fitted.nets, fitted.cv)
+    metrics["excitation"] = group_excitation(
+        group.sensors, prep.train.x, prep.train.labels, prep.train.switches, prep.train.log, prep.train.stamp
+    )
+    predictors = {RAW: (lambda x: x[:, :, :WRENCH].copy(), 7)}
+    predictors.update({name: (b.predict, 7) for name, b in fitted.baselines.items()})
+    for name, r in fitted.nets.items():
+        predictors[name] = (lambda x, m=r.model: predict_inputs(m, x), r.model.config.n_inputs)
+    # on the validation samples' inputs only (no label, no truth): what selection may look at
+    metrics["fidelity"] = group_fidelity(predictors, prep.val.x, list(group.sensors), prep.gp.push)
     out.mkdir(parents=True, exist_ok=True)
     files = ["metrics.json", "baselines.json", "predictions.parquet"]
     example = prep.test.subset(np.arange(min(5, len(prep.test))))

@@ -22,6 +22,9 @@ from pipeline.calib.models import (
     switched_loss,
 )
 from pipeline.calib.params import GroupParams
+from pipeline.calib.pushes import PushPrior, push_penalty
+
+PUSHED_SHARE = 4  # one sample of a batch in this many gets a virtual push (pipeline.calib.pushes)
 
 
 @dataclass(frozen=True)
@@ -41,6 +44,7 @@ class NetSetting:
     lambda_sum: float
     lambda_cut: float  # each cut set's sum term (groups of several sensors)
     lambda_prior: float  # pull towards the affine map where a sensor has no exact label of its own
+    push: PushPrior  # virtual pushes: the correction's response to them is penalised
 
     @classmethod
     def of(cls, gp: GroupParams, n_inputs: int, values: Mapping[str, Any] | None = None) -> NetSetting:
@@ -65,6 +69,7 @@ class NetSetting:
             float(v["lambda_sum"]),
             float(gp.lambda_cut),
             float(gp.lambda_prior),
+            gp.push,
         )
 
 
@@ -106,10 +111,15 @@ def to_tensors(
 
 def predict(model: GroupNet, data: GroupData) -> np.ndarray:
     """(N, S, 6) float64 calibrated wrenches of a network on `data`."""
+    return predict_inputs(model, data.x)
+
+
+def predict_inputs(model: GroupNet, x: np.ndarray) -> np.ndarray:
+    """(N, S, 6) float64 calibrated wrenches of a network from raw inputs x (N, S, >= its inputs)."""
+    flat = x[:, :, : model.config.n_inputs].reshape(len(x), -1)
     with torch.no_grad():
-        x = torch.as_tensor(flat_inputs(data, model.config.n_inputs), dtype=torch.float32)
-        out = model.eval()(x).numpy().astype(np.float64)
-    return out.reshape(len(data), model.n_sensors, WRENCH)
+        out = model.eval()(torch.as_tensor(flat, dtype=torch.float32)).numpy().astype(np.float64)
+    return out.reshape(len(x), model.n_sensors, WRENCH)
 
 
 def _batch_loss(
@@ -120,8 +130,10 @@ def _batch_loss(
     lambdas: torch.Tensor,
     transforms: torch.Tensor | None,
     setting: NetSetting,
+    pushes: torch.Generator | None = None,
 ) -> torch.Tensor:
-    """The switched loss of the samples `idx` (a batch)."""
+    """The switched loss of the samples `idx` (a batch), with the virtual pushes' term when `pushes` (their
+    random stream) is given and the setting has a push weight."""
     pred = model(t.x[idx]).view(len(idx), model.n_sensors, WRENCH)
     cuts = None
     if t.cut_labels is not None:
@@ -144,6 +156,14 @@ def _batch_loss(
         free = (~t.switches[idx]).float()  # (B, S)
         gap = ((pred - t.prior[idx]) ** 2).mean(dim=2)  # (B, S)
         loss = loss + setting.lambda_prior * (free * gap).sum(dim=1).mean()
+    if pushes is not None and setting.push.active:
+        # on a quarter of the batch (already in random order): the expectation stays the same, and the extra
+        # forward and backward pass costs a quarter of the step instead of doubling it
+        some = t.x[idx[: max(1, len(idx) // PUSHED_SHARE)]]
+        penalty = push_penalty(
+            model.correction, some, setting.n_inputs, model.n_sensors, setting.push, pushes
+        )
+        loss = loss + setting.push.weight * penalty
     return loss
 
 
@@ -238,6 +258,7 @@ def train_network(
     """
     torch.manual_seed(seed)
     generator = torch.Generator().manual_seed(seed)
+    pushes = torch.Generator().manual_seed((seed + 1) % 2**63)  # the virtual pushes' own stream
     model = _new_network(group, train, setting, start)
     optimiser = torch.optim.Adam(model.parameters(), lr=setting.lr, weight_decay=setting.weight_decay)
     history: list[dict[str, float]] = []
@@ -259,9 +280,8 @@ def train_network(
         order = torch.randperm(n, generator=generator)
         total = 0.0
         for first in range(0, n, setting.batch_size):
-            loss = _batch_loss(
-                group, model, t, order[first : first + setting.batch_size], lambdas, transforms, setting
-            )
+            batch = order[first : first + setting.batch_size]
+            loss = _batch_loss(group, model, t, batch, lambdas, transforms, setting, pushes)
             optimiser.zero_grad(set_to_none=True)
             loss.backward()
             optimiser.step()

@@ -80,7 +80,7 @@ def run_worker_group(
     identity = study_identity(params, prep)
     ui = ProgressLog()
     # the networks correct the group's affine map: fitted as the stage fits it (deterministic least squares)
-    start = fit_baselines(replace(prep.gp, poly_orders=()), prep.group, prep.train)[AFFINE]
+    start = fit_baselines(replace(prep.gp, poly_orders=()), prep.group, prep.train, prep.seed)[AFFINE]
     ran: dict[str, int] = {}
     with ui.running():
         for n_inputs in prep.gp.inputs:

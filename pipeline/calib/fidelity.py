@@ -1,0 +1,70 @@
+"""How faithfully a model reports a change of the wrench it did not see in training (no truth needed).
+
+A virtual push along one axis of a sensor's raw reading (the factory map reports it as that change) should
+come out of a calibration as about the same change: the factory map's gain and coupling errors are a few
+%. Per model and sensor, on a set of samples (their inputs only: no label, no truth), the *slope* of axis a
+is the mean of ``(f(x + d e_a) - f(x))_a / d`` with d the virtual push's size on that axis (`PushPrior`:
+its force std on force axes, force x lever on torque axes). A model that rebuilds a force from torque
+channels or the accelerometer has a slope far from 1 on that axis; a faithful one is within the factory
+calibration's few %.
+
+For a network with the FT board's IMU among its inputs, ``imu_kg`` is the largest mean derivative of a
+force output with respect to an accelerometer input (kg): how much of the wrench it reads off the IMU.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable, Mapping
+from typing import Any
+
+import numpy as np
+
+from pipeline.calib.pushes import PushPrior
+
+WRENCH = 6
+ACC = slice(7, 10)  # accelerometer columns of a sensor's 13 inputs
+SAMPLES = 2000  # samples the slopes are averaged over (evenly spaced)
+
+Predict = Callable[[np.ndarray], np.ndarray]  # (N, S, 13) raw inputs -> (N, S, 6) calibrated
+
+
+def model_fidelity(predict: Predict, x: np.ndarray, push: PushPrior, n_inputs: int) -> list[dict[str, Any]]:
+    """Per sensor (in the group's order): {"slopes": 6 floats, "imu_kg": float or None}."""
+    pick = np.unique(np.linspace(0, len(x) - 1, min(SAMPLES, len(x))).astype(int)) if len(x) else []
+    x = np.asarray(x[pick], dtype=np.float64)
+    if not len(x):
+        return []
+    base = predict(x)
+    size = np.sqrt(push.variances()) if push.force_n > 0 else np.r_[np.full(3, 20.0), np.full(3, 4.0)]
+    out = [{"slopes": [], "imu_kg": None} for _ in range(x.shape[1])]
+    for a in range(WRENCH):
+        moved = x.copy()
+        moved[:, :, a] += size[a]
+        change = (predict(moved) - base)[:, :, a] / size[a]
+        for s in range(x.shape[1]):
+            out[s]["slopes"].append(float(np.mean(change[:, s])))
+    if n_inputs == 13:
+        for j in range(3):
+            moved = x.copy()
+            moved[:, :, ACC.start + j] += 1.0  # m/s^2
+            change = (predict(moved) - base)[:, :, :3]  # N per m/s^2 = kg
+            for s in range(x.shape[1]):
+                worst = float(np.max(np.abs(change[:, s].mean(axis=0))))
+                out[s]["imu_kg"] = max(out[s]["imu_kg"] or 0.0, worst)
+    return out
+
+
+def group_fidelity(
+    predictors: Mapping[str, tuple[Predict, int]], x: np.ndarray, sensors: list[str], push: PushPrior
+) -> dict[str, dict[str, dict[str, Any]]]:
+    """model -> sensor -> `model_fidelity` entry, for `predictors` (model -> (predict, inputs per sensor))."""
+    out: dict[str, dict[str, dict[str, Any]]] = {}
+    for name, (predict, n_inputs) in predictors.items():
+        rows = model_fidelity(predict, x, push, n_inputs)
+        out[name] = dict(zip(sensors, rows, strict=True))
+    return out
+
+
+def worst_gap(entry: Mapping[str, Any]) -> float:
+    """Largest |slope - 1| of one sensor's entry."""
+    return max(abs(v - 1.0) for v in entry["slopes"])

@@ -1,0 +1,125 @@
+"""Virtual pushes: the prior that keeps a calibration faithful where its training data give no evidence.
+
+An FT sensor exists to measure what the robot meets: a push at a hand, a load carried, a foot stepping on
+something. The training logs of a limb move along a narrow relation (a free arm's wrench is its own weight
+and inertia: torque ~ c x force), and a least-squares fit exploits it. It rebuilds a force from a less
+noisy torque channel, or from the FT board's accelerometer, because on the relation that cancels part of
+the reading's noise and hysteresis; off it (a push with another lever) the same coefficients misreport the
+push by tens of %. Nothing in the labels tells the two apart.
+
+The prior: a calibration is the factory map (raw) plus a correction, and the correction must not respond
+to an external wrench the factory map reports well. A *virtual push* is a random wrench added to a
+sample's raw reading, ``delta = [F; tau]`` in the sensor frame, with F ~ N(0, force^2 I3) N and
+tau ~ N(0, (force * lever)^2 I3) Nm (a force of about `force` at a lever of about `lever` m). The fit
+minimises, besides its labelled loss,
+
+    weight * mean over samples of E_delta |c(x + delta) - c(x)|^2      (N^2 and Nm^2, as the loss)
+
+where c is the correction (the calibrated wrench minus the raw one). For a linear model this is a ridge
+on its wrench coefficients in the metric of pushes, in closed form (`push_gram`); for a network the
+expectation is sampled, one push per sample and step (`push_penalty`). A correction that cancels the
+reading along a direction pays about ``weight * force^2`` per sample there; a real coupling or gain
+correction of a few % pays ``weight * (0.03 force)^2``, far below what the labels gain from it. So the
+labels decide where they have evidence, and elsewhere the calibration stays the factory's.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from dataclasses import dataclass
+from typing import TYPE_CHECKING
+
+import numpy as np
+
+if TYPE_CHECKING:  # torch only where a network trains (params import this module)
+    import torch
+
+WRENCH = 6
+
+
+@dataclass(frozen=True)
+class PushPrior:
+    """The virtual pushes of a fit: weight of the term, force std (N) and lever (m)."""
+
+    weight: float
+    force_n: float
+    lever_m: float
+
+    @property
+    def active(self) -> bool:
+        return self.weight > 0 and self.force_n > 0
+
+    def variances(self) -> np.ndarray:
+        """(6,) variances of a virtual push's components: force (N^2) then torque (Nm^2)."""
+        torque = self.force_n * self.lever_m
+        return np.r_[np.full(3, self.force_n**2), np.full(3, torque**2)]
+
+    def draw(self, rng: np.random.Generator, n: int) -> np.ndarray:
+        """(n, 6) virtual pushes."""
+        return rng.standard_normal((n, WRENCH)) * np.sqrt(self.variances())
+
+
+def push_gram(
+    features: Callable[[np.ndarray], np.ndarray],
+    x: np.ndarray,
+    prior: PushPrior,
+    rng: np.random.Generator,
+    rows: int = 4000,
+) -> np.ndarray:
+    """(P, P) ``sum over samples of E_delta [d d^T]`` with ``d = features(x + delta) - features(x)``.
+
+    features: maps raw inputs (M, >= 7) to (M, P) features. x: (N, >= 7) one sensor's raw inputs.
+    Exact for features linear in the wrench (the expectation of d d^T is then the same at every sample);
+    otherwise estimated on `rows` (sample, push) draws and scaled to N samples.
+    """
+    n = len(x)
+    if n == 0:
+        return np.zeros((0, 0))
+    pick = rng.integers(0, n, size=rows)
+    base = x[pick].copy()
+    pushed = base.copy()
+    pushed[:, :WRENCH] += prior.draw(rng, rows)
+    d = features(pushed) - features(base)
+    return (d.T @ d) * (n / rows)
+
+
+def linear_push_gram(
+    features: Callable[[np.ndarray], np.ndarray],
+    powers: np.ndarray,
+    scale: np.ndarray,
+    x: np.ndarray,
+    prior: PushPrior,
+    rng: np.random.Generator,
+) -> np.ndarray:
+    """`push_gram` of a linear-in-parameters model with monomial `powers` (P, 7) of the inputs over `scale`
+    (7,): exact for the affine model (d is the push over the scales on the wrench features, the same at
+    every sample), sampled for higher orders."""
+    if powers.sum(axis=1).max() > 1:
+        return push_gram(features, x, prior, rng)
+    variances = np.r_[prior.variances(), 0.0] / np.asarray(scale) ** 2  # wrench, then temperature
+    linear = np.argmax(powers[1:], axis=1)  # the input of each linear feature (constant first)
+    return np.diag(np.r_[0.0, variances[linear]]) * len(x)
+
+
+def push_penalty(
+    correction: Callable[[torch.Tensor], torch.Tensor],
+    x: torch.Tensor,
+    n_inputs: int,
+    n_sensors: int,
+    prior: PushPrior,
+    generator: torch.Generator,
+) -> torch.Tensor:
+    """The network's term: ``mean over the batch of sum_s mean_axes |c_s(x + delta) - c_s(x)|^2``.
+
+    correction: maps flat inputs (B, S * n_inputs) to the corrections (B, S * 6) (N, Nm). One virtual
+    push per sample and sensor, drawn from `generator`, on each sensor's raw wrench columns.
+    """
+    import torch
+
+    std = torch.as_tensor(np.sqrt(prior.variances()), dtype=x.dtype)
+    delta = torch.zeros_like(x)
+    noise = torch.randn((len(x), n_sensors, WRENCH), generator=generator, dtype=x.dtype) * std
+    view = delta.view(len(x), n_sensors, n_inputs)
+    view[:, :, :WRENCH] = noise
+    change = correction(x + delta) - correction(x)
+    return change.view(len(x), n_sensors, WRENCH).square().mean(dim=2).sum(dim=1).mean()
