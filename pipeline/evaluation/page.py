@@ -26,6 +26,7 @@ from pipeline.evaluation.params import (
     REPORT_FILE,
 )
 from pipeline.evaluation.sections import availability_section, cv_section, phase_section
+from pipeline.evaluation.trust import excitation_html, fidelity_table, passed_over_html
 from pipeline.logs import schema as S
 
 if TYPE_CHECKING:
@@ -169,18 +170,34 @@ def _headlines(r: GroupReport) -> list[str]:
 
 def _flags_box(results: Sequence[GroupReport], cfg: EvaluateParams) -> str:
     flagged = [(r.group, m, r.noise.ratio.get(m)) for r in results for m in r.noise.flagged]
+    unfaithful = [(r.group, m, why) for r in results for m, why in r.unfaithful.items()]
+    fallbacks = "".join(passed_over_html(r, cfg.noise_limit) for r in results)
     if not flagged:
-        return (
+        noise = (
             "<div class='flags none'><b>Noise flags:</b> none (no model's output noise above "
             f"{cfg.noise_threshold:g}x raw's on quasi-static stretches).</div>"
         )
-    items = ", ".join(f"<b>{_e(g)}/{_e(m)}</b> (x{_e(fmt(v))})" for g, m, v in flagged)
-    return (
-        f"<div class='flags'><b>Noise flags:</b> {items}: output noise above "
-        f"{cfg.noise_threshold:g}x raw's on quasi-static stretches (thesis chapter 6, Test A: the "
-        "13-input network passed the IMU noise through and was unusable on the robot). "
-        "Not recommended for deployment.</div>"
-    )
+    else:
+        items = ", ".join(f"<b>{_e(g)}/{_e(m)}</b> (x{_e(fmt(v))})" for g, m, v in flagged)
+        noise = (
+            f"<div class='flags'><b>Noise flags:</b> {items}: output noise above "
+            f"{cfg.noise_threshold:g}x raw's on quasi-static stretches (thesis chapter 6, Test A: the "
+            "13-input network passed the IMU noise through and was unusable on the robot). "
+            "Not recommended for deployment.</div>"
+        )
+    if unfaithful:
+        items = ", ".join(f"<b>{_e(g)}/{_e(m)}</b> ({_e(why)})" for g, m, why in unfaithful)
+        faith = (
+            f"<div class='flags'><b>Fidelity flags:</b> {items}: a virtual push on that axis comes out more "
+            f"than {cfg.fidelity_tolerance:g} off its size: the model reads the axis off other channels "
+            "(its training relation), and would misreport a push or a load there. Not recommended.</div>"
+        )
+    else:
+        faith = (
+            "<div class='flags none'><b>Fidelity flags:</b> none (every model reports a virtual push on "
+            f"every axis within {cfg.fidelity_tolerance:g} of its size).</div>"
+        )
+    return noise + faith + fallbacks
 
 
 _SUMMARY_NOTE = (
@@ -205,7 +222,7 @@ _NOISE_NOTE = (
 )
 
 
-def _group_section(r: GroupReport) -> list[str]:
+def _group_section(r: GroupReport, tolerance: float) -> list[str]:
 
     g = r
     links = [f"training run {_e(r.train_run)}"] if r.train_run else ["no MLflow training run found"]
@@ -221,6 +238,8 @@ def _group_section(r: GroupReport) -> list[str]:
         _img(r.figures["loss"], f"{g.group}: training loss and validation RMSE per epoch"),
         _img(r.figures["noise"], f"{g.group}: output noise on a quasi-static stretch"),
         cv_section(r.cv),
+        fidelity_table(r, tolerance),
+        excitation_html(r),
     ]
     for name in g.names:
         if name == g.pair:
@@ -302,7 +321,7 @@ def render_html(
         labels,
     ]
     for r in results:
-        parts += _group_section(r)
+        parts += _group_section(r, cfg.fidelity_tolerance)
     parts.append("</body></html>")
     return "\n".join(parts)
 

@@ -52,6 +52,8 @@ class EvaluateParams:
     zoom_s: float  # s: length of the per-experiment zoom of the time-series plots
     target_raw_over_nn7: float  # acceptance: raw RMSE / NN7 RMSE at least this
     target_nn7_over_oracle: float  # acceptance: NN7 RMSE / oracle RMSE at most this
+    fidelity_tolerance: float  # a model whose virtual-push slope (pipeline.calib.fidelity) on any axis is
+    # farther than this from 1 is flagged unfaithful and not recommended
 
     def __post_init__(self) -> None:
         for name in (
@@ -63,6 +65,7 @@ class EvaluateParams:
             "zoom_s",
             "target_raw_over_nn7",
             "target_nn7_over_oracle",
+            "fidelity_tolerance",
         ):
             value = getattr(self, name)
             if (

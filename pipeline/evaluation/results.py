@@ -11,6 +11,7 @@ import numpy as np
 
 from pipeline.calib.params import RAW
 from pipeline.calib.scores import wrench_errors
+from pipeline.evaluation.fidelity import outside_stats, unfaithful
 from pipeline.evaluation.inputs import GroupInputs, wrench_of
 from pipeline.evaluation.noise import highpass, noise_ratio, quasi_static_mask
 from pipeline.evaluation.params import (
@@ -110,6 +111,12 @@ class GroupReport:
     phases: dict[str, Any] = field(default_factory=dict)
     phase_models: list[str] = field(default_factory=list)
     cv: dict[str, Any] | None = None  # the `cv` entry of models/<group>/metrics.json, where train wrote one
+    # virtual-push fidelity (train's `fidelity`: model -> sensor -> slopes), the unfaithful models and why,
+    # each sensor's excitation (train's) and the test samples' outside distance (pipeline.evaluation.fidelity)
+    fidelity: dict[str, Any] = field(default_factory=dict)
+    unfaithful: dict[str, str] = field(default_factory=dict)
+    excitation: dict[str, Any] = field(default_factory=dict)
+    outside: dict[str, Any] = field(default_factory=dict)
 
     def headline_rmse(
         self, ref: str, model: str | None, key: str = "rmse", name: str | None = None
@@ -273,9 +280,13 @@ def evaluate_group(g: GroupInputs, cfg: EvaluateParams) -> GroupResult:
     best = g.train.get("best_on_validation")
     if best is not None and best not in ranking:
         ranking.insert(0, str(best))
-    recommended = recommend(ranking, noise.flagged, g.models)
+    fidelity = dict(g.train.get("fidelity") or {})
+    unfaithful_models = unfaithful(fidelity, cfg.fidelity_tolerance)
+    recommended = recommend(ranking, [*noise.flagged, *unfaithful_models], g.models)
     shown = phase_models(g.models, ranking, recommended)
     cv = g.train.get("cv")
+    excitation = dict(g.train.get("excitation") or {})
+    deployed = {s: wrench_of(g.frame, f"{PRED}.{recommended}", s) for s in g.sensors} if recommended else {}
     return GroupResult(
         group=g.group,
         sensors=list(g.sensors),
@@ -295,6 +306,10 @@ def evaluate_group(g: GroupInputs, cfg: EvaluateParams) -> GroupResult:
         phases=phase_errors(g, shown),
         phase_models=shown,
         cv=cv if isinstance(cv, dict) else None,
+        fidelity=fidelity,
+        unfaithful=unfaithful_models,
+        excitation=excitation,
+        outside=outside_stats(excitation, deployed),
     )
 
 
@@ -308,7 +323,7 @@ def group_metrics(r: GroupReport, name: str | None = None) -> dict[str, Any]:
     ``labels``/``truth``: the headline's RMSE (global, N and Nm pooled) of raw, the recommended model
     (``rec``), NN7, NN13 and the oracle against the labels and, on simulated logs, the truth on every test
     sample; ``recommended``: the group's model to deploy; ``noise``: its networks' noise ratios;
-    ``flagged``: how many of its models are noise-flagged.
+    ``flagged``: how many of its models are flagged (noise or fidelity).
     """
     shown = {"raw": RAW, "rec": r.recommended, "nn7": NN7, "nn13": NN13, "oracle": ORACLE}
     out: dict[str, Any] = {"recommended": r.recommended or "none"}
@@ -318,7 +333,7 @@ def group_metrics(r: GroupReport, name: str | None = None) -> dict[str, Any]:
         if row:
             out[ref] = row
     out["noise"] = {m: round(v, 3) for m in (NN7, NN13) if (v := r.noise.ratio.get(m)) is not None}
-    out["flagged"] = len(r.noise.flagged)
+    out["flagged"] = len(set(r.noise.flagged) | set(r.unfaithful))
     return out
 
 
