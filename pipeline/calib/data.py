@@ -139,6 +139,7 @@ class LogInfo:
     path: Path
     role: str  # train | test
     kind: str  # experiment type[/foot[/part]], e.g. half_foot/l_foot/front
+    known_load: bool = False  # the experiment declares known loads (pipeline.physics.loads)
 
 
 def find_logs(in_dir: Path) -> list[LogInfo]:
@@ -165,7 +166,8 @@ def find_logs(in_dir: Path) -> list[LogInfo]:
         kind = "/".join(
             str(experiment[k]) for k in ("type", "foot", "part") if str(experiment.get(k, "")).strip()
         )
-        logs.append(LogInfo(path.name[: -len(S.PARQUET_SUFFIX)], path, role, kind))
+        loaded = str(experiment.get("loads", "")).strip() not in ("", "[]")
+        logs.append(LogInfo(path.name[: -len(S.PARQUET_SUFFIX)], path, role, kind, loaded))
     return logs
 
 
@@ -374,10 +376,11 @@ def split_logs(logs: Sequence[LogInfo], val_logs: int, seed: int, folds: int = 1
     """Whole-log split: test = role test; validation = `val_logs` training logs; train = the rest.
 
     Validation takes at most one log per experiment kind (type, supporting foot and part), never a
-    kind's only training log, drawn with a generator seeded from `seed` (kinds in a seeded order, then a
-    seeded log of each): every kind of experiment stays in the training set. That is fold 0 of the
-    cross-validation; fold k (k < `folds`) holds out, of the same kinds, the k-th next log of each in
-    sorted order, so the folds' validation logs are disjoint. ``folds``: one {train, val} per fold.
+    kind's only training log, drawn with a generator seeded from `seed` (kinds in a seeded order, those of
+    known-load logs first, then a seeded log of each): every kind of experiment stays in the training
+    set. That is fold 0 of the cross-validation; fold k (k < `folds`) holds out, of the same kinds, the
+    k-th next log of each in sorted order, so the folds' validation logs are disjoint. ``folds``: one
+    {train, val} per fold.
 
     Raises:
         DataError: no training or no test logs, too few training logs for a validation set, or a held-out
@@ -395,6 +398,10 @@ def split_logs(logs: Sequence[LogInfo], val_logs: int, seed: int, folds: int = 1
         by_kind.setdefault(log.kind, []).append(log.name)
     candidates = sorted(k for k, names in by_kind.items() if len(names) >= 2)
     order = [candidates[i] for i in rng.permutation(len(candidates))]
+    # known-load logs are validated on first: their labels leave the relation a free limb's wrenches
+    # follow, so a model that exploits it loses there (the order is otherwise the seeded one)
+    loaded = {log.kind for log in train if log.known_load}
+    order = [k for k in order if k in loaded] + [k for k in order if k not in loaded]
     first = {k: int(rng.integers(len(by_kind[k]))) for k in order[:val_logs]}
     if not first:
         raise DataError(

@@ -135,6 +135,8 @@ class TopicParams:
     sim_wrench_oracle: str  # WrenchStamped: the oracle calibration of the raw reading (noise floor)
     sim_contacts: str  # std_msgs/msg/String: comma-separated links touching the environment
     sim_joint_torques: str = "/sim/joint_torques"  # JointState: true joint torques (effort, Nm), pushed logs
+    # WrenchStamped: the part of the true wrench due to external pushes and loads (logs with some)
+    sim_wrench_external: str = "/sim/ft/{sensor}/wrench_external"
 
     PER_SENSOR = (
         "ft_wrench",
@@ -143,6 +145,7 @@ class TopicParams:
         "sim_wrench_true",
         "sim_wrench_distorted",
         "sim_wrench_oracle",
+        "sim_wrench_external",
     )
 
     def __post_init__(self) -> None:

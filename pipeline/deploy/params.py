@@ -13,6 +13,7 @@ from typing import Any
 from pipeline.core.config import Params
 from pipeline.core.errors import ConfigError
 from pipeline.sim.params import DeploymentShift, LogSpec, PushParams, simulate_params
+from pipeline.sim.push import InteractionParams
 
 VARIANTS = ("later", "drifted")  # the default deployment logs and the drift check's
 
@@ -39,6 +40,9 @@ class DeployParams:
     torque_limbs: dict[str, str]  # leg FT sensor -> limb end link (its joints are estimated)
     figure_joint: str  # suffix of the joint drawn in the Test C figure (e.g. hip_pitch)
     torque_target: float  # Test C passes when raw RMSE / calibrated RMSE of the joint torque is >= this
+    interaction: InteractionParams  # interaction log: pushes and a carried load at every sensor's site
+    slope_tolerance: float  # Test D: per-axis slope within this fraction of the oracle's
+    push_rmse_target: float  # Test D: force RMSE during the pushes at most this x the oracle's
 
 
 def _num(value: Any, key: str, lo: float, hi: float) -> float:
@@ -82,9 +86,9 @@ def _logs(raw: Any, feet: tuple[str, ...]) -> tuple[LogSpec, ...]:
         spec.check(f"deploy.logs[{i}]", feet)
         out.append(spec)
     types = {s.type for s in out}
-    for need in ("standing", "walking", "pole"):
+    for need in ("standing", "walking", "pole", "interaction"):
         if need not in types:
-            raise ConfigError(f"deploy.logs must hold a {need} log (tests A, B, C need one each)")
+            raise ConfigError(f"deploy.logs must hold a {need} log (tests A, B, C, D need one each)")
     return tuple(out)
 
 
@@ -118,7 +122,19 @@ def deploy_params(params: Params) -> DeployParams:
         torque_limbs=dict(limbs),
         figure_joint=raw["figure_joint"],
         torque_target=_num(raw["torque_target"], "torque_target", 0.0, math.inf),
+        interaction=_interaction(raw["interaction"]),
+        slope_tolerance=_num(raw["slope_tolerance"], "slope_tolerance", 0.0, 1.0),
+        push_rmse_target=_num(raw["push_rmse_target"], "push_rmse_target", 1.0, math.inf),
     )
+
+
+def _interaction(raw: Any) -> InteractionParams:
+    names = tuple(f.name for f in dataclasses.fields(InteractionParams))
+    raw = _mapping(raw, "interaction", names)
+    values = {
+        k: tuple(v) if k in ("force_n", "directions") and isinstance(v, list) else v for k, v in raw.items()
+    }
+    return InteractionParams(**values)
 
 
 def deployment_simulation(params: Params, variant: str) -> Any:
@@ -137,5 +153,6 @@ def deployment_simulation(params: Params, variant: str) -> Any:
         plots=False,
         thermal=thermal,
         push=dp.push,
+        interaction=dp.interaction,
         shift=DeploymentShift(seed, drift.offset_force, drift.offset_torque),
     )

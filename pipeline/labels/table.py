@@ -11,7 +11,7 @@ predictions into that frame. Columns and metadata: :mod:`pipeline.logs.schema`.
 from __future__ import annotations
 
 import time
-from dataclasses import asdict, dataclass, field
+from dataclasses import asdict, dataclass, field, replace
 from pathlib import Path
 from typing import Any
 
@@ -26,6 +26,7 @@ from pipeline.labels.contacts import Contacts, declared_contacts, detect_contact
 from pipeline.logs import schema as S
 from pipeline.physics.cuts import CutSet, cut_poses, cut_sums
 from pipeline.physics.dynamics import ContactCase, expected_wrenches
+from pipeline.physics.loads import loads_from_metadata, with_loads
 from pipeline.physics.robot import FootPair, RobotModel
 
 
@@ -269,9 +270,11 @@ def _label_metadata(lab: Labeller) -> dict[str, Any]:
 def label_table(src: Path, dst: Path, lab: Labeller, truth_dir: Path | None = None) -> LogSummary:
     """Label one smoothed table into `dst` (written atomically)."""
     start = time.perf_counter()
-    robot = lab.robot
-    table, meta = _read_smoothed(src, robot)
+    table, meta = _read_smoothed(src, lab.robot)
     experiment = meta.get(S.META_EXPERIMENT.decode()) or {}
+    # known loads (a mass attached to a hand or foot) are part of the robot for this log's labels
+    lab = replace(lab, robot=with_loads(lab.robot, loads_from_metadata(experiment, str(src)), str(src)))
+    robot = lab.robot
     n = len(table)
     q, dq, ddq = (table[S.joint_cols(k, robot.joint_names)].to_numpy() for k in (S.QS, S.DQS, S.DDQS))
     ok = table[S.ok_col(S.KINEMATICS_STREAM)].to_numpy(bool) & np.isfinite(np.c_[q, dq, ddq]).all(axis=1)

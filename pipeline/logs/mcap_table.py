@@ -40,7 +40,9 @@ class _Want:
 
     topic: str
     msgtype: str
-    stream: str  # "joints", "wrench", "imu", "temperature", "true", "distorted", "oracle", "contacts"
+    stream: (
+        str  # "joints", "wrench", "imu", "temperature", "true", "distorted", "oracle", "external", "contacts"
+    )
     sensor: str | None
     required: bool
 
@@ -60,12 +62,13 @@ def wanted_topics(topics: TopicParams, sensors: Sequence[str]) -> list[_Want]:
                 topics.sensor_topic("sim_wrench_distorted", s), rosmsg.WRENCH_STAMPED, S.DISTORTED, s, False
             ),
             _Want(topics.sensor_topic("sim_wrench_oracle", s), rosmsg.WRENCH_STAMPED, S.ORACLE, s, False),
+            _Want(topics.sensor_topic("sim_wrench_external", s), rosmsg.WRENCH_STAMPED, S.EXTERNAL, s, False),
         ]
     out.append(_Want(topics.sim_contacts, rosmsg.STRING, S.CONTACTS, None, False))
     return out
 
 
-_TRUTH_STREAMS = (S.TRUE, S.DISTORTED, S.ORACLE, S.CONTACTS)
+_TRUTH_STREAMS = (S.TRUE, S.DISTORTED, S.ORACLE, S.EXTERNAL, S.CONTACTS)
 
 
 class _LogIngest:
@@ -181,6 +184,7 @@ class _LogIngest:
             S.TRUE: 6,
             S.DISTORTED: 6,
             S.ORACLE: 6,
+            S.EXTERNAL: 6,
             S.CONTACTS: 1,
         }
         self.streams: dict[str, Stream] = {}

@@ -91,6 +91,7 @@ CONTACTS = "contacts"
 Q, DQ_ENC, TAU_ENC = "q", "dq_enc", "tau_enc"
 FT, ACC, GYR, TEMP = "ft", "acc", "gyr", "temp"
 TRUE, DISTORTED, ORACLE = "true", "distorted", "oracle"
+EXTERNAL = "external"  # simulated truth: the part of the true wrench due to external pushes and loads
 EXPECTED, SWITCH = "exp", "sw"  # labelled tables: expected wrench and its exact-label switch
 FIXED_LINK, GUARD = "fixed_link", "guard"
 POSE = "pose"  # labelled tables: pose.<cut>.<sensor>.<axis>, sensor pose in a cut set's common frame
@@ -148,7 +149,8 @@ def joint_cols(quantity: str, joints: Iterable[str]) -> list[str]:
 
 
 def wrench_cols(quantity: str, sensor: str) -> list[str]:
-    """The 6 columns ``<quantity>.<sensor>.<fx..tz>``, quantity one of FT, TRUE, DISTORTED, ORACLE."""
+    """The 6 columns ``<quantity>.<sensor>.<fx..tz>``, quantity one of FT, TRUE, DISTORTED, ORACLE,
+    EXTERNAL, EXPECTED, PRED."""
     return [f"{quantity}.{sensor}.{axis}" for axis in WRENCH_AXES]
 
 
@@ -203,7 +205,7 @@ def unit(column: str) -> str:
     if column in _UNITS:
         return _UNITS[column]
     parts = column.split(".")
-    if parts[0] in (FT, TRUE, DISTORTED, ORACLE, EXPECTED, PRED):
+    if parts[0] in (FT, TRUE, DISTORTED, ORACLE, EXTERNAL, EXPECTED, PRED):
         return _WRENCH_UNITS.get(parts[-1], "")
     if parts[0] == POSE:
         return "m" if parts[-1].startswith("p") else ""
@@ -221,7 +223,7 @@ def ingested_columns(joints: Sequence[str], sensors: Sequence[str]) -> list[str]
     return cols
 
 
-TRUTH_KINDS = (TRUE, DISTORTED, ORACLE)
+TRUTH_KINDS = (TRUE, DISTORTED, ORACLE, EXTERNAL)
 
 
 def truth_columns(sensors: Sequence[str]) -> list[str]:

@@ -14,12 +14,16 @@ from pathlib import Path
 
 import numpy as np
 
+from pipeline.core.errors import ConfigError
 from pipeline.core.io import atomic_path
+from pipeline.physics.loads import META_KEY as META_LOADS
+from pipeline.physics.loads import Load, loads_to_metadata, with_loads
 from pipeline.sim.distortion import distort, oracle_inverse
 from pipeline.sim.motion import Motion
 from pipeline.sim.params import LogSpec
 from pipeline.sim.recording import EPOCH_NS, Recording, stamps, write_recording
 from pipeline.sim.sensors import encoder_readings, encoder_velocity, imu_readings, temperature_signals
+from pipeline.sim.sites import KIND_FOOT, KIND_HAND, Site, interaction_sites
 from pipeline.sim.truth import Truth, TruthComputer
 from pipeline.sim.world import World, stream_rng
 
@@ -41,16 +45,48 @@ class LogResult:
     plots: list[str] = field(default_factory=list)
 
 
+def sites(world: World) -> list[Site]:
+    """Every FT sensor's site (`pipeline.sim.sites`), with the interaction params' overrides."""
+    soles = {s: pair.sole for pair in world.pairs for s in (pair.front, pair.rear)}
+    given = world.sim.interaction.sites if world.sim.interaction is not None else None
+    return interaction_sites(world.robot, soles, given)
+
+
+def resolve_loads(world: World, spec: LogSpec) -> list[Load]:
+    """The loads of a known-load log: 'hands' / 'feet' mean every hand / foot sensor's site (the point
+    then offsets the site's), anything else a URDF link."""
+    out = []
+    for entry in spec.loads:
+        kind = {"hands": KIND_HAND, "feet": KIND_FOOT}.get(entry.link)
+        if kind is None:
+            world.robot.check_link(entry.link, "load link")
+            out.append(Load(entry.link, entry.mass_kg, entry.point))
+            continue
+        for site in sites(world):
+            if site.kind == kind:
+                point = tuple(float(a + b) for a, b in zip(site.point, entry.point, strict=True))
+                out.append(Load(site.link, entry.mass_kg, point))  # type: ignore[arg-type]
+    return out
+
+
 def make_motion(world: World, spec: LogSpec, rng: np.random.Generator) -> Motion:
     """The true motion of the log `spec` at the simulation rate."""
     gen, rate = world.motions, world.sim.rate_hz
-    if spec.type == "pole":
+    if spec.type in ("pole", "known_load"):
         motion = gen.pole(rng, spec.duration_s, rate)
-        if world.sim.push is not None:
+        if world.sim.push is not None and spec.type == "pole":
             from pipeline.sim.push import add_pushes
 
             motion = add_pushes(gen.kin, motion, push_links(world), world.sim.push)
         return motion
+    if spec.type == "interaction":
+        from pipeline.sim.push import add_interaction, interaction_events
+
+        if world.sim.interaction is None:
+            raise ConfigError("an interaction log needs deploy.interaction (deployment logs only)")
+        motion = gen.pole(rng, spec.duration_s, rate)
+        events = interaction_events(sites(world), world.sim.interaction)
+        return add_interaction(gen.kin, motion, events, world.params.robot.gravity, spec.duration_s)
     if spec.type == "standing":
         return gen.standing(rng, spec.duration_s, rate)
     if spec.type == "balancing":
@@ -96,12 +132,19 @@ def sensor_readings(
             temp=temp_pub,
             temp_true=temp_true,
         )
+        if truth.external is not None:
+            ext = truth.external[s]
+            out[s]["external"] = np.stack([np.interp(t_ft, motion.t, ext[:, a]) for a in range(6)], axis=1)
     return out
 
 
-def log_metadata(world: World, spec: LogSpec, name: str, motion: Motion) -> dict[str, dict[str, str]]:
-    """The MCAP metadata record ``experiment`` (contacts and fixed link only where constant)."""
+def log_metadata(
+    world: World, spec: LogSpec, name: str, motion: Motion, loads: list[Load]
+) -> dict[str, dict[str, str]]:
+    """The MCAP metadata record ``experiment`` (contacts and fixed link only where constant; the loads of a
+    known-load log)."""
     robot_params = world.params.robot
+    extra = {META_LOADS: loads_to_metadata(loads)} if loads else {}
     return {
         "experiment": {
             "type": spec.type,
@@ -117,6 +160,7 @@ def log_metadata(world: World, spec: LogSpec, name: str, motion: Motion) -> dict
             "log": name,
             "foot": spec.foot,
             "part": spec.part,
+            **extra,
         }
     }
 
@@ -147,13 +191,15 @@ def simulate_log(world: World, index: int, spec: LogSpec, out_dir: Path, plot: b
     start = time.perf_counter()
     sim, seed, name = world.sim, world.params.seed, spec.name(index)
     motion = make_motion(world, spec, stream_rng(seed, 10, index))
-    truth = TruthComputer(world.truth_robot, world.pairs, world.params.robot.gravity).compute(motion)
+    loads = resolve_loads(world, spec)
+    truth_robot = with_loads(world.truth_robot, loads, name)  # a known mass is known exactly
+    truth = TruthComputer(truth_robot, world.pairs, world.params.robot.gravity).compute(motion)
     rng = stream_rng(seed, 11, index)
     ft_stamps = stamps(rng, motion.t, sim.timing.ft_offset_s, sim.timing.jitter_s)
     data = sensor_readings(world, motion, truth, (ft_stamps - EPOCH_NS) * 1e-9, rng)
     q_meas = encoder_readings(rng, motion.q, sim.encoder_resolution_rad, sim.encoder_noise_rad)
     rec = Recording(
-        metadata=log_metadata(world, spec, name, motion),
+        metadata=log_metadata(world, spec, name, motion, loads),
         joint_names=world.robot.joint_names,
         js_stamps=stamps(rng, motion.t, 0.0, sim.timing.jitter_s),
         q=q_meas,

@@ -62,6 +62,7 @@ class Kinematics:
         self.model = robot.pinocchio_model
         self.data = self.model.createData()
         self.to_pin = np.array([self.model.idx_qs[self.model.getJointId(n)] for n in robot.joint_names])
+        self.to_pin_v = np.array([self.model.idx_vs[self.model.getJointId(n)] for n in robot.joint_names])
         lower = np.array([robot.joints[n].lower for n in robot.joint_names])
         upper = np.array([robot.joints[n].upper for n in robot.joint_names])
         lower = np.where(np.isfinite(lower), lower, -np.pi)
@@ -91,6 +92,23 @@ class Kinematics:
         """Pose of `frame` in the root_link frame for joint positions q (robot order)."""
         pin.framesForwardKinematics(self.model, self.data, self._pin_q(q))
         return self.data.oMf[self.model.getFrameId(frame)].copy()
+
+    def point_motion(
+        self, q: np.ndarray, dq: np.ndarray, ddq: np.ndarray, frame: str, point: np.ndarray
+    ) -> tuple[np.ndarray, np.ndarray]:
+        """Position (3,) m and classical acceleration (3,) m/s^2 of `point` (in `frame`'s frame, m), both in
+        the root_link frame, for joint positions, velocities and accelerations in robot order."""
+        v, a = np.zeros(self.model.nv), np.zeros(self.model.nv)
+        v[self.to_pin_v], a[self.to_pin_v] = dq, ddq
+        pin.forwardKinematics(self.model, self.data, self._pin_q(q), v, a)
+        fid = self.model.getFrameId(frame)
+        placement = pin.updateFramePlacement(self.model, self.data, fid)
+        aligned = pin.ReferenceFrame.LOCAL_WORLD_ALIGNED
+        vel = pin.getFrameVelocity(self.model, self.data, fid, aligned)
+        acc = pin.getFrameClassicalAcceleration(self.model, self.data, fid, aligned)
+        r = placement.rotation @ np.asarray(point, dtype=float)
+        w, alpha = vel.angular, pin.getFrameAcceleration(self.model, self.data, fid, aligned).angular
+        return placement.translation + r, acc.linear + np.cross(alpha, r) + np.cross(w, np.cross(w, r))
 
     def com(self, q: np.ndarray) -> np.ndarray:
         """Centre of mass of the whole robot in the root_link frame, m (3,)."""

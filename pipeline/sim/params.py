@@ -15,10 +15,10 @@ from typing import Any
 from pipeline.core.config import Params, stage_section
 from pipeline.core.errors import ConfigError
 
-EXPERIMENT_TYPES = ("pole", "balancing", "half_foot", "walking", "standing")
+EXPERIMENT_TYPES = ("pole", "balancing", "half_foot", "walking", "standing", "known_load", "interaction")
 
 
-def _number(
+def check_number(
     obj: Any, name: str, lo: float, hi: float, *, lo_open: bool = False, hi_open: bool = True
 ) -> None:
     """Check field `name` of the params dataclass `obj` is a real number in the given interval.
@@ -39,7 +39,7 @@ def _number(
     object.__setattr__(obj, name, float(value))
 
 
-def _ordered(obj: Any, low: str, high: str) -> None:
+def check_order(obj: Any, low: str, high: str) -> None:
     if getattr(obj, low) > getattr(obj, high):
         raise ConfigError(
             f"{obj.SECTION}.{low} must not exceed {obj.SECTION}.{high}, "
@@ -79,11 +79,11 @@ class DistortionRanges:
     SECTION = "simulate.sensors"  # dotted params key, for error messages (a class attribute, not a field)
 
     def __post_init__(self) -> None:
-        _number(self, "coupling", 0.0, 0.5)
-        _number(self, "lever_m", 0.0, 0.1)
-        _number(self, "gain", 0.0, 0.5)
-        _number(self, "temperature_gain", 0.0, 0.005)  # keeps G(T) > 0.5 within 100 degC of T_ref
-        _number(self, "temperature_ref", -50.0, 150.0, hi_open=False)
+        check_number(self, "coupling", 0.0, 0.5)
+        check_number(self, "lever_m", 0.0, 0.1)
+        check_number(self, "gain", 0.0, 0.5)
+        check_number(self, "temperature_gain", 0.0, 0.005)  # keeps G(T) > 0.5 within 100 degC of T_ref
+        check_number(self, "temperature_ref", -50.0, 150.0, hi_open=False)
         for name in (
             "offset_force_min",
             "offset_force_max",
@@ -94,14 +94,14 @@ class DistortionRanges:
             "noise_force",
             "noise_torque",
         ):
-            _number(self, name, 0.0, math.inf)
-        _ordered(self, "offset_force_min", "offset_force_max")
-        _ordered(self, "offset_torque_min", "offset_torque_max")
-        _number(self, "nonlinearity", 0.0, 0.2)  # keeps the static map monotonic far beyond full scale
-        _number(self, "full_scale_force", 0.0, math.inf, lo_open=True)
-        _number(self, "full_scale_torque", 0.0, math.inf, lo_open=True)
-        _number(self, "hysteresis", 0.0, 0.1)
-        _number(self, "hysteresis_width", 0.0, 1.0, lo_open=True, hi_open=False)
+            check_number(self, name, 0.0, math.inf)
+        check_order(self, "offset_force_min", "offset_force_max")
+        check_order(self, "offset_torque_min", "offset_torque_max")
+        check_number(self, "nonlinearity", 0.0, 0.2)  # keeps the static map monotonic far beyond full scale
+        check_number(self, "full_scale_force", 0.0, math.inf, lo_open=True)
+        check_number(self, "full_scale_torque", 0.0, math.inf, lo_open=True)
+        check_number(self, "hysteresis", 0.0, 0.1)
+        check_number(self, "hysteresis_width", 0.0, 1.0, lo_open=True, hi_open=False)
 
 
 @dataclass(frozen=True)
@@ -126,16 +126,16 @@ class ThermalParams:
     SECTION = "simulate.thermal"  # dotted params key, for error messages (a class attribute, not a field)
 
     def __post_init__(self) -> None:
-        _number(self, "baseline", -50.0, 150.0, hi_open=False)
-        _number(self, "baseline_spread", 0.0, 50.0)
-        _number(self, "heat_gain", 0.0, 100.0)
-        _number(self, "tau_s", 0.0, math.inf, lo_open=True)
-        _number(self, "t_min", -50.0, 150.0, hi_open=False)
-        _number(self, "t_max", -50.0, 150.0, hi_open=False)
-        _ordered(self, "t_min", "t_max")
-        _number(self, "noise", 0.0, 10.0)
-        _number(self, "resolution", 0.0, 10.0)
-        _number(self, "warmup_max", 0.0, 50.0)
+        check_number(self, "baseline", -50.0, 150.0, hi_open=False)
+        check_number(self, "baseline_spread", 0.0, 50.0)
+        check_number(self, "heat_gain", 0.0, 100.0)
+        check_number(self, "tau_s", 0.0, math.inf, lo_open=True)
+        check_number(self, "t_min", -50.0, 150.0, hi_open=False)
+        check_number(self, "t_max", -50.0, 150.0, hi_open=False)
+        check_order(self, "t_min", "t_max")
+        check_number(self, "noise", 0.0, 10.0)
+        check_number(self, "resolution", 0.0, 10.0)
+        check_number(self, "warmup_max", 0.0, 50.0)
 
 
 @dataclass(frozen=True)
@@ -170,13 +170,13 @@ class ImuNoiseParams:
             "burst_acc",
             "burst_gyro",
         ):
-            _number(self, name, 0.0, math.inf)
-        _number(self, "burst_duration_min", 0.0, math.inf, lo_open=True)
-        _number(self, "burst_duration_max", 0.0, math.inf, lo_open=True)
-        _ordered(self, "burst_duration_min", "burst_duration_max")
-        _number(self, "burst_freq_min", 0.0, math.inf)
-        _number(self, "burst_freq_max", 0.0, math.inf)
-        _ordered(self, "burst_freq_min", "burst_freq_max")
+            check_number(self, name, 0.0, math.inf)
+        check_number(self, "burst_duration_min", 0.0, math.inf, lo_open=True)
+        check_number(self, "burst_duration_max", 0.0, math.inf, lo_open=True)
+        check_order(self, "burst_duration_min", "burst_duration_max")
+        check_number(self, "burst_freq_min", 0.0, math.inf)
+        check_number(self, "burst_freq_max", 0.0, math.inf)
+        check_order(self, "burst_freq_min", "burst_freq_max")
 
 
 @dataclass(frozen=True)
@@ -219,21 +219,21 @@ class MotionParams:
     )
 
     def __post_init__(self) -> None:
-        _number(self, "limit_margin", 0.0, 0.5)
-        _number(self, "f_min_hz", 0.0, 50.0, lo_open=True)
-        _number(self, "f_max_hz", 0.0, 50.0, lo_open=True)
-        _ordered(self, "f_min_hz", "f_max_hz")
-        _number(self, "pole_amplitude", 0.0, 0.5, hi_open=False)
-        _number(self, "upper_body_amplitude", 0.0, 0.5, hi_open=False)
-        _number(self, "still_mass_fraction", 0.0, 0.1)
+        check_number(self, "limit_margin", 0.0, 0.5)
+        check_number(self, "f_min_hz", 0.0, 50.0, lo_open=True)
+        check_number(self, "f_max_hz", 0.0, 50.0, lo_open=True)
+        check_order(self, "f_min_hz", "f_max_hz")
+        check_number(self, "pole_amplitude", 0.0, 0.5, hi_open=False)
+        check_number(self, "upper_body_amplitude", 0.0, 0.5, hi_open=False)
+        check_number(self, "still_mass_fraction", 0.0, 0.1)
         bounds = {"root_height_m": (0.0, 5.0), "stance_lean_rad": (-0.5, 0.5)}
         for name in self.DERIVED:
             if getattr(self, name) is not None:
                 lo, hi = bounds.get(name, (0.0, 1.0))
-                _number(self, name, lo, hi, lo_open=name == "root_height_m")
-        _number(self, "single_support_s", 0.1, 10.0)
-        _number(self, "double_support_s", 0.05, 10.0)
-        _number(self, "com_rate_hz", 0.5, 1000.0)
+                check_number(self, name, lo, hi, lo_open=name == "root_height_m")
+        check_number(self, "single_support_s", 0.1, 10.0)
+        check_number(self, "double_support_s", 0.05, 10.0)
+        check_number(self, "com_rate_hz", 0.5, 1000.0)
         steps = self.steps_per_direction
         if isinstance(steps, bool) or not isinstance(steps, int) or not 1 <= steps <= 100:
             raise ConfigError(
@@ -256,25 +256,74 @@ class TimingParams:
 
     def __post_init__(self) -> None:
         for name in ("jitter_s", "ft_offset_s", "delay_s"):
-            _number(self, name, 0.0, 0.1, hi_open=False)
+            check_number(self, name, 0.0, 0.1, hi_open=False)
         for name in ("drop_rate", "duplicate_rate"):
-            _number(self, name, 0.0, 0.5)
-        _number(self, "temperature_rate_hz", 0.1, 1000.0, hi_open=False)
+            check_number(self, name, 0.0, 0.5)
+        check_number(self, "temperature_rate_hz", 0.1, 1000.0, hi_open=False)
+
+
+def three_numbers(value: Any, key: str) -> tuple[float, float, float]:
+    """Three finite numbers (a point or a direction), else ConfigError naming `key`."""
+    if (
+        not isinstance(value, list | tuple)
+        or len(value) != 3
+        or not all(isinstance(v, int | float) and not isinstance(v, bool) and math.isfinite(v) for v in value)
+    ):
+        raise ConfigError(f"{key} must be 3 numbers, got {value!r}")
+    return tuple(float(v) for v in value)  # type: ignore[return-value]
+
+
+@dataclass(frozen=True)
+class LoadSpec:
+    """A known mass rigidly attached to a link (known-load experiments): a point mass at `point`."""
+
+    link: (
+        str  # a URDF link, or a site: 'hands' / 'feet' (every arm's / foot sensor's site, pipeline.sim.sites)
+    )
+    mass_kg: float
+    point: tuple[float, float, float] = (0.0, 0.0, 0.0)  # in the link frame, m
+
+    def check(self, key: str) -> None:
+        if not isinstance(self.link, str) or not self.link.strip():
+            raise ConfigError(f"{key}.link must be a link name, 'hands' or 'feet', got {self.link!r}")
+        m = self.mass_kg
+        if isinstance(m, bool) or not isinstance(m, int | float) or not 0.0 < m <= 100.0:
+            raise ConfigError(f"{key}.mass_kg must be a number in (0, 100] kg, got {m!r}")
+        object.__setattr__(self, "mass_kg", float(m))
+        object.__setattr__(self, "point", three_numbers(self.point, f"{key}.point"))
 
 
 @dataclass(frozen=True)
 class LogSpec:
     """One simulated log (an entry of ``simulate.logs``)."""
 
-    type: str  # pole | balancing | half_foot | walking | standing (both feet flat, still)
+    type: str  # pole | balancing | half_foot | walking | standing | known_load | interaction
     duration_s: float  # robot time, s
     role: str  # train | test (written into the log's metadata)
     foot: str = ""  # balancing / half_foot: the supporting foot (a robot.foot_pairs name)
     part: str = ""  # half_foot: 'front' or 'rear'
+    # known_load: the masses attached for the whole log (on the pole); the labels include them
+    loads: tuple[LoadSpec, ...] = ()
 
     def check(self, key: str, feet: tuple[str, ...]) -> None:
         if self.type not in EXPERIMENT_TYPES:
             raise ConfigError(f"{key}.type must be one of {', '.join(EXPERIMENT_TYPES)}, got {self.type!r}")
+        loads = self.loads
+        if not isinstance(loads, list | tuple) or (self.type == "known_load") != bool(loads):
+            raise ConfigError(f"{key}.loads: a known_load log needs a list of loads, no other log has any")
+        specs = []
+        for i, entry in enumerate(loads):
+            if not isinstance(entry, dict | LoadSpec):
+                raise ConfigError(
+                    f"{key}.loads[{i}] must be a mapping {{link, mass_kg, point}}, got {entry!r}"
+                )
+            try:
+                spec = entry if isinstance(entry, LoadSpec) else LoadSpec(**entry)
+            except TypeError as exc:
+                raise ConfigError(f"{key}.loads[{i}]: {exc}") from None
+            spec.check(f"{key}.loads[{i}]")
+            specs.append(spec)
+        object.__setattr__(self, "loads", tuple(specs))
         if not (isinstance(self.duration_s, int | float) and 1.0 <= self.duration_s <= 7200.0):
             raise ConfigError(f"{key}.duration_s must be in [1, 7200] s, got {self.duration_s!r}")
         if self.role not in ("train", "test"):
@@ -309,10 +358,10 @@ class PushParams:
     SECTION = "deploy.push"
 
     def __post_init__(self) -> None:
-        _number(self, "force_n", 0.0, 2000.0)
-        _number(self, "duration_s", 0.0, 60.0, lo_open=True)
-        _number(self, "period_s", 0.0, 600.0, lo_open=True)
-        _ordered(self, "duration_s", "period_s")
+        check_number(self, "force_n", 0.0, 2000.0)
+        check_number(self, "duration_s", 0.0, 60.0, lo_open=True)
+        check_number(self, "period_s", 0.0, 600.0, lo_open=True)
+        check_order(self, "duration_s", "period_s")
         d = self.direction
         if (
             not isinstance(d, list | tuple)
@@ -358,17 +407,19 @@ class SimulateParams:
     imu: ImuNoiseParams = field(default_factory=ImuNoiseParams)
     timing: TimingParams = field(default_factory=TimingParams)
     push: PushParams | None = None  # external pushes in pole logs (deployment logs only)
+    # pushes and loads of interaction logs (deployment only): a pipeline.sim.push.InteractionParams
+    interaction: Any = None
     shift: DeploymentShift | None = None  # deployment logs: their own seed and drifted offsets
 
     SECTION = "simulate"
 
     def __post_init__(self) -> None:
-        _number(self, "rate_hz", 10.0, 2000.0, hi_open=False)
-        _number(self, "mass_error", 0.0, 0.5)
-        _number(self, "com_error_m", 0.0, 0.1)
-        _number(self, "encoder_resolution_rad", 0.0, 0.1)
-        _number(self, "encoder_noise_rad", 0.0, 0.1)
-        _number(self, "activity_scale", 0.0, math.inf, lo_open=True)
+        check_number(self, "rate_hz", 10.0, 2000.0, hi_open=False)
+        check_number(self, "mass_error", 0.0, 0.5)
+        check_number(self, "com_error_m", 0.0, 0.1)
+        check_number(self, "encoder_resolution_rad", 0.0, 0.1)
+        check_number(self, "encoder_noise_rad", 0.0, 0.1)
+        check_number(self, "activity_scale", 0.0, math.inf, lo_open=True)
         if isinstance(self.workers, bool) or not isinstance(self.workers, int) or self.workers < 0:
             raise ConfigError(f"simulate.workers must be an integer >= 0, got {self.workers!r}")
         if not self.logs:
@@ -406,7 +457,11 @@ def simulate_params(params: Params) -> SimulateParams:
         if not isinstance(raw, dict):
             raise ConfigError("missing section simulate")
         raw = dict(raw)
-        for key in ("push", "shift"):  # set by the deployment section only (pipeline.deploy.params)
+        for key in (
+            "push",
+            "shift",
+            "interaction",
+        ):  # set by the deploy section only (pipeline.deploy.params)
             if key in raw:
                 raise ConfigError(
                     f"unknown key simulate.{key} (pushes and drift belong to the deploy section)"
@@ -422,6 +477,10 @@ def simulate_params(params: Params) -> SimulateParams:
         for i, entry in enumerate(raw["logs"]):
             spec = _sub(LogSpec, entry, f"simulate.logs[{i}]")
             spec.check(f"simulate.logs[{i}]", feet)
+            if spec.type == "interaction":
+                raise ConfigError(
+                    f"simulate.logs[{i}].type: interaction logs belong to deploy.logs (deploy.interaction)"
+                )
             logs.append(spec)
         raw["logs"] = tuple(logs)
         fake = Params(seed=params.seed, robot=params.robot, topics=params.topics, raw={"simulate": raw})

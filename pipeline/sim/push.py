@@ -1,4 +1,5 @@
-"""External pushes on a simulated motion: a hand pushing a foot of the robot on the pole.
+"""External pushes on a simulated motion: a hand pushing a foot of the robot on the pole (Test C), and the
+pushes and carried loads of interaction logs at every sensor's site (Test D).
 
 A push is a wrench on one link: a half-sine force profile along a fixed world direction, applied at the
 link frame's origin. It changes no joint trajectory (the joints track their references, as under stiff
@@ -8,14 +9,18 @@ true joint torques (:mod:`pipeline.sim.truth`).
 
 from __future__ import annotations
 
+import math
 from collections.abc import Sequence
-from dataclasses import replace
+from dataclasses import dataclass, replace
+from typing import Any
 
 import numpy as np
 
-from pipeline.sim.kinematics import Kinematics
+from pipeline.core.errors import ConfigError
+from pipeline.sim.kinematics import Kinematics, smoothstep
 from pipeline.sim.motion import Motion
-from pipeline.sim.params import PushParams
+from pipeline.sim.params import PushParams, check_number, check_order, three_numbers
+from pipeline.sim.sites import KIND_HAND, Site
 
 
 def push_profile(t: np.ndarray, p: PushParams, n_links: int) -> tuple[np.ndarray, np.ndarray]:
@@ -46,3 +51,141 @@ def add_pushes(kin: Kinematics, motion: Motion, links: Sequence[str], p: PushPar
             wrench[k] = np.r_[f, np.cross(kin.frame_pose(motion.q[k], link).translation, f)]
         pushes[link] = wrench
     return replace(motion, pushes=pushes)
+
+
+# --- interaction logs: pushes and a carried load at every sensor's site ---------------------------------
+
+
+@dataclass(frozen=True)
+class InteractionParams:
+    """Pushes and a carried load at every FT sensor's site, the robot on the pole (``deploy.interaction``).
+
+    The log of type ``interaction`` pushes each sensor's site (`pipeline.sim.sites`: hands, ankles, the
+    front and rear of both soles) once per direction, a half-sine of `duration_s` every `period_s`, peak
+    forces cycling through 4 levels evenly spaced in `force_n`; then each arm's site holds a mass of
+    `load_kg` for `load_s`. The motion is unchanged (stiff position control), as for `PushParams`.
+    """
+
+    force_n: tuple[float, float]  # range of the pushes' peak forces, N
+    duration_s: float  # length of a push, s
+    period_s: float  # a push starts every this many seconds, s
+    directions: tuple[tuple[float, float, float], ...]  # world (root_link) frame, normalised
+    sites: dict[str, Any]  # sensor -> {link, point}: sites replacing the derived ones
+    load_kg: float  # mass of the carried load, kg (0: none)
+    load_s: float  # how long each arm's site holds it, s
+
+    SECTION = "deploy.interaction"
+
+    def __post_init__(self) -> None:
+        f = self.force_n
+        ok = isinstance(f, list | tuple) and len(f) == 2
+        ok = ok and all(isinstance(v, int | float) and not isinstance(v, bool) for v in f)
+        if not ok or not 0.0 < f[0] <= f[1] <= 2000.0:
+            raise ConfigError(f"{self.SECTION}.force_n must be [min, max] N with 0 < min <= max, got {f!r}")
+        object.__setattr__(self, "force_n", (float(f[0]), float(f[1])))
+        check_number(self, "duration_s", 0.0, 60.0, lo_open=True)
+        check_number(self, "period_s", 0.0, 600.0, lo_open=True)
+        check_order(self, "duration_s", "period_s")
+        check_number(self, "load_kg", 0.0, 100.0, hi_open=False)
+        check_number(self, "load_s", 0.0, 600.0)
+        dirs = self.directions
+        if not isinstance(dirs, list | tuple) or not dirs:
+            raise ConfigError(
+                f"{self.SECTION}.directions must be a non-empty list of 3-vectors, got {dirs!r}"
+            )
+        unit = []
+        for i, d in enumerate(dirs):
+            v = three_numbers(d, f"{self.SECTION}.directions[{i}]")
+            if math.hypot(*v) == 0.0:
+                raise ConfigError(f"{self.SECTION}.directions[{i}] must not be zero")
+            unit.append(tuple(c / math.hypot(*v) for c in v))
+        object.__setattr__(self, "directions", tuple(unit))
+        if not isinstance(self.sites, dict):
+            raise ConfigError(f"{self.SECTION}.sites must be a mapping sensor -> {{link, point}}")
+        for sensor, entry in self.sites.items():
+            if not isinstance(entry, dict) or "link" not in entry or set(entry) - {"link", "point"}:
+                raise ConfigError(f"{self.SECTION}.sites.{sensor} must be {{link, point}}, got {entry!r}")
+            three_numbers(entry.get("point", (0, 0, 0)), f"{self.SECTION}.sites.{sensor}.point")
+
+
+PUSH, LOAD = "push", "load"
+LEVELS = 4  # push peak forces cycle through this many levels evenly spaced in force_n
+LOAD_RAMP_S = 0.3  # a load is put into the hand and taken away over this long (smoothstep), s
+FIRST_S = 1.0  # the first event starts after this long (the filters and the hysteresis settle), s
+
+
+@dataclass(frozen=True)
+class Event:
+    """One push or carried load of an interaction log, at `site` between `start_s` and `end_s`.
+
+    push: `magnitude` is the peak force (N) along `direction` (world frame); load: the mass (kg).
+    """
+
+    kind: str
+    site: Site
+    start_s: float
+    end_s: float
+    magnitude: float
+    direction: tuple[float, float, float] = (0.0, 0.0, 0.0)
+
+
+def interaction_events(sites: Sequence[Site], p: InteractionParams) -> list[Event]:
+    """Every site pushed once per direction (one push every `period_s`), then every hand's load."""
+    lo, hi = p.force_n
+    levels = np.linspace(lo, hi, LEVELS)
+    events, t = [], FIRST_S
+    for i, site in enumerate(sites):
+        for j, direction in enumerate(p.directions):
+            force = float(levels[(i + j) % LEVELS])
+            events.append(Event(PUSH, site, t, t + p.duration_s, force, direction))
+            t += p.period_s
+    if p.load_kg > 0 and p.load_s > 0:
+        for site in sites:
+            if site.kind == KIND_HAND:
+                events.append(Event(LOAD, site, t, t + p.load_s, p.load_kg))
+                t += p.load_s + p.period_s
+    return events
+
+
+def event_profile(t: np.ndarray, event: Event) -> np.ndarray:
+    """(N,) in [0, 1]: a push's half-sine, or a load's plateau with smoothstep ramps, 0 outside."""
+    span = event.end_s - event.start_s
+    s = np.clip((t - event.start_s) / span, 0.0, 1.0)
+    inside = (t >= event.start_s) & (t <= event.end_s)
+    if event.kind == PUSH:
+        return np.where(inside, np.sin(np.pi * s), 0.0)
+    ramp = min(LOAD_RAMP_S / span, 0.5)
+    up, down = np.clip(s / ramp, 0, 1), np.clip((1 - s) / ramp, 0, 1)
+    return np.where(inside, smoothstep(np.minimum(up, down)), 0.0)
+
+
+def add_interaction(
+    kin: Kinematics, motion: Motion, events: Sequence[Event], gravity: float, duration_s: float
+) -> Motion:
+    """A copy of the pole `motion` whose ``pushes`` hold the wrenches of `events` (world = root_link frame).
+
+    A push is its profile times the peak force along its direction at the site's point; a load is the weight
+    and inertial force of a point mass at the site's point, ``m (g - a_p)``, with a_p the point's
+    acceleration, times its profile. Raises ConfigError if the events do not fit in `duration_s`.
+    """
+    end = max((e.end_s for e in events), default=0.0)
+    if end > duration_s:
+        raise ConfigError(
+            f"deploy.logs: the interaction log lasts {duration_s:g} s, its {len(events)} pushes and loads "
+            f"need {end:g} s (raise its duration_s, or lower deploy.interaction.period_s)"
+        )
+    g = np.array([0.0, 0.0, -gravity])
+    pushes: dict[str, np.ndarray] = {}
+    for event in events:
+        weight = event_profile(motion.t, event)
+        active = np.flatnonzero(weight > 0)
+        wrench = pushes.setdefault(event.site.link, np.zeros((motion.n, 6)))
+        point = np.asarray(event.site.point)
+        for k in active:
+            where, acc = kin.point_motion(motion.q[k], motion.dq[k], motion.ddq[k], event.site.link, point)
+            if event.kind == PUSH:
+                force = weight[k] * event.magnitude * np.asarray(event.direction)
+            else:
+                force = weight[k] * event.magnitude * (g - acc)
+            wrench[k] += np.r_[force, np.cross(where, force)]
+    return replace(motion, pushes={**motion.pushes, **pushes})

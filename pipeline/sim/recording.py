@@ -37,7 +37,8 @@ class Recording:
     """Everything one log publishes (N samples at the simulation rate).
 
     sensors: per FT sensor name, arrays over the FT stamps: ``raw``, ``true``, ``distorted``, ``oracle``
-    (N, 6) N/Nm sensor frame; ``acc`` (N, 3) m/s^2; ``gyro`` (N, 3) rad/s; ``temp`` (N,) deg C.
+    (and ``external`` in logs with pushes or loads) (N, 6) N/Nm sensor frame; ``acc`` (N, 3) m/s^2;
+    ``gyro`` (N, 3) rad/s; ``temp`` (N,) deg C.
     """
 
     metadata: dict[str, dict[str, str]]
@@ -133,11 +134,14 @@ def _write_sensor(
     writer.imus(
         topics.sensor_topic("ft_imu", s), stamps_, s, d["acc"][sel], d["gyro"][sel], log_times_ns=logt
     )
-    for kind, key in (
+    truth = [
         ("sim_wrench_true", "true"),
         ("sim_wrench_distorted", "distorted"),
         ("sim_wrench_oracle", "oracle"),
-    ):
+    ]
+    if "external" in d:  # logs with pushes or loads: their share of the true wrench
+        truth.append(("sim_wrench_external", "external"))
+    for kind, key in truth:
         writer.wrenches(topics.sensor_topic(kind, s), rec.ft_stamps[rows], s, d[key][rows])
     writer.temperatures(
         topics.sensor_topic("ft_temperature", s),
@@ -146,4 +150,4 @@ def _write_sensor(
         d["temp"][tsel],
         log_times_ns=rec.ft_stamps[tsel] + delay(tsel.size),
     )
-    return 2 * sel.size + 3 * rows.size + tsel.size
+    return 2 * sel.size + len(truth) * rows.size + tsel.size

@@ -55,6 +55,8 @@ class Truth:
     # (N, n_joints) true joint torques, Nm (robot.joint_names order), with pushes only; NaN where more than
     # one link touches (the ground split is not resolved for joint torques)
     joint_torque: np.ndarray | None = None
+    # external[s]: (N, 6) the part of wrench[s] due to the motion's pushes and loads (zero without), N and Nm
+    external: dict[str, np.ndarray] | None = None
 
 
 def _cross(a: np.ndarray, b: np.ndarray) -> np.ndarray:
@@ -168,6 +170,7 @@ class TruthComputer:
         proper_acc = {s: np.zeros((n, 3)) for s in robot.sensors}
         gyro = {s: np.zeros((n, 3)) for s in robot.sensors}
         world_T_sensor = {s: np.zeros((n, 4, 4)) for s in robot.sensors}
+        external = {s: np.zeros((n, 6)) for s in robot.sensors} if motion.pushes else None
 
         keys = sorted(
             {(int(c), str(f)) for c, f in zip(motion.contact_index, motion.fixed_links, strict=True)}
@@ -191,7 +194,7 @@ class TruthComputer:
                 for s in robot.sensors:
                     wrench[s][idx] = asif[s]
                 if motion.pushes:
-                    self._subtract_pushes(wrench, idx, root, pose, motion)
+                    self._subtract_pushes(wrench, external, idx, root, pose, motion)
                 continue
             for c, g_c in ground.items():
                 contact_wrench[c][idx] = g_c
@@ -214,7 +217,7 @@ class TruthComputer:
                     total -= sign * np.concatenate([f_s, t_s], axis=1)
                 wrench[s][idx] = total
             if motion.pushes:
-                self._subtract_pushes(wrench, idx, root, pose, motion)
+                self._subtract_pushes(wrench, external, idx, root, pose, motion)
         # the load-bearing contact set: a foot whose ground wrench is exactly zero does not touch; a foot
         # that bears load touches with every link it has on the floor (a part may carry little)
         contacts = []
@@ -228,12 +231,19 @@ class TruthComputer:
             bearing = frozenset(declared - idle)
             contacts.append(bearing if bearing else declared)
         torque = joint_torques(robot, motion, self.g) if motion.pushes else None
-        return Truth(wrench, contact_wrench, proper_acc, gyro, world_T_sensor, contacts, torque)
+        return Truth(wrench, contact_wrench, proper_acc, gyro, world_T_sensor, contacts, torque, external)
 
     def _subtract_pushes(
-        self, wrench: dict[str, np.ndarray], idx: np.ndarray, root: str, pose: dict, motion: Motion
+        self,
+        wrench: dict[str, np.ndarray],
+        external: dict[str, np.ndarray],
+        idx: np.ndarray,
+        root: str,
+        pose: dict,
+        motion: Motion,
     ) -> None:
-        """Superpose the pushes of `motion` (samples `idx`) on the sensors whose far side they act on."""
+        """Superpose the pushes of `motion` (samples `idx`) on the sensors whose far side they act on; each
+        sensor's share also goes to `external`."""
         rooted = self.robot.rooted(root)
         for s, ft in self.robot.sensors.items():
             parent_side, child_side = self.robot.sensor_sides(s)
@@ -248,7 +258,9 @@ class TruthComputer:
                     continue
                 f_s = np.einsum("nij,nj->ni", rot, w[idx, :3])
                 t_s = np.einsum("nij,nj->ni", rot, w[idx, 3:]) + _cross(pos, f_s)
-                wrench[s][idx] -= sign * np.concatenate([f_s, t_s], axis=1)
+                share = -sign * np.concatenate([f_s, t_s], axis=1)
+                wrench[s][idx] += share
+                external[s][idx] += share
 
     def _ground_wrenches(
         self,
