@@ -153,7 +153,15 @@ def test_test_d_known_answers() -> None:
     np.testing.assert_allclose(entry["pushes"]["calibrated"]["slopes"], 0.5, atol=1e-9)
     assert entry["pushes"]["oracle"]["rmse_force"] == pytest.approx(0.0)
     assert entry["pushes"]["raw"]["rmse_force"] == pytest.approx(np.sqrt(np.mean(offset[:3] ** 2)))
+    assert entry["pushes"]["calibrated"]["rmse_change_force"] == pytest.approx(
+        np.sqrt(np.mean((0.5 * external[np.abs(external).max(axis=1) > 1e-6, :3]) ** 2))
+    )
     assert not judge(entry, 0.1, 1.5)["pass"]
+    # 5 % more than the push and a constant offset (the day's drift): the change is right but for 5 %
     good = fidelity(t, true, external, {**outputs, "calibrated": true + 0.05 * external + 0.1}, load)
     verdict = judge(good, 0.1, 1e9)
-    assert verdict["pass"] and verdict["worst_slope_gap"] == pytest.approx(0.05, abs=1e-9)
+    assert verdict["pass"] and verdict["worst_slope_excess"] == pytest.approx(0.05, abs=1e-9)
+    # an oracle that over-reports by hysteresis (slope 1.15) does not make a faithful model fail
+    biased = {**outputs, "oracle": true + 0.15 * external, "calibrated": true + 0.02 * external}
+    verdict = judge(fidelity(t, true, external, biased, load), 0.1, 1e9)
+    assert verdict["pass"] and verdict["slope_gap"] == pytest.approx(1 - 1.02 / 1.15, abs=1e-9)

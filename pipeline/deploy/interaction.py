@@ -16,8 +16,10 @@ samples of its push windows (contiguous runs where its external wrench is not ze
 - the force error during the pushes, ``model - true`` (RMSE and max over the force axes, not
   baseline-corrected: what the robot would read).
 
-The same for the carried loads (their windows apart). A sensor passes when every slope of the deployed model
-is within ``deploy.slope_tolerance`` of the oracle's (relative) and its push force RMSE is at most
+- the error of the reported change against the true one (``rmse_change_force``, force axes).
+
+The same for the carried loads (their windows apart). A sensor passes as `judge` says: slopes as close to
+the truth's as the oracle's within ``deploy.slope_tolerance``, the change's error at most
 ``deploy.push_rmse_target`` times the oracle's. Wrenches N and Nm in the sensor frame.
 """
 
@@ -95,31 +97,52 @@ def fidelity(
             ]
             force_err = (pred - true)[inside][:, :3]
             force_err = force_err[np.isfinite(force_err).all(axis=1)]
+            change_err = (change[ok] - e[ok])[:, :3]
             entry[model] = {
                 "slopes": slopes,
                 "rmse_force": float(np.sqrt(np.mean(force_err**2))) if len(force_err) else None,
                 "max_force": float(np.max(np.abs(force_err))) if len(force_err) else None,
+                "rmse_change_force": float(np.sqrt(np.mean(change_err**2))) if len(change_err) else None,
             }
         out[kind] = entry
     return out or None
 
 
 def judge(entry: Mapping[str, Any], tolerance: float, rmse_target: float) -> dict[str, Any]:
-    """The verdict of one sensor's pushes: slopes of the deployed model within `tolerance` (relative) of the
-    oracle's on every measured axis, and its push force RMSE <= `rmse_target` x the oracle's."""
+    """The verdict of one sensor's pushes, beside the oracle.
+
+    Slopes: on every measured axis the deployed model's error ``|s - 1|`` (the truth's slope is 1) is at
+    most the oracle's plus `tolerance`. The oracle inverts the static distortion only: its slopes carry the
+    sensor's hysteresis (1.0-1.2 under pushes of 10-40 N), which a calibration fitted on moving data
+    partly absorbs; ``slope_gap`` (``|s - s_oracle| / s_oracle``, worst axis) is reported beside it.
+    Error: the RMSE of the reported change against the true one during the pushes (force axes) is at most
+    `rmse_target` times the oracle's; the RMSE of the reading itself (``rmse_ratio``, which also holds the
+    day's offset drift, known to the oracle only) is reported beside it.
+    """
     pushes = entry.get("pushes")
     if not pushes:
-        return {"pass": True, "worst_slope_gap": None, "rmse_ratio": None}
-    gaps = [
-        abs(c - o) / abs(o)
+        return {"pass": True, "worst_slope_excess": None, "slope_gap": None, "change_ratio": None}
+    pairs = [
+        (c, o)
         for c, o in zip(pushes["calibrated"]["slopes"], pushes["oracle"]["slopes"], strict=True)
         if c is not None and o is not None and o != 0
     ]
-    oracle, calibrated = pushes["oracle"]["rmse_force"], pushes["calibrated"]["rmse_force"]
-    ratio = calibrated / oracle if oracle else None
-    worst = max(gaps) if gaps else None
-    ok = (worst is None or worst <= tolerance) and (ratio is None or ratio <= rmse_target)
-    return {"pass": bool(ok), "worst_slope_gap": worst, "rmse_ratio": ratio}
+    excess = max((abs(c - 1) - abs(o - 1) for c, o in pairs), default=None)
+    gap = max((abs(c - o) / abs(o) for c, o in pairs), default=None)
+
+    def ratio(key: str) -> float | None:
+        model, oracle = pushes["calibrated"][key], pushes["oracle"][key]
+        return model / oracle if model is not None and oracle is not None and oracle > 1e-9 else None
+
+    change, reading = ratio("rmse_change_force"), ratio("rmse_force")
+    ok = (excess is None or excess <= tolerance) and (change is None or change <= rmse_target)
+    return {
+        "pass": bool(ok),
+        "worst_slope_excess": excess,
+        "slope_gap": gap,
+        "change_ratio": change,
+        "rmse_ratio": reading,
+    }
 
 
 def interaction_test(
