@@ -17,7 +17,7 @@ import torch
 from pipeline.calib.excitation import OUTSIDE, WEAK, excitation, lever_relation, noise_std
 from pipeline.calib.fidelity import model_fidelity, worst_gap
 from pipeline.calib.models import GroupNet, NetConfig, fit_linear_baseline, monomial_powers
-from pipeline.calib.pushes import PushPrior, linear_push_gram, push_gram, push_penalty
+from pipeline.calib.pushes import IMU_STD, PushPrior, linear_push_gram, push_gram, push_penalty
 
 LEVER = np.array([0.0, 0.0, 0.15])  # m
 NOISE = np.array([0.6, 0.6, 0.6, 0.03, 0.03, 0.03])  # N, Nm
@@ -90,9 +90,10 @@ def test_push_penalty_is_zero_for_the_affine_start_and_positive_once_trained() -
     net.reset_parameters()  # output layer zero: the network is its affine map, no correction at all
     x = torch.randn(64, 7) * 10
     gen = torch.Generator().manual_seed(0)
-    assert float(push_penalty(net.correction, x, 7, 1, PUSH, gen)) == 0.0
-    torch.nn.init.normal_(net.nets[0].mlp[-1].weight)
-    assert float(push_penalty(net.correction, x, 7, 1, PUSH, gen)) > 0.0
+    with torch.no_grad():
+        assert float(push_penalty(net.correction, x, 7, 1, PUSH, gen)) == 0.0
+        torch.nn.init.normal_(net.nets[0].mlp[-1].weight)
+        assert float(push_penalty(net.correction, x, 7, 1, PUSH, gen)) > 0.0
 
 
 def test_noise_std_from_second_differences() -> None:
@@ -132,3 +133,18 @@ def test_fidelity_of_raw_and_of_a_shortcut() -> None:
     entry = model_fidelity(shortcut, x, PUSH, 7)[0]
     assert entry["slopes"][0] == pytest.approx(0.0)
     assert worst_gap(entry) == pytest.approx(1.0)
+
+
+def test_a_network_reading_the_imu_pays_for_it() -> None:
+    """13 inputs: a correction that follows the accelerometer (the wrench unchanged) is penalised: here
+    1 kg x acc_x on fx, so the term is E[(delta acc_x)^2] / 6 axes = IMU_STD[0]^2 / 6."""
+    x = torch.randn(20_000, 13, dtype=torch.float64)
+    gen = torch.Generator().manual_seed(0)
+
+    def reads_acc(xs: torch.Tensor) -> torch.Tensor:
+        out = torch.zeros(len(xs), 6, dtype=xs.dtype)
+        out[:, 0] = 1.0 * xs[:, 7]
+        return out
+
+    penalty = float(push_penalty(reads_acc, x, 13, 1, PUSH, gen))
+    assert penalty == pytest.approx(IMU_STD[0] ** 2 / 6, rel=0.05)

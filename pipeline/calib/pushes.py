@@ -17,7 +17,8 @@ minimises, besides its labelled loss,
 
 where c is the correction (the calibrated wrench minus the raw one). For a linear model this is a ridge
 on its wrench coefficients in the metric of pushes, in closed form (`push_gram`); for a network the
-expectation is sampled, one push per sample and step (`push_penalty`). A correction that cancels the
+expectation is sampled, one push per sample and step (`push_penalty`), and a network that reads the FT
+board's IMU also gets virtual changes of it, the wrench unchanged. A correction that cancels the
 reading along a direction pays about ``weight * force^2`` per sample there; a real coupling or gain
 correction of a few % pays ``weight * (0.03 force)^2``, far below what the labels gain from it. So the
 labels decide where they have evidence, and elsewhere the calibration stays the factory's.
@@ -35,6 +36,9 @@ if TYPE_CHECKING:  # torch only where a network trains (params import this modul
     import torch
 
 WRENCH = 6
+IMU_INPUTS = 13  # a sensor's inputs with its FT board's accelerometer and gyroscope (columns 7-9, 10-12)
+# a virtual change of the IMU: accelerations and turn rates a moving limb's board sees (m/s^2, rad/s)
+IMU_STD = np.r_[np.full(3, 2.0), np.full(3, 0.5)]
 
 
 @dataclass(frozen=True)
@@ -112,14 +116,19 @@ def push_penalty(
     """The network's term: ``mean over the batch of sum_s mean_axes |c_s(x + delta) - c_s(x)|^2``.
 
     correction: maps flat inputs (B, S * n_inputs) to the corrections (B, S * 6) (N, Nm). One virtual
-    push per sample and sensor, drawn from `generator`, on each sensor's raw wrench columns.
+    push per sample and sensor, drawn from `generator`, on each sensor's raw wrench columns; with 13 inputs
+    also a virtual change of the FT board's IMU (`IMU_STD`), the wrench unchanged: the accelerometer and
+    gyroscope must not stand in for the wrench the sensor measures.
     """
     import torch
 
-    std = torch.as_tensor(np.sqrt(prior.variances()), dtype=x.dtype)
+    std = np.sqrt(prior.variances())
+    if n_inputs == IMU_INPUTS:
+        std = np.r_[std, 0.0, IMU_STD]  # no temperature change
+    width = len(std)
+    scale = torch.as_tensor(std, dtype=x.dtype)
     delta = torch.zeros_like(x)
-    noise = torch.randn((len(x), n_sensors, WRENCH), generator=generator, dtype=x.dtype) * std
-    view = delta.view(len(x), n_sensors, n_inputs)
-    view[:, :, :WRENCH] = noise
+    noise = torch.randn((len(x), n_sensors, width), generator=generator, dtype=x.dtype) * scale
+    delta.view(len(x), n_sensors, n_inputs)[:, :, :width] = noise
     change = correction(x + delta) - correction(x)
     return change.view(len(x), n_sensors, WRENCH).square().mean(dim=2).sum(dim=1).mean()
