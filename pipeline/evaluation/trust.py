@@ -16,6 +16,8 @@ from pipeline.evaluation.params import TRUTH
 if TYPE_CHECKING:
     from pipeline.evaluation.results import GroupReport
 
+RELATION_R2 = 0.9  # a sensor's labels "follow torque ~ c x force" when it explains this share of the torques
+
 
 def passed_over(r: GroupReport, flags: Mapping[str, str]) -> list[dict[str, Any]]:
     """The models ranked before the recommended one and why each was passed over, with the cost: the
@@ -144,13 +146,19 @@ def excitation_html(r: GroupReport) -> str:
         )
         if e["weak"]:
             weak = [_direction_text(d, e["noise"]) for d in e["directions"][len(std) - e["weak"] :]]
+            relation = (
+                f" Its labels follow torque ~ c x force (c = ({', '.join(f'{v:.3f}' for v in c)}) m, "
+                f"{fmt(100 * r2)} % of the torque variance): a free limb's relation."
+                if r2 >= RELATION_R2
+                else ""
+            )
             warnings.append(
                 f"<li><b>{esc(sensor)}</b>: {e['weak']} of 6 directions barely excited by the training "
-                f"labels (std below {WEAK:g}x the noise): {esc('; '.join(weak))}. Its calibration is "
-                f"trustworthy on a narrow relation (torque ~ c x force explains {fmt(100 * r2)} % of the "
-                "torque variance); along those directions it keeps the factory map's gain and coupling. "
-                "To widen it: record a known-load experiment (a mass at a known point of the limb, "
-                "simulate type known_load) or pushes with a known force.</li>"
+                f"labels (std below {WEAK:g}x the noise): {esc('; '.join(weak))}. Along them its calibration "
+                "keeps the factory map's gain and coupling (the virtual pushes): trustworthy there only as "
+                f"far as the factory calibration is.{esc(relation)} To widen it: record a known-load "
+                "experiment (a mass at a known point of the limb, simulate type known_load) or pushes with "
+                "a known force.</li>"
             )
     head = ["sensor", "labels", "std per direction (noise units)", "weak", "torque ~ c x force (c, R²)",
             "test: outside p95", f"test: % beyond {OUTSIDE:g}"]  # fmt: skip
