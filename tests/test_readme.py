@@ -91,9 +91,9 @@ def path_exists(path: str) -> bool:
     if any(fnmatch.fnmatch(f, path) or fnmatch.fnmatch(f, path + "/*") for f in tracked()):
         return True
     dvc = [p for s in stages().values() for p in _paths(s, ("outs", "deps", "metrics", "plots"))]
-    return any(fnmatch.fnmatch(d, path) or path.startswith(d + "/") for d in dvc) or any(
-        fnmatch.fnmatch(d, path.split("/*")[0]) for d in dvc
-    )
+    return any(  # a stage's path, inside one, or a folder of such paths
+        fnmatch.fnmatch(d, path) or path.startswith(d + "/") or d.startswith(path + "/") for d in dvc
+    ) or any(fnmatch.fnmatch(d, path.split("/*")[0]) for d in dvc)
 
 
 def params_key_exists(key: str) -> bool:

@@ -16,7 +16,6 @@ in the other slots, whose outputs are discarded).
 
 from __future__ import annotations
 
-import json
 from collections.abc import Iterable, Mapping, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -67,20 +66,13 @@ class Deployment:
     def load(cls, path: str | Path, threads: int = 1) -> Deployment:
         """Read `path`/manifest.json and open the float64 graphs. Raises DataError naming the file."""
         from pipeline.export.check import session
-        from pipeline.export.manifest import FORMAT, MANIFEST_FILE, sha256_file
+        from pipeline.export.manifest import MANIFEST_FILE, read_manifest, sha256_file
 
         path = Path(path)
         file = path / MANIFEST_FILE
         if not path.is_dir():
-            raise DataError(f"{path}: models directory not found (run `dvc repro export`, or pass --models)")
-        try:
-            manifest = json.loads(file.read_text(encoding="utf-8"))
-        except FileNotFoundError:
-            raise DataError(f"{file}: not found (is {path} an export directory?)") from None
-        except (OSError, ValueError) as exc:
-            raise DataError(f"{file}: not a manifest: {exc}") from None
-        if not isinstance(manifest, dict) or manifest.get("format") != FORMAT or "graphs" not in manifest:
-            raise DataError(f"{file}: not an ftcal export manifest (format {FORMAT!r})")
+            raise DataError(f"{path}: models directory not found (run `dvc repro`, or pass --models)")
+        manifest = read_manifest(path)
         sessions = {}
         deployment = cls(path, manifest, sessions)
         for group, entry in deployment.groups().items():
