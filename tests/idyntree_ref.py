@@ -405,6 +405,72 @@ class IDynTreeFT:
             out[i] = rel.asHomogeneousTransform().toNumPy() @ link_h
         return out
 
+    def imu(
+        self, q: np.ndarray, dq: np.ndarray, ddq: np.ndarray, fixed: str, gravity: np.ndarray, sensor: str
+    ) -> tuple[np.ndarray, np.ndarray]:
+        """``(N, 3)`` proper acceleration (m/s^2) and ``(N, 3)`` angular velocity (rad/s) of FT sensor
+        `sensor`'s frame, in that frame, with link/frame `fixed` still in the world, whose gravity is
+        `gravity` (3,) in `fixed`'s frame.
+
+        From iDynTree alone: the sensor frame added to its link (`getLinkSensorTransform`), the floating
+        base on `fixed`, ``getFrameVel`` / ``getFrameAcc`` in MIXED representation (the frame origin's
+        classical acceleration and the angular velocity, world axes) rotated into the sensor frame.
+        """
+        kindyn = self._imu_model(sensor)
+        kindyn.setFloatingBase(fixed if fixed in self.link_names else self._link_of(fixed))
+        world_T_base = iDynTree.Transform.Identity()
+        if fixed not in self.link_names:  # an additional frame (a sole): the world is that frame
+            link_H_frame = self._model.getFrameTransform(self.frame_index(fixed))
+            world_T_base = link_H_frame.inverse()
+        g = iDynTree.Vector3.FromPython(np.asarray(gravity, dtype=float))
+        zero6 = iDynTree.Twist.Zero()
+        base_acc = iDynTree.Vector6.FromPython(np.zeros(6))
+        frame = kindyn.getFrameIndex(f"{sensor}_imu_frame")
+        arrays = [
+            self._check_joint_array(a, n)[:, self._to_idyn] for a, n in ((q, "q"), (dq, "dq"), (ddq, "ddq"))
+        ]
+        acc, gyro = np.empty((len(arrays[0]), 3)), np.empty((len(arrays[0]), 3))
+        s_q = iDynTree.VectorDynSize(len(self.joint_names))
+        s_dq, s_ddq = (
+            iDynTree.VectorDynSize(len(self.joint_names)),
+            iDynTree.VectorDynSize(len(self.joint_names)),
+        )
+        for i in range(len(arrays[0])):
+            for vec, a in zip((s_q, s_dq, s_ddq), arrays, strict=True):
+                for k, v in enumerate(a[i]):
+                    vec.setVal(k, float(v))
+            kindyn.setRobotState(world_T_base, s_q, zero6, s_dq, g)
+            rotation = kindyn.getWorldTransform(frame).getRotation().toNumPy()
+            twist = kindyn.getFrameVel(frame).toNumPy()
+            spatial = kindyn.getFrameAcc(frame, base_acc, s_ddq).toNumPy()
+            acc[i] = rotation.T @ (spatial[:3] - np.asarray(gravity))
+            gyro[i] = rotation.T @ twist[3:]
+        return acc, gyro
+
+    def _link_of(self, frame: str) -> str:
+        return self._model.getLinkName(self._model.getFrameLink(self.frame_index(frame)))
+
+    def _imu_model(self, sensor: str) -> Any:
+        """A KinDynComputations of the model with the sensor's frame added to its link (MIXED)."""
+        cache = self.__dict__.setdefault("_imu_kindyn", {})
+        if sensor not in cache:
+            ft = self._est.sensors().getSixAxisForceTorqueSensor(self.sensor_names.index(sensor))
+            link = ft.getAppliedWrenchLink()
+            link_H_sensor = iDynTree.Transform()
+            if not ft.getLinkSensorTransform(link, link_H_sensor):
+                raise RuntimeError(f"getLinkSensorTransform failed for {sensor}")
+            model = self._model.copy()
+            if not model.addAdditionalFrameToLink(
+                model.getLinkName(link), f"{sensor}_imu_frame", link_H_sensor
+            ):
+                raise RuntimeError(f"cannot add the frame of {sensor}")
+            kindyn = iDynTree.KinDynComputations()
+            if not kindyn.loadRobotModel(model):
+                raise RuntimeError("KinDynComputations.loadRobotModel failed")
+            kindyn.setFrameVelocityRepresentation(iDynTree.MIXED_REPRESENTATION)
+            cache[sensor] = kindyn
+        return cache[sensor]
+
     def _read_slow(self, row: np.ndarray) -> None:
         for k in range(self._n_ft):
             self._predicted.getMeasurement(iDynTree.SIX_AXIS_FORCE_TORQUE, k, self._wrench)
