@@ -376,6 +376,48 @@ class IDynTreeFT:
                 self._read_slow(out[i])
         return {name: out[:, 6 * k : 6 * k + 6].copy() for k, name in enumerate(self.sensor_names)}
 
+    def estimated_torques(
+        self,
+        q: np.ndarray,
+        dq: np.ndarray,
+        ddq: np.ndarray,
+        contact_links: Sequence[str],
+        fixed_frame: str,
+        gravity_in_fixed_frame: np.ndarray,
+        measured: dict[str, np.ndarray],
+    ) -> np.ndarray:
+        """``(N, n_joints)`` joint torques (Nm, ``joint_names`` order) from iDynTree's
+        ``estimateExtWrenchesAndJointTorques``: the FT sensors' `measured` wrenches (sensor -> (N, 6), every
+        sensor) split the robot into subtrees, each subtree's unknown contact wrenches (one full 6D wrench
+        per link of `contact_links`) are estimated from its sensors, and the joint torques follow."""
+        q2, dq2, ddq2 = (self._check_joint_array(a, n) for a, n in ((q, "q"), (dq, "dq"), (ddq, "ddq")))
+        missing = sorted(set(self.sensor_names) - set(measured))
+        if missing:
+            raise ValueError(f"no measured wrench of {missing}")
+        fixed_index = self.frame_index(fixed_frame)
+        self._set_contacts(contact_links)
+        self._gravity.set(np.asarray(gravity_in_fixed_frame, dtype=float).reshape(3))
+        est, meas = self._est, iDynTree.SensorsMeasurements(self._est.sensors())
+        out = np.empty(q2.shape)
+        for i in range(q2.shape[0]):
+            self._q.set(np.ascontiguousarray(q2[i, self._to_idyn]))
+            self._dq.set(np.ascontiguousarray(dq2[i, self._to_idyn]))
+            self._ddq.set(np.ascontiguousarray(ddq2[i, self._to_idyn]))
+            if not est.updateKinematicsFromFixedBase(
+                self._q.vec, self._dq.vec, self._ddq.vec, fixed_index, self._gravity.vec
+            ):
+                raise RuntimeError(f"updateKinematicsFromFixedBase failed at sample {i}")
+            for k, name in enumerate(self.sensor_names):
+                meas.setMeasurement(
+                    iDynTree.SIX_AXIS_FORCE_TORQUE, k, iDynTree.Wrench.FromPython(measured[name][i])
+                )
+            if not est.estimateExtWrenchesAndJointTorques(
+                self._unknowns, meas, self._contact_wrenches, self._joint_torques
+            ):
+                raise RuntimeError(f"estimateExtWrenchesAndJointTorques failed at sample {i}")
+            out[i, self._to_idyn] = self._joint_torques.toNumPy()
+        return out
+
     def sensor_poses(self, q: np.ndarray, frame: str, sensor: str) -> np.ndarray:
         """``(N, 4, 4)`` homogeneous pose of FT sensor `sensor`'s frame in link/frame `frame`.
 
