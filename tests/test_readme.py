@@ -57,10 +57,11 @@ def stages() -> dict[str, dict]:
             continue
         items = stage["foreach"]
         if isinstance(items, str):
-            items = list(eval_params(items))
-        for item in items:
-            text = yaml.safe_dump(stage["do"]).replace("${key}", str(item)).replace("${item}", str(item))
-            out[f"{name}@{item}"] = yaml.safe_load(text)
+            items = eval_params(items)
+        pairs = items.items() if isinstance(items, dict) else [(item, item) for item in items]
+        for key, item in pairs:  # a mapping: ${key} its key, ${item} its value; a list: both the element
+            text = yaml.safe_dump(stage["do"]).replace("${key}", str(key)).replace("${item}", str(item))
+            out[f"{name}@{key}"] = yaml.safe_load(text)
     for stage in out.values():
         text = re.sub(r"\$\{([\w.]+)\}", lookup, yaml.safe_dump(stage))
         stage.clear()
