@@ -42,7 +42,7 @@ def _repro() -> dict[str, float]:
     end = time.monotonic()
     if proc.wait() != 0:
         raise SystemExit("dvc repro failed")
-    bounds = [t for _, t in starts[1:]] + [end]
+    bounds = [t for _, t in starts[1:]] + ([end] if starts else [])
     stages = {name: stop - start for (name, start), stop in zip(starts, bounds, strict=True)}
     stages["(dvc before the first stage)"] = (starts[0][1] if starts else end) - t0
     return stages
