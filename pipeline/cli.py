@@ -33,9 +33,11 @@ COMMANDS: dict[str, tuple[str, str]] = {
     "report": ("pipeline.stages.report", "assemble the report page of every group's evaluation"),
     "export": ("pipeline.stages.export", "the recommended models as ONNX graphs with a manifest"),
     "calibrate": ("pipeline.tools.calibrate", "copy a log adding the exported calibration's wrenches"),
-    "deploy-test": (
-        "pipeline.stages.deploy_test",
-        "deployment tests A, B, C on logs recorded after training",
+    "deploy-prepare": ("pipeline.stages.deploy_prepare", "ingest, smooth and label a deployment day's logs"),
+    "deploy-test": ("pipeline.stages.deploy_test", "deployment tests A, B, C of one sensor group"),
+    "deploy-report": (
+        "pipeline.stages.deploy_report",
+        "the deployment page and verdict of every group's tests",
     ),
     "convert-mat": ("pipeline.tools.convert_mat", "convert a robot-logger .mat file to a contract MCAP"),
     "worker": ("pipeline.tools.worker", "run Optuna trials of a group's search beside the stage (database)"),

@@ -10,7 +10,8 @@ from pipeline.physics.robot import RobotModel, load_robot
 from tests.pgserver import mlflow_server, pg_url  # noqa: F401 (session fixtures)
 
 REPO = Path(__file__).resolve().parents[1]
-ERGOCUB_URDF = REPO.parent / "shared" / "robots" / "ergoCubSN001" / "model.urdf"
+# ergoCub's URDF (BSD-3, its LICENSE beside it), vendored so that its tests run on every clone and in CI
+ERGOCUB_URDF = REPO / "tests" / "robots" / "ergoCubSN001" / "model.urdf"
 ROBOTS = ["iCubGenova09", "ergoCubSN001"]
 GRAVITY = 9.80665
 FOOT_PAIRS = {
@@ -20,12 +21,8 @@ FOOT_PAIRS = {
 
 
 def robot_source(name: str) -> str:
-    """URDF path or icub-models name of a test robot; skips when ../shared is absent (users' clones)."""
-    if name == "ergoCubSN001":
-        if not ERGOCUB_URDF.is_file():
-            pytest.skip(f"{ERGOCUB_URDF} is absent (../shared is only beside developer checkouts)")
-        return str(ERGOCUB_URDF)
-    return name
+    """URDF path or icub-models name of a test robot."""
+    return str(ERGOCUB_URDF) if name == "ergoCubSN001" else name
 
 
 _CACHE: dict[str, RobotModel] = {}

@@ -376,6 +376,48 @@ class IDynTreeFT:
                 self._read_slow(out[i])
         return {name: out[:, 6 * k : 6 * k + 6].copy() for k, name in enumerate(self.sensor_names)}
 
+    def estimated_torques(
+        self,
+        q: np.ndarray,
+        dq: np.ndarray,
+        ddq: np.ndarray,
+        contact_links: Sequence[str],
+        fixed_frame: str,
+        gravity_in_fixed_frame: np.ndarray,
+        measured: dict[str, np.ndarray],
+    ) -> np.ndarray:
+        """``(N, n_joints)`` joint torques (Nm, ``joint_names`` order) from iDynTree's
+        ``estimateExtWrenchesAndJointTorques``: the FT sensors' `measured` wrenches (sensor -> (N, 6), every
+        sensor) split the robot into subtrees, each subtree's unknown contact wrenches (one full 6D wrench
+        per link of `contact_links`) are estimated from its sensors, and the joint torques follow."""
+        q2, dq2, ddq2 = (self._check_joint_array(a, n) for a, n in ((q, "q"), (dq, "dq"), (ddq, "ddq")))
+        missing = sorted(set(self.sensor_names) - set(measured))
+        if missing:
+            raise ValueError(f"no measured wrench of {missing}")
+        fixed_index = self.frame_index(fixed_frame)
+        self._set_contacts(contact_links)
+        self._gravity.set(np.asarray(gravity_in_fixed_frame, dtype=float).reshape(3))
+        est, meas = self._est, iDynTree.SensorsMeasurements(self._est.sensors())
+        out = np.empty(q2.shape)
+        for i in range(q2.shape[0]):
+            self._q.set(np.ascontiguousarray(q2[i, self._to_idyn]))
+            self._dq.set(np.ascontiguousarray(dq2[i, self._to_idyn]))
+            self._ddq.set(np.ascontiguousarray(ddq2[i, self._to_idyn]))
+            if not est.updateKinematicsFromFixedBase(
+                self._q.vec, self._dq.vec, self._ddq.vec, fixed_index, self._gravity.vec
+            ):
+                raise RuntimeError(f"updateKinematicsFromFixedBase failed at sample {i}")
+            for k, name in enumerate(self.sensor_names):
+                meas.setMeasurement(
+                    iDynTree.SIX_AXIS_FORCE_TORQUE, k, iDynTree.Wrench.FromPython(measured[name][i])
+                )
+            if not est.estimateExtWrenchesAndJointTorques(
+                self._unknowns, meas, self._contact_wrenches, self._joint_torques
+            ):
+                raise RuntimeError(f"estimateExtWrenchesAndJointTorques failed at sample {i}")
+            out[i, self._to_idyn] = self._joint_torques.toNumPy()
+        return out
+
     def sensor_poses(self, q: np.ndarray, frame: str, sensor: str) -> np.ndarray:
         """``(N, 4, 4)`` homogeneous pose of FT sensor `sensor`'s frame in link/frame `frame`.
 
@@ -404,6 +446,72 @@ class IDynTreeFT:
             rel = self._kindyn.getRelativeTransform(frame_index, link)
             out[i] = rel.asHomogeneousTransform().toNumPy() @ link_h
         return out
+
+    def imu(
+        self, q: np.ndarray, dq: np.ndarray, ddq: np.ndarray, fixed: str, gravity: np.ndarray, sensor: str
+    ) -> tuple[np.ndarray, np.ndarray]:
+        """``(N, 3)`` proper acceleration (m/s^2) and ``(N, 3)`` angular velocity (rad/s) of FT sensor
+        `sensor`'s frame, in that frame, with link/frame `fixed` still in the world, whose gravity is
+        `gravity` (3,) in `fixed`'s frame.
+
+        From iDynTree alone: the sensor frame added to its link (`getLinkSensorTransform`), the floating
+        base on `fixed`, ``getFrameVel`` / ``getFrameAcc`` in MIXED representation (the frame origin's
+        classical acceleration and the angular velocity, world axes) rotated into the sensor frame.
+        """
+        kindyn = self._imu_model(sensor)
+        kindyn.setFloatingBase(fixed if fixed in self.link_names else self._link_of(fixed))
+        world_T_base = iDynTree.Transform.Identity()
+        if fixed not in self.link_names:  # an additional frame (a sole): the world is that frame
+            link_H_frame = self._model.getFrameTransform(self.frame_index(fixed))
+            world_T_base = link_H_frame.inverse()
+        g = iDynTree.Vector3.FromPython(np.asarray(gravity, dtype=float))
+        zero6 = iDynTree.Twist.Zero()
+        base_acc = iDynTree.Vector6.FromPython(np.zeros(6))
+        frame = kindyn.getFrameIndex(f"{sensor}_imu_frame")
+        arrays = [
+            self._check_joint_array(a, n)[:, self._to_idyn] for a, n in ((q, "q"), (dq, "dq"), (ddq, "ddq"))
+        ]
+        acc, gyro = np.empty((len(arrays[0]), 3)), np.empty((len(arrays[0]), 3))
+        s_q = iDynTree.VectorDynSize(len(self.joint_names))
+        s_dq, s_ddq = (
+            iDynTree.VectorDynSize(len(self.joint_names)),
+            iDynTree.VectorDynSize(len(self.joint_names)),
+        )
+        for i in range(len(arrays[0])):
+            for vec, a in zip((s_q, s_dq, s_ddq), arrays, strict=True):
+                for k, v in enumerate(a[i]):
+                    vec.setVal(k, float(v))
+            kindyn.setRobotState(world_T_base, s_q, zero6, s_dq, g)
+            rotation = kindyn.getWorldTransform(frame).getRotation().toNumPy()
+            twist = kindyn.getFrameVel(frame).toNumPy()
+            spatial = kindyn.getFrameAcc(frame, base_acc, s_ddq).toNumPy()
+            acc[i] = rotation.T @ (spatial[:3] - np.asarray(gravity))
+            gyro[i] = rotation.T @ twist[3:]
+        return acc, gyro
+
+    def _link_of(self, frame: str) -> str:
+        return self._model.getLinkName(self._model.getFrameLink(self.frame_index(frame)))
+
+    def _imu_model(self, sensor: str) -> Any:
+        """A KinDynComputations of the model with the sensor's frame added to its link (MIXED)."""
+        cache = self.__dict__.setdefault("_imu_kindyn", {})
+        if sensor not in cache:
+            ft = self._est.sensors().getSixAxisForceTorqueSensor(self.sensor_names.index(sensor))
+            link = ft.getAppliedWrenchLink()
+            link_H_sensor = iDynTree.Transform()
+            if not ft.getLinkSensorTransform(link, link_H_sensor):
+                raise RuntimeError(f"getLinkSensorTransform failed for {sensor}")
+            model = self._model.copy()
+            if not model.addAdditionalFrameToLink(
+                model.getLinkName(link), f"{sensor}_imu_frame", link_H_sensor
+            ):
+                raise RuntimeError(f"cannot add the frame of {sensor}")
+            kindyn = iDynTree.KinDynComputations()
+            if not kindyn.loadRobotModel(model):
+                raise RuntimeError("KinDynComputations.loadRobotModel failed")
+            kindyn.setFrameVelocityRepresentation(iDynTree.MIXED_REPRESENTATION)
+            cache[sensor] = kindyn
+        return cache[sensor]
 
     def _read_slow(self, row: np.ndarray) -> None:
         for k in range(self._n_ft):

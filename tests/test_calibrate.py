@@ -318,3 +318,34 @@ def test_attachments_metadata_and_foreign_records_survive(setup: dict, tmp_path:
         (attachment,) = list(reader.iter_attachments())
         assert (attachment.name, attachment.data) == ("notes.txt", b"hello")
         assert [m.metadata for m in reader.iter_metadata()] == [{"robot": "iCubGenova09", "role": "test"}]
+
+
+@pytest.mark.parametrize("layout", ["no_chunks", "chunks_without_chunk_index", "no_summary"])
+def test_logs_without_chunk_index_are_scanned_as_ingest_reads_them(
+    setup: dict, tmp_path: Path, layout: str
+) -> None:
+    """The log rewritten by mcap's own writer without chunk indexes (or chunks, or summary), which `ftcal
+    ingest` reads by scanning: calibrated to the same messages as the indexed log, every original record
+    kept in order, and the copy read back by mcap's reader and by ours."""
+    from pipeline.logs.mcap_read import LogReader
+    from tests.test_ingest_layouts import LAYOUTS, copy_log
+
+    src = copy_log(setup["log"], tmp_path / f"{layout}.mcap", **LAYOUTS[layout])
+    with LogReader(src) as reader:
+        assert not reader.indexed
+    indexed = tmp_path / "indexed_calibrated.mcap"
+    assert main(_cli(setup, setup["log"], indexed)) == 0
+    out = tmp_path / "calibrated.mcap"
+    assert main(_cli(setup, src, out)) == 0
+    copied = _messages(out)
+    assert [m for m in copied if not m[0].endswith("_calibrated")] == _messages(src)
+
+    def calibrated(path: Path) -> list[tuple[str, int, int, bytes]]:
+        return sorted((m[0], m[1], m[2], m[4]) for m in _messages(path) if m[0].endswith("_calibrated"))
+
+    expected = calibrated(indexed)
+    assert len(expected) > 1000 and calibrated(out) == expected
+    with LogReader(out) as reader:
+        assert reader.topics[f"/ft/{LEG}/wrench_calibrated"].message_count == sum(
+            m[0] == f"/ft/{LEG}/wrench_calibrated" for m in expected
+        )

@@ -1,28 +1,38 @@
-"""Stage `deploy_test` end to end: a short deployment day from the real simulator (`ftcal simulate --deploy`),
-the real export of tiny trained models (nn13 for r_leg_ft, the affine map for the r_foot pair), the stage
-through the CLI; its files, and its numbers against independent references: Test A's flags against the
-params' rule, Test B's raw errors against the simulator's own summary, Test C's push window against the
-push schedule of the params."""
+"""Stages `deploy_prepare`, `deploy_test@<group>` and `deploy_report` end to end: a short deployment day from
+the real simulator (`ftcal simulate --deploy`), the real export of tiny trained models (nn13 for r_leg_ft,
+the affine map for the r_foot pair), the stages through the CLI; their files, and their numbers against
+independent references: Test A's flags against the params' rule, Test B's raw errors against the simulator's
+own summary, Test C's push window against the push schedule of the params.
+
+Known answers: the day's sensors have a linear hidden distortion (coupling, gains, offsets, noise; no
+temperature terms, nonlinearity or hysteresis), so the exact calibration is an affine map, built from the
+simulator's hidden truth (truth.json) and exported as the groups' model. That day passes, its Test B and C
+ratios those of the exact inverse computed here with numpy (and the torque estimator on its wrenches); the
+same day calibrated by the factory map (the raw model exported) fails, every ratio exactly 1.
+"""
 
 from __future__ import annotations
 
 import dataclasses
 import json
 import math
+import shutil
 from pathlib import Path
 from typing import Any
 
 import numpy as np
+import pandas as pd
 import pytest
 import yaml
 
 from pipeline.cli import main
 from pipeline.core.config import load_params, stage_section
 from pipeline.deploy import checks
-from pipeline.deploy.prepare import load_nominal_robot, prepare_logs
+from pipeline.deploy.prepare import read_day
 from pipeline.evaluation.params import EvaluateParams
+from pipeline.logs import schema as S
 from tests.test_export import _report
-from tests.test_train import LEG, PAIR
+from tests.test_train import FRONT, LEG, PAIR, REAR
 
 PUSH = {"force_n": 60.0, "duration_s": 0.8, "period_s": 2.0, "direction": [1.0, 0.3, 0.0]}
 LOGS = [
@@ -31,54 +41,129 @@ LOGS = [
     {"type": "pole", "duration_s": 5},
 ]
 DEPLOYED = {LEG: "nn13", PAIR: "affine"}
+LINEAR = {  # the hidden distortion without its temperature terms, nonlinearity and hysteresis
+    "temperature_gain": 0.0,
+    "offset_drift_force": 0.0,
+    "offset_drift_torque": 0.0,
+    "nonlinearity": 0.0,
+    "hysteresis": 0.0,
+}
+
+
+def _exact_affine(distortion: dict[str, Any]) -> dict[str, Any]:
+    """The affine model (baselines.json's form, inputs unnormalised) inverting raw = C w + o exactly:
+    w = raw + (C^-1 - I) raw - C^-1 o, temperature unused."""
+    c_inv = np.linalg.inv(np.asarray(distortion["coupling"]))
+    weights = np.zeros((6, 8))
+    weights[:, 0] = -c_inv @ np.asarray(distortion["offset"])
+    weights[:, 1:7] = c_inv - np.eye(6)
+    return {"weights": weights, "offset": np.zeros(7), "scale": np.ones(7)}
+
+
+def _exact_models(models: Path, out: Path, truth: dict[str, Any]) -> Path:
+    """A copy of the trained groups whose affine map is the exact inverse of the day's distortions."""
+    shutil.copytree(models, out)
+    for group in (LEG, PAIR):
+        sensors = json.loads((out / group / "metrics.json").read_text())["sensors"]
+        baselines = json.loads((out / group / "baselines.json").read_text())
+        exact = [_exact_affine(truth["distortions"][s]) for s in sensors]
+        for key in ("weights", "offset", "scale"):
+            baselines["affine"][key] = np.stack([e[key] for e in exact]).tolist()
+        (out / group / "baselines.json").write_text(json.dumps(baselines))
+    return out
+
+
+def _deploy(root: Path, params: Path, models: Path, exported: Path, tables: Path, reports: Path) -> None:
+    for group in (LEG, PAIR):
+        args = [group, str(models / group), str(exported / "groups" / group), str(tables)]
+        args.append(str(reports / "deployment" / "groups" / group))
+        assert main(["deploy-test", *args, "--params", str(params)]) == 0
+    args = [str(reports / "deployment" / "groups"), str(reports), "--params", str(params)]
+    assert main(["deploy-report", *args]) == 0
 
 
 @pytest.fixture(scope="module")
 def stage(trained_models: dict, tmp_path_factory: pytest.TempPathFactory) -> dict[str, Any]:
-    """The deployment day simulated, the export, and the stage run once (throwaway MLflow store)."""
+    """The deployment day simulated and prepared; the stages run once on each of three exports: the trained
+    models, the exact calibration, the factory one (raw) (throwaway MLflow store)."""
     root = tmp_path_factory.mktemp("deploy")
     data = yaml.safe_load(Path(trained_models["params"]).read_text())
     data["simulate"]["workers"] = 1
-    data["deploy"].update(logs=LOGS, push=PUSH, real_logs=str(root / "no_real_logs"))
+    data["simulate"]["sensors"].update(LINEAR)
+    (root / "real").mkdir()  # deploy.real_logs: a folder without logs yet
+    data["deploy"].update(logs=LOGS, push=PUSH, real_logs=str(root / "real"))
     params = root / "params.yaml"
     params.write_text(yaml.safe_dump(data, sort_keys=False))
-    day, exported, reports = root / "later", root / "exported", root / "reports"
+    day, tables = root / "later", root / "tables"
     patch = pytest.MonkeyPatch()
     patch.setenv("MLFLOW_TRACKING_URI", f"sqlite:///{root / 'mlflow.db'}")  # the export registers here
+    out: dict[str, Any] = {"params": params, "day": day, "root": root, "models": trained_models["models"]}
     try:
         assert main(["simulate", str(day), "--deploy", "later", "--quiet", "--params", str(params)]) == 0
-        metrics = _report(root, DEPLOYED)
-        args = [str(trained_models["models"]), str(metrics), str(trained_models["labelled"]), str(exported)]
-        assert main(["export", *args, "--params", str(params)]) == 0
-        args = [str(trained_models["models"]), str(exported), str(reports), "--later", str(day)]
-        assert main(["deploy-test", *args, "--params", str(params)]) == 0
+        for name, logs in (("later", day), ("real", root / "real")):
+            assert main(["deploy-prepare", str(logs), str(tables / name), "--params", str(params)]) == 0
+        truth = json.loads((day / "truth.json").read_text())
+        exact = _exact_models(trained_models["models"], root / "exact_models", truth)
+        variants = {
+            "trained": (trained_models["models"], DEPLOYED),
+            "exact": (exact, {LEG: "affine", PAIR: "affine"}),
+        }
+        variants["raw"] = (trained_models["models"], {LEG: "raw", PAIR: "raw"})
+        for name, (models, deployed) in variants.items():
+            exported, reports = root / f"exported_{name}", root / f"reports_{name}"
+            data["export"]["models"] = deployed if name != "trained" else {}
+            variant_params = root / f"params_{name}.yaml"
+            variant_params.write_text(yaml.safe_dump(data, sort_keys=False))
+            args = [str(models), str(_report(root, DEPLOYED)), str(trained_models["labelled"]), str(exported)]
+            assert main(["export", *args, "--params", str(variant_params)]) == 0
+            _deploy(root, variant_params, models, exported, tables, reports)
+            out[name] = json.loads((reports / "deployment" / "details.json").read_text())
+            out[f"{name}_reports"] = reports
     finally:
         patch.undo()
-    details = json.loads((reports / "deployment" / "details.json").read_text())
-    models = trained_models["models"]
-    return {
-        "params": params,
-        "day": day,
-        "reports": reports,
-        "details": details,
-        "root": root,
-        "models": models,
-    }
+    out["truth"], out["tables"] = truth, tables
+    return out
 
 
-def test_stage_writes_page_metrics_details_and_figures(stage: dict[str, Any]) -> None:
-    reports = stage["reports"]
-    assert (reports / "deployment.html").read_text().count("<h2>later</h2>") == 1
+def test_stages_write_pages_metrics_details_and_figures(stage: dict[str, Any]) -> None:
+    reports = stage["trained_reports"]
+    page = (reports / "deployment.html").read_text()
+    assert page.count("<h2 id='later'>later</h2>") == 1 and "real" not in json.loads(
+        (reports / "deployment.json").read_text()
+    )
     headline = json.loads((reports / "deployment.json").read_text())
     assert set(headline) == {"later"} and isinstance(headline["later"]["fit"], bool)
-    assert sorted(p.name for p in (reports / "deployment").iterdir()) == [
-        "details.json",
+    assert sorted(p.name for p in (reports / "deployment" / "groups" / LEG).iterdir()) == [
         "later_hip_pitch.png",
         "later_walking.png",
+        "result.json",
     ]
-    later = stage["details"]["details"]["later"]
+    assert sorted(p.name for p in (reports / "deployment" / "groups" / PAIR).iterdir()) == [
+        "later_walking.png",
+        "result.json",
+    ]
+    for src in (
+        "deployment/groups/r_leg_ft/later_walking.png",
+        "deployment/groups/r_leg_ft/later_hip_pitch.png",
+    ):
+        assert f'src="{src}"' in page and (reports / src).is_file()
+    later = stage["trained"]["details"]["later"]
     assert later["logs"] == ["00_standing_test", "01_walking_test", "02_pole_test"]
     assert {"test_a", "test_b", "test_c"} <= set(later)
+    assert read_day(stage["tables"] / "real") == []  # a recorded-logs folder without logs: nothing tested
+
+
+def test_pages_share_one_look_and_link_each_other(stage: dict[str, Any], tmp_path: Path) -> None:
+    """The deployment page has the report page's stylesheet and frame, and each links to the other."""
+    from pipeline.evaluation.html import CSS
+    from pipeline.evaluation.page import render_html
+
+    deployment = (stage["trained_reports"] / "deployment.html").read_text()
+    assert f"<style>{CSS}</style>" in deployment and "href='index.html'" in deployment
+    assert '<table class="num">' in deployment and "<nav>" in deployment
+    index = render_html([], stage_section(load_params(stage["params"]), "evaluate", EvaluateParams), {
+        "overview": "o.png", "noise": "n.png"})  # fmt: skip
+    assert f"<style>{CSS}</style>" in index and "href='deployment.html'" in index
 
 
 def test_a_flags_exactly_the_models_above_the_params_limit(stage: dict[str, Any]) -> None:
@@ -86,7 +171,7 @@ def test_a_flags_exactly_the_models_above_the_params_limit(stage: dict[str, Any]
     exceeds noise_threshold x (1 + noise_margin) as params.yaml states it; deployed: the export's."""
     raw = yaml.safe_load(stage["params"].read_text())["evaluate"]
     limit = raw["noise_threshold"] * (1.0 + raw["noise_margin"])
-    test_a = stage["details"]["details"]["later"]["test_a"]
+    test_a = stage["trained"]["details"]["later"]["test_a"]
     assert set(test_a) == set(DEPLOYED)
     for group, entry in test_a.items():
         assert entry["deployed"] == DEPLOYED[group] and entry["quasi_static_s"] > 1.0
@@ -100,12 +185,9 @@ def test_a_margin_keeps_a_model_just_above_the_threshold(stage: dict[str, Any]) 
     """Between threshold and limit a model is not flagged (evaluate's rule): the threshold placed just below
     one model's measured ratio and the limit between it and the next, whatever the ratios are."""
     params = load_params(stage["params"])
-    day = stage["day"]
-    (log,) = prepare_logs(
-        params, load_nominal_robot(params), [day / "00_standing_test.mcap"], day, stage["root"] / "work"
-    )
+    (log,) = [g for g in read_day(stage["tables"] / "later") if g.name == "00_standing_test"]
     cfg = stage_section(params, "evaluate", EvaluateParams)
-    measured = stage["details"]["details"]["later"]["test_a"][LEG]["models"]
+    measured = stage["trained"]["details"]["later"]["test_a"][LEG]["models"]
     ratios = sorted((r["worst"], m) for m, r in measured.items())
     k = max(range(len(ratios) - 1), key=lambda i: ratios[i + 1][0] / ratios[i][0])  # the widest gap
     (low, between), (high, above) = ratios[k], ratios[k + 1]
@@ -113,7 +195,7 @@ def test_a_margin_keeps_a_model_just_above_the_threshold(stage: dict[str, Any]) 
     threshold = low * 0.99
     margin = (low + high) / 2.0 / threshold - 1.0
     narrow = dataclasses.replace(cfg, noise_threshold=threshold, noise_margin=margin)
-    result = checks.standing_noise(log, stage["models"], narrow, {LEG: DEPLOYED[LEG]})[LEG]["models"]
+    result = checks.standing_noise(log, stage["models"] / LEG, narrow, DEPLOYED[LEG])["models"]
     assert {m: r["worst"] for m, r in result.items()} == pytest.approx(
         {m: r["worst"] for m, r in measured.items()}
     )
@@ -125,11 +207,11 @@ def test_a_margin_keeps_a_model_just_above_the_threshold(stage: dict[str, Any]) 
 def test_b_raw_errors_match_the_simulators_summary(stage: dict[str, Any]) -> None:
     """Test B's raw RMSE against truth (6 axes pooled, at the joint-state stamps after ingest) agrees with
     the simulator's own raw RMSE of the walking log (force and torque, at the FT board's samples)."""
-    test_b = stage["details"]["details"]["later"]["test_b"]
-    assert set(test_b) == {LEG, "r_foot_front_ft", "r_foot_rear_ft", PAIR}
+    test_b = stage["trained"]["details"]["later"]["test_b"]
+    assert set(test_b) == {LEG, FRONT, REAR, PAIR}
     summary = json.loads((stage["day"] / "summary.json").read_text())
     (walk,) = [log for log in summary["logs"] if log["name"] == "01_walking_test"]
-    for name in (LEG, "r_foot_front_ft", "r_foot_rear_ft"):
+    for name in (LEG, FRONT, REAR):
         sim = walk["raw_rmse"][name]
         pooled = math.sqrt((sim["force"] ** 2 + sim["torque"] ** 2) / 2.0)
         assert test_b[name]["truth"]["raw"]["rmse"] == pytest.approx(pooled, rel=0.02), name
@@ -140,7 +222,7 @@ def test_b_raw_errors_match_the_simulators_summary(stage: dict[str, Any]) -> Non
 def test_c_uses_the_push_window_of_the_params(stage: dict[str, Any]) -> None:
     """Only the calibrated leg sensor is tested; its window holds the pushes' samples: pushes start at
     (k + 1/2) period and last duration_s, so a 5 s log at 100 Hz has 2 pushes of 80 samples."""
-    later = stage["details"]["details"]["later"]
+    later = stage["trained"]["details"]["later"]
     (sensor,) = later["test_c"]
     assert sensor == LEG
     entry = later["test_c"][LEG]
@@ -155,20 +237,118 @@ def test_c_uses_the_push_window_of_the_params(stage: dict[str, Any]) -> None:
         assert v["raw"]["max"] >= v["raw"]["rmse"] > 0 and np.isfinite(v["calibrated"]["max"])
         assert v["ratio_max"] == pytest.approx(v["raw"]["max"] / v["calibrated"]["max"])
         assert v["ratio_rmse"] == pytest.approx(v["raw"]["rmse"] / v["calibrated"]["rmse"])
-    summary = stage["details"]["summary"]["later"]
+    summary = stage["trained"]["summary"]["later"]
     assert "c.r_hip_pitch.ratio" in summary and not any(k.startswith("c.l_") for k in summary)
     # the verdict's Test C ratio is the RMSE ratio of the hip pitch joint (the max one is reported)
     assert summary["c.r_hip_pitch.ratio"] == entry["joints"]["r_hip_pitch"]["ratio_rmse"]
     assert summary["c.r_hip_pitch.ratio_max"] == entry["joints"]["r_hip_pitch"]["ratio_max"]
 
 
-def test_unmeasured_noise_is_not_a_pass() -> None:
-    """A deployed model whose output noise could not be measured (no quasi-static stretch) fails Test A."""
-    from pipeline.stages.deploy_test import summarize
+# --- known answers: the exact calibration passes, the factory one fails ----------------------------
+
+
+def _exact_wrenches(
+    stage: dict[str, Any], log: str
+) -> tuple[pd.DataFrame, pd.DataFrame, dict[str, np.ndarray]]:
+    """(labelled table, truth table, sensor -> the exact inverse of the distortion applied to the raw wrench
+    of the table (N, 6)), computed with numpy from truth.json."""
+    (day_log,) = [g for g in read_day(stage["tables"] / "later") if g.name == log]
+    table, truth = pd.read_parquet(day_log.labelled), pd.read_parquet(day_log.truth)
+    exact = {}
+    for s in (LEG, FRONT, REAR):
+        d = stage["truth"]["distortions"][s]
+        raw = table[S.wrench_cols(S.FT, s)].to_numpy()
+        exact[s] = (raw - np.asarray(d["offset"])) @ np.linalg.inv(np.asarray(d["coupling"])).T
+    return table, truth, exact
+
+
+def _rmse(a: np.ndarray, b: np.ndarray) -> float:
+    ok = np.isfinite(a).all(axis=1) & np.isfinite(b).all(axis=1)
+    return float(np.sqrt(np.mean((a[ok] - b[ok]) ** 2)))
+
+
+def test_exact_calibration_passes_with_its_expected_ratios(stage: dict[str, Any]) -> None:
+    later = stage["exact"]["details"]["later"]
+    table, truth, exact = _exact_wrenches(stage, "01_walking_test")
+    for s in (LEG, FRONT, REAR):
+        true = truth[S.wrench_cols(S.TRUE, s)].to_numpy()
+        raw = table[S.wrench_cols(S.FT, s)].to_numpy()
+        b = later["test_b"][s]["truth"]
+        assert b["raw"]["rmse"] == pytest.approx(_rmse(raw, true), rel=1e-3)
+        assert b["calibrated"]["rmse"] == pytest.approx(_rmse(exact[s], true), rel=1e-2), s
+        assert b["calibrated"]["rmse"] < 1.0 < 20.0 < b["raw"]["rmse"]  # the noise only, against the offsets
+    # Test C: the torques from the exact wrench, by the estimator on the same states, during the pushes
+    from pipeline.deploy.params import deploy_params
+    from pipeline.deploy.prepare import load_nominal_robot
+    from pipeline.physics.torques import limb_joints, sensor_joint_torques
+    from pipeline.sim.push import push_profile
+
+    params = load_params(stage["params"])
+    robot, dp = load_nominal_robot(params), deploy_params(params)
+    table, _, exact = _exact_wrenches(stage, "02_pole_test")
+    (day_log,) = [g for g in read_day(stage["tables"] / "later") if g.name == "02_pole_test"]
+    smooth = pd.read_parquet(day_log.smoothed)
+    q, dq, ddq = (smooth[S.joint_cols(k, robot.joint_names)].to_numpy() for k in (S.QS, S.DQS, S.DDQS))
+    joints = limb_joints(robot, "r_sole")
+    true = checks.read_true_torques(
+        day_log, params.topics.sim_joint_torques, table[S.STAMP].to_numpy(), joints
+    )
+    pushed = push_profile(table[S.TIME].to_numpy(), dp.push, len(dp.torque_limbs))[1] >= 0
+    gravity = [0.0, 0.0, -params.robot.gravity]
+    fixed = str(table[S.FIXED_LINK].iloc[0])
+    tau = sensor_joint_torques(robot, LEG, joints, q, dq, ddq, exact[LEG], fixed, gravity)
+    hip = joints.index("r_hip_pitch")
+    expected = _rmse(tau[pushed][:, [hip]], true[pushed][:, [hip]])
+    c = later["test_c"][LEG]["joints"]["r_hip_pitch"]
+    assert c["calibrated"]["rmse"] == pytest.approx(expected, rel=1e-2)
+    summary = stage["exact"]["summary"]["later"]
+    assert summary["c.r_hip_pitch.ratio"] == pytest.approx(c["raw"]["rmse"] / expected, rel=1e-2)
+    assert summary["c.r_hip_pitch.ratio"] >= dp.torque_target
+    assert summary["a.passed"] and summary["b.passed"] and summary["c.passed"] and summary["fit_to_deploy"]
+    assert json.loads((stage["exact_reports"] / "deployment.json").read_text())["later"]["fit"] is True
+
+
+def test_factory_calibration_fails_with_every_ratio_one(stage: dict[str, Any]) -> None:
+    later, summary = stage["raw"]["details"]["later"], stage["raw"]["summary"]["later"]
+    assert {later["test_a"][g]["deployed"] for g in (LEG, PAIR)} == {"raw"}
+    for name in (LEG, FRONT, REAR, PAIR):
+        assert later["test_b"][name]["ratio_truth"] == pytest.approx(1.0, abs=1e-9), name
+    for v in later["test_c"][LEG]["joints"].values():
+        assert v["ratio_rmse"] == pytest.approx(1.0, abs=1e-9)
+    assert summary["a.passed"] and not summary["b.passed"] and not summary["c.passed"]
+    assert summary["fit_to_deploy"] is False
+    assert json.loads((stage["raw_reports"] / "deployment.json").read_text())["later"]["fit"] is False
+
+
+def test_each_test_decides_the_verdict() -> None:
+    """The day fails when any one test fails: a flagged or unmeasured deployed model (A), a Test B ratio
+    below evaluate.target_raw_over_nn7, a Test C ratio of the judged joint below deploy.torque_target."""
+    from pipeline.deploy.verdict import summarize
 
     dp = type("DP", (), {"torque_target": 5.0})()
-    model = {"worst": float("nan"), "flagged": False, "ratio_axes": []}
-    result = {"test_a": {LEG: {"deployed": "nn7", "models": {"nn7": model}}}}
-    assert summarize(result, dp, 10.0, "hip_pitch")["fit_to_deploy"] is False
-    result["test_a"][LEG]["models"]["nn7"] = {**model, "worst": 1.2}
-    assert summarize(result, dp, 10.0, "hip_pitch")["fit_to_deploy"] is True
+    model = {"worst": 1.2, "flagged": False, "ratio_axes": []}
+    passing = {
+        "test_a": {LEG: {"deployed": "nn7", "models": {"nn7": model}}},
+        "test_b": {LEG: {"truth": {"raw": {"rmse": 20.0}, "calibrated": {"rmse": 1.0}}, "ratio_truth": 20.0}},
+        "test_c": {LEG: {"joints": {"r_hip_pitch": {"raw": {"rmse": 6.0}, "calibrated": {"rmse": 1.0},
+                                                    "ratio_rmse": 6.0, "ratio_max": 2.0}}}},
+    }  # fmt: skip
+    assert summarize(passing, dp, 10.0, "hip_pitch")["fit_to_deploy"] is True
+    failing = {
+        "a": {**model, "flagged": True},
+        "unmeasured": {**model, "worst": float("nan")},
+        "b": 9.0,
+        "c": 4.0,
+    }
+    for case, value in failing.items():
+        result = json.loads(json.dumps(passing))
+        if case in ("a", "unmeasured"):
+            result["test_a"][LEG]["models"]["nn7"] = value
+        elif case == "b":
+            result["test_b"][LEG]["ratio_truth"] = value
+        else:
+            result["test_c"][LEG]["joints"]["r_hip_pitch"]["ratio_rmse"] = value
+        s = summarize(result, dp, 10.0, "hip_pitch")
+        assert s["fit_to_deploy"] is False and not s[f"{case[0] if case != 'unmeasured' else 'a'}.passed"], (
+            case
+        )

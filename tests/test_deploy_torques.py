@@ -56,6 +56,33 @@ def test_leg_torques_equal_true_torques(pushed, sensor, sole):
     assert pushed_rows.any()
 
 
+def test_leg_torques_equal_idyntree_estimator_pushes_included(pushed):
+    """Test C's estimator against iDynTree's ExtWrenchesAndJointTorquesEstimator on the same states and
+    wrenches: the robot on the pole pushed at each ankle, every FT sensor reading its true wrench; iDynTree
+    estimates each subtree's unknown contact (the pole clamp, the pushed ankles, the free hands and foot
+    parts) from the sensors and its joint torques. The estimator's leg joint torques from the leg sensor
+    agree."""
+    from tests.idyntree_ref import IDynTreeFT
+
+    world, motion, _, g = pushed
+    truth = TruthComputer(world.robot, world.pairs, -g[2]).compute(motion)  # the nominal robot's truth
+    robot = world.robot
+    rows = np.linspace(0, motion.n - 1, 40).astype(int)
+    pushes = np.abs(np.stack([motion.pushes[link] for link in push_links(world)])).sum(axis=(0, 2))
+    assert (pushes[rows] > 1.0).sum() >= 10  # pushed samples among those compared
+    ref = IDynTreeFT(robot.urdf_path, robot.joint_names)
+    contacts = ["root_link", *push_links(world), "l_hand", "r_hand", "l_foot_front", "l_foot_rear"]
+    contacts += ["r_foot_front", "r_foot_rear"]
+    q, dq, ddq = motion.q[rows], motion.dq[rows], motion.ddq[rows]
+    measured = {s: truth.wrench[s][rows] for s in robot.sensors}
+    reference = ref.estimated_torques(q, dq, ddq, contacts, "root_link", g, measured)
+    for sensor, sole in (("l_leg_ft", "l_sole"), ("r_leg_ft", "r_sole")):
+        joints = limb_joints(robot, sole)
+        est = sensor_joint_torques(robot, sensor, joints, q, dq, ddq, measured[sensor], "root_link", g)
+        columns = [robot.joint_names.index(j) for j in joints]
+        np.testing.assert_allclose(est, reference[:, columns], rtol=0, atol=1e-6, err_msg=sensor)
+
+
 def test_push_profile_turns_and_peak():
     p = PushParams(50.0, 1.0, 4.0, (0.0, 3.0, 4.0))
     assert p.direction == pytest.approx((0.0, 0.6, 0.8))

@@ -28,12 +28,12 @@ from tests.idyntree_ref import IDynTreeFT, joint_limits, movable_joints, random_
 
 G = 9.80665
 ICUB3 = Path(icub_models.get_model_file("iCubGenova09"))
-ERGOCUB = Path(__file__).resolve().parents[2] / "shared" / "robots" / "ergoCubSN001" / "model.urdf"
+ERGOCUB = Path(__file__).resolve().parent / "robots" / "ergoCubSN001" / "model.urdf"
 FT8 = {
     "l_arm_ft", "r_arm_ft", "l_leg_ft", "r_leg_ft",
     "l_foot_front_ft", "l_foot_rear_ft", "r_foot_front_ft", "r_foot_rear_ft",
 }  # fmt: skip
-ROBOTS = [ICUB3] + ([ERGOCUB] if ERGOCUB.is_file() else [])
+ROBOTS = [ICUB3, ERGOCUB]
 
 
 # --------------------------------------------------------------------------- independent URDF model

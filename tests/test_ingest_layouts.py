@@ -8,6 +8,8 @@ from __future__ import annotations
 
 import dataclasses
 import os
+import subprocess
+import sys
 from pathlib import Path
 
 import numpy as np
@@ -209,12 +211,25 @@ def test_bad_output_paths_are_one_line_errors(
     assert "file: output path exists and is not a directory" in _one_error_line(capsys.readouterr().err)
     assert _run_cli(src, a_file / "out", params) == 2
     assert "cannot create the output directory" in _one_error_line(capsys.readouterr().err)
-    if os.geteuid() != 0:  # root writes into read-only directories: nothing to refuse
-        locked = tmp_path / "locked"
-        locked.mkdir()
-        locked.chmod(0o555)
-        assert _run_cli(src, locked / "out", params) == 2
-        assert "not writable" in _one_error_line(capsys.readouterr().err)
+    locked = tmp_path / "locked"
+    locked.mkdir()
+    locked.chmod(0o555)
+    cmd = [
+        sys.executable,
+        "-m",
+        "pipeline.cli",
+        "ingest",
+        str(src),
+        str(locked / "out"),
+        "--params",
+        str(params),
+    ]
+    if os.geteuid() == 0:  # root writes into read-only directories: run it without that privilege
+        cmd = ["setpriv", "--bounding-set=-dac_override,-dac_read_search", "--", *cmd]
+    env = {**os.environ, "PYTHONPATH": str(Path(__file__).resolve().parents[1])}
+    proc = subprocess.run(cmd, capture_output=True, text=True, env=env, check=False)
+    assert proc.returncode == 2, proc.stderr[-2000:]
+    assert "locked: output directory is not writable" in _one_error_line(proc.stderr)
 
 
 def test_one_bad_log_among_several_is_all_or_nothing(

@@ -93,6 +93,18 @@ def test_no_import_circle() -> None:
             assert cycle is None, " -> ".join(cycle)
 
 
+def test_commands_modules_are_imported_by_the_command_line_only() -> None:
+    """pipeline/tools holds commands (argument parsing, printing); the library they run lives in the
+    subpackages, which never import a command's module (the export's runtime is `pipeline.export`)."""
+    tools = {name for name in MODULES if name.startswith("pipeline.tools.")}
+    users = sorted(
+        f"{name} imports {sorted(GRAPH[name] & tools)}"
+        for name in MODULES
+        if GRAPH[name] & tools and name != "pipeline.cli" and not name.startswith("pipeline.tools.")
+    )
+    assert not users, users
+
+
 def test_dvc_deps_cover_every_module_a_stage_imports() -> None:
     """A code change can never leave a stage stale: each stage depends on every file its module reaches."""
     stages = yaml.safe_load((ROOT / "dvc.yaml").read_text())["stages"]

@@ -88,10 +88,10 @@ def write_predictions(
 
 
 def log_trial_run(
-    group: str, name: str, parent_run: str | None = None
+    group: str, name: str
 ) -> Callable[[int, dict[str, Any], list[dict[str, float]], str, float], None]:
-    """A callback that records one trial as a nested MLflow run (params, per-epoch metrics, state) of
-    `parent_run` (default: the active run)."""
+    """A callback that records one trial as a nested MLflow run (params, per-epoch metrics, state) of the
+    active run."""
     import mlflow
     from mlflow.entities import Metric, Param
 
@@ -99,7 +99,7 @@ def log_trial_run(
         index: int, values: dict[str, Any], history: list[dict[str, float]], state: str, seconds: float
     ) -> None:
         client = mlflow.MlflowClient()
-        parent = client.get_run(parent_run) if parent_run else mlflow.active_run()
+        parent = mlflow.active_run()
         run = client.create_run(
             parent.info.experiment_id,
             run_name=f"{group} {name} trial {index + 1}",

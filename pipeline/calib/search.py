@@ -7,7 +7,9 @@ n_trials, seed, threads, validation logs, data, this code): a rerun after an int
 with more trials extends it. Trial k is seeded from (seed, group, inputs, k) and its sampler is a TPE sampler
 seeded the same way, so a search run by one process is reproducible whether or not it was resumed (run by
 several, it depends on which trials finish first). The first trial is the group's own params (the thesis's
-defaults); a MedianPruner stops trials whose validation error lags.
+defaults); a MedianPruner stops trials whose validation error lags. When the search ends, the stage logs each
+of its trials to MLflow once, as a child of the stage's run, from the record each trial left in the study,
+whichever process ran it.
 """
 
 from __future__ import annotations
@@ -30,14 +32,15 @@ from pipeline.calib.models import (
 )
 from pipeline.calib.params import SEARCHABLE, GroupParams, nn_name
 from pipeline.calib.studies import (
-    MLFLOW_PARENT,
     finished_trials,
     join_study,
     load_trial_model,
     open_study,
+    record_trial,
     run_trials,
     save_trial_model,
     trial_index,
+    trial_record,
 )
 from pipeline.calib.training import NetSetting, train_network
 from pipeline.core.progress import ProgressLog
@@ -108,11 +111,10 @@ class _Search:
         storage: Any,
         identity: Mapping[str, Any],
         progress: ProgressLog,
-        log_trial: TrialLog | None,
     ) -> None:
         self.gp, self.group, (self.train, self.val), self.start = gp, group, data, start
         self.n_inputs, self.seed, self.storage = n_inputs, seed, storage  # storage: studies.open_storage
-        self.progress, self.log_trial = progress, log_trial
+        self.progress = progress
         self.name = nn_name(n_inputs)
         digest = json.dumps({**identity, "inputs": n_inputs}, sort_keys=True).encode()
         self.study_name = f"{group.name}-{self.name}-{hashlib.sha256(digest).hexdigest()[:16]}"
@@ -138,17 +140,13 @@ class _Search:
 
     def open(self) -> None:
         """Create or load the study with its n_trials slots (the first: the group's own params); trials
-        left running by an interrupted run are failed and queued again. Workers log their trials as
-        children of the active MLflow run."""
-        import mlflow
+        left running by an interrupted run are failed and queued again."""
         import optuna
 
         optuna.logging.set_verbosity(optuna.logging.WARNING)
         warnings.filterwarnings("ignore", category=optuna.exceptions.ExperimentalWarning)
         first = {k: getattr(self.gp, k) for k in self.gp.search}
         self.study = open_study(self.storage, self.study_name, self.pruner(), self.gp.n_trials, first)
-        if mlflow.active_run() is not None:
-            self.study.set_user_attr(MLFLOW_PARENT, mlflow.active_run().info.run_id)
 
     def join(self, wait: float) -> None:
         """Load the study the stage opens (a worker's side), waiting up to `wait` s for it."""
@@ -189,8 +187,7 @@ class _Search:
         except optuna.TrialPruned:
             last = history[-1]["val_rmse"]
             ui.line(f"{where}: pruned at epoch {len(history)} (val RMSE {last:.4g}) {_fmt(values)}")
-            if self.log_trial is not None:
-                self.log_trial(index, values, history, "PRUNED", time.perf_counter() - t0)
+            record_trial(trial, values, history, time.perf_counter() - t0)
             raise
         finally:
             ui.remove(epochs)
@@ -199,12 +196,11 @@ class _Search:
         for key, value in (("index", index), ("seed", trial_seed), ("best_epoch", int(best["epoch"]))):
             trial.set_user_attr(key, value)
         seconds = time.perf_counter() - t0
+        record_trial(trial, values, history, seconds)
         ui.line(
             f"{where}: val RMSE {best['val_rmse']:.4g} (epoch {int(best['epoch']) + 1}) {_fmt(values)} "
             f"{seconds:.1f} s"
         )
-        if self.log_trial is not None:
-            self.log_trial(index, values, history, "COMPLETE", seconds)
         return float(best["val_rmse"])
 
     def run(self) -> tuple[int, int]:
@@ -223,6 +219,14 @@ class _Search:
         )
         ui.remove(bar)
         return run, reused
+
+    def log_trials(self, log_trial: TrialLog) -> None:
+        """Log each of the first n_trials finished trials once, by slot, wherever it ran: a worker's trial
+        is in the study (`record_trial`) when the search ends, whatever the worker's view of MLflow."""
+        considered = self.finished()[: self.gp.n_trials]
+        for t in sorted(considered, key=lambda t: (trial_index(t), t.number)):
+            record = trial_record(t)
+            log_trial(trial_index(t), record["values"], record["history"], t.state.name, record["seconds"])
 
     def best(self, run: int, reused: int) -> NetResult:
         """The lowest-validation-error complete trial among the first n_trials, with its model."""
@@ -263,9 +267,12 @@ def search_network(
 
     `start`: the affine baseline the networks correct (see `pipeline.calib.training.train_network`).
     """
-    search = _Search(gp, group, (train, val), start, n_inputs, seed, storage, identity, progress, log_trial)
+    search = _Search(gp, group, (train, val), start, n_inputs, seed, storage, identity, progress)
     search.open()
-    return search.best(*search.run())
+    result = search.best(*search.run())
+    if log_trial is not None:
+        search.log_trials(log_trial)
+    return result
 
 
 def _fmt(values: Mapping[str, Any]) -> str:

@@ -24,7 +24,8 @@ A trial that raises (Ctrl-C, a bug) is failed and retried the same way, and the 
 A trial's seed is that of its slot's original number (`trial_index`), so a retried trial repeats what
 the killed one would have done, and one process in a fresh study runs trial k with seed k as before.
 The weights of each complete trial are stored in the study itself (`save_trial_model`), so the stage can
-load the best network whichever machine trained it.
+load the best network whichever machine trained it; so is every finished trial's record (its values, epochs
+and time: `record_trial`), from which the stage logs each trial to MLflow once, wherever it ran.
 """
 
 from __future__ import annotations
@@ -49,8 +50,8 @@ JOURNAL_FILE = "optuna.journal"
 MAX_RETRY = 3  # retries of one slot killed mid-trial before it is given up
 SLOT = "ftcal.slot"  # user attribute of every enqueued slot (inherited by its retries)
 WORKER = "ftcal.worker"  # user attribute of a trial: host:pid of the process that ran it
-MLFLOW_PARENT = "ftcal.mlflow_parent"  # study user attribute: the stage's MLflow run id
 _WEIGHTS, _CONFIG = "ftcal.weights", "ftcal.model"  # trial user attributes of a complete trial's network
+_RECORD = "ftcal.record"  # trial user attribute of every finished trial: values, epochs, seconds
 _CONNECT_ATTEMPTS = 5  # tries to open a database storage, 0.5 s, 1 s, ... apart
 
 
@@ -318,7 +319,21 @@ def run_worker(
     return run_trials(study, objective, n_trials, sampler_for)
 
 
-# --- a trial's network, kept in the study ---------------------------------------------------------
+# --- a trial's record and network, kept in the study ----------------------------------------------
+
+
+def record_trial(
+    trial: Any, values: Mapping[str, Any], history: list[dict[str, float]], seconds: float
+) -> None:
+    """Store what a finished (complete or pruned) trial did: its values, per-epoch history, wall time (s)."""
+    record = {"values": dict(values), "history": history, "seconds": seconds}
+    trial.set_user_attr(_RECORD, json.dumps(record, sort_keys=True))
+
+
+def trial_record(trial: Any) -> dict[str, Any]:
+    """The record `record_trial` stored for a finished trial (FrozenTrial); empty values if none."""
+    raw = trial.user_attrs.get(_RECORD)
+    return json.loads(raw) if raw else {"values": {}, "history": [], "seconds": float("nan")}
 
 
 def save_trial_model(trial: Any, model: Any, info: Mapping[str, Any]) -> None:

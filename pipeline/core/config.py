@@ -295,7 +295,9 @@ class ExportParams:
     """Section `export` of params.yaml: which model of each group is exported, and the export's checks."""
 
     models: Mapping[str, str]  # group -> model exported instead of the recommended one (nn7, poly2, ...)
-    tolerance_float32: float  # N and Nm: max |float32 graph - stored test predictions|
+    tolerance_float32_ulps: float  # float32 steps at each sensor's largest |output|: max |float32 graph -
+    #                                the project's float32 prediction| (relative: a heavier robot's wrench
+    #                                has coarser float32 steps)
     tolerance_float64: float  # N and Nm: max |float64 graph - the project's float64 model|
 
     def __post_init__(self) -> None:
@@ -305,10 +307,10 @@ class ExportParams:
         for group, name in models.items():
             _check_name(name, f"export.models.{group}")
         object.__setattr__(self, "models", dict(models))
-        for key in ("tolerance_float32", "tolerance_float64"):
+        for key, unit in (("tolerance_float32_ulps", "float32 steps"), ("tolerance_float64", "N, Nm")):
             value = getattr(self, key)
             if isinstance(value, bool) or not isinstance(value, int | float) or not 0 < value < math.inf:
-                raise ConfigError(f"export.{key} must be a positive number (N, Nm), got {value!r}")
+                raise ConfigError(f"export.{key} must be a positive number ({unit}), got {value!r}")
             object.__setattr__(self, key, float(value))
 
 

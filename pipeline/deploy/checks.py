@@ -28,6 +28,8 @@ from pipeline.evaluation.results import score
 from pipeline.logs import schema as S
 from pipeline.physics.robot import RobotModel
 
+RAW = "raw"  # the model name of the primary calibration (no secondary calibration)
+
 
 def _wrench(df: pd.DataFrame, quantity: str, name: str) -> np.ndarray:
     return df[S.wrench_cols(quantity, name)].to_numpy(np.float64)
@@ -45,51 +47,40 @@ def _finite_segments(table: pd.DataFrame, sensors: list[str], stamps: np.ndarray
     return segment_ids(2 * np.cumsum(bad) + bad, stamps)
 
 
-def standing_noise(
-    log: DeployLog, models: Path, cfg: EvaluateParams, deployed: dict[str, str]
-) -> dict[str, Any]:
-    """Test A on a standing-still log: per deployed group (`deployed`: the export's) and each of its trained
-    models, noise ratio per axis and the verdict."""
+def standing_noise(log: DeployLog, model_dir: Path, cfg: EvaluateParams, deployed: str) -> dict[str, Any]:
+    """Test A on a standing-still log for the group trained into `model_dir`: noise ratio per axis and the
+    verdict of each of its trained models (`deployed`: the exported one)."""
     table = pd.read_parquet(log.labelled)
     stamps = table[S.STAMP].to_numpy()
-    out: dict[str, Any] = {}
-    for group_dir in (models / group for group in sorted(deployed)):
-        sensors, predictors = group_models(group_dir)
-        seg, fs = _finite_segments(table, sensors, stamps)
-        gyro = [table[S.vector_cols(S.GYR, s)].to_numpy(np.float64) for s in sensors]
-        speed = board_speed(gyro, seg, fs, cfg.highpass_hz, cfg.highpass_order)
-        mask = quasi_static_mask(
-            speed, table[S.CONTACTS].to_numpy(), table[S.GUARD].to_numpy(), seg, fs,
-            cfg.still_gyro_rad_s, cfg.still_min_s, 1.0,
-        )  # fmt: skip
-        raw_hf = np.concatenate(
-            [
-                highpass(_wrench(table, S.FT, s), seg, fs, cfg.highpass_hz, cfg.highpass_order)
-                for s in sensors
-            ],
-            1,
+    sensors, predictors = group_models(model_dir)
+    if deployed == RAW and RAW not in predictors:  # the factory calibration deployed: raw's own noise
+        predictors[RAW] = lambda t: {s: _wrench(t, S.FT, s) for s in sensors}
+    seg, fs = _finite_segments(table, sensors, stamps)
+    gyro = [table[S.vector_cols(S.GYR, s)].to_numpy(np.float64) for s in sensors]
+    speed = board_speed(gyro, seg, fs, cfg.highpass_hz, cfg.highpass_order)
+    mask = quasi_static_mask(
+        speed, table[S.CONTACTS].to_numpy(), table[S.GUARD].to_numpy(), seg, fs,
+        cfg.still_gyro_rad_s, cfg.still_min_s, 1.0,
+    )  # fmt: skip
+    raw_hf = np.concatenate(
+        [highpass(_wrench(table, S.FT, s), seg, fs, cfg.highpass_hz, cfg.highpass_order) for s in sensors], 1
+    )
+    rows = {}
+    for name, predict in predictors.items():
+        pred = predict(table)
+        hf = np.concatenate(
+            [highpass(pred[s], seg, fs, cfg.highpass_hz, cfg.highpass_order) for s in sensors], 1
         )
-        rows = {}
-        for name, predict in predictors.items():
-            pred = predict(table)
-            hf = np.concatenate(
-                [highpass(pred[s], seg, fs, cfg.highpass_hz, cfg.highpass_order) for s in sensors], 1
-            )
-            ratio = noise_ratio(hf, raw_hf, mask)
-            worst = float(np.nanmax(ratio)) if np.isfinite(ratio).any() else float("nan")
-            rows[name] = {
-                "ratio_axes": ratio.tolist(),
-                "worst": worst,
-                "flagged": bool(worst > cfg.noise_limit),
-            }
-        out[group_dir.name] = {
-            "sensors": sensors,
-            "deployed": deployed[group_dir.name],
-            "quasi_static_s": float(mask.sum() / fs),
-            "noise_limit": cfg.noise_limit,
-            "models": rows,
-        }
-    return out
+        ratio = noise_ratio(hf, raw_hf, mask)
+        worst = float(np.nanmax(ratio)) if np.isfinite(ratio).any() else float("nan")
+        rows[name] = {"ratio_axes": ratio.tolist(), "worst": worst, "flagged": bool(worst > cfg.noise_limit)}
+    return {
+        "sensors": sensors,
+        "deployed": deployed,
+        "quasi_static_s": float(mask.sum() / fs),
+        "noise_limit": cfg.noise_limit,
+        "models": rows,
+    }
 
 
 def _pair_sums(robot: RobotModel, params: Any, data: dict[str, np.ndarray]) -> dict[str, np.ndarray]:

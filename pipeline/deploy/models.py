@@ -90,27 +90,14 @@ def calibrated_wrenches(
 ) -> dict[str, np.ndarray]:
     """Sensor -> (N, 6) calibrated wrench (N, Nm, sensor frame) at `table`'s stamps, for every sensor of
     the log that the export models (module docstring). NaN where no calibrated message brackets a stamp."""
-    from pipeline.export.runtime import CausalCalibrator, Deployment
+    from pipeline.export.runtime import Deployment, calibrated_messages
     from pipeline.logs.rosmsg import LogReader
-    from pipeline.tools.calibrate import plan_log
 
-    deployment = Deployment.load(exported)
-    parts: dict[str, list[tuple[np.ndarray, np.ndarray]]] = {}
     with LogReader(log) as reader:
-        plans, _ = plan_log(reader, deployment, topics)
-        calibrator = CausalCalibrator(deployment, plans)
-        for batches in reader.iter_chunks(calibrator.topics()):
-            for c in calibrator.feed(batches):
-                parts.setdefault(c.plan.sensor, []).append((c.stamp, c.wrench))
-        for c in calibrator.flush():
-            parts.setdefault(c.plan.sensor, []).append((c.stamp, c.wrench))
+        messages = calibrated_messages(Deployment.load(exported), reader, topics)
     stamps = table[S.STAMP].to_numpy(np.int64)
     out = {}
-    for sensor, chunks in parts.items():
-        t = np.concatenate([c[0] for c in chunks])
-        w = np.concatenate([c[1] for c in chunks])
-        order = np.argsort(t, kind="stable")
-        t, w = t[order], w[order]
+    for sensor, (t, w) in messages.items():
         x = (stamps - t[0]).astype(np.float64)
         xp = (t - t[0]).astype(np.float64)
         axes = [np.interp(x, xp, w[:, a], left=np.nan, right=np.nan) for a in range(6)]

@@ -1,8 +1,12 @@
-"""reports/deployment.html and its figures: the three tests per deployment day, numbers first."""
+"""reports/deployment.html and its figures: the verdict per day, then each day's tests, numbers first.
+
+The page has the look of the report page (`pipeline.evaluation.html`) and links to it, as it links here.
+"""
 
 from __future__ import annotations
 
-import html
+from collections.abc import Mapping
+from datetime import datetime, timezone
 from pathlib import Path
 from typing import Any
 
@@ -10,6 +14,8 @@ import numpy as np
 
 from pipeline.core.io import write_text
 from pipeline.evaluation.figures import pyplot, save_figure
+from pipeline.evaluation.html import cell, document, esc, img, table
+from pipeline.evaluation.params import REPORT_FILE
 from pipeline.logs import schema as S
 
 
@@ -58,88 +64,124 @@ def plot_torques(series: dict[str, Any], joint_suffix: str, path: Path) -> None:
     save_figure(fig, path)
 
 
-def _f(v: Any) -> str:
-    return f"{v:.3g}" if isinstance(v, float) and np.isfinite(v) else html.escape(str(v))
+_NOTES = {
+    "test_a": "Output noise of every trained model standing still: high-pass std per axis over raw's on the "
+    "quasi-static stretches, worst axis; a model above the limit is flagged (as evaluate flags it). The "
+    "deployed model must not be.",
+    "test_b": "RMSE (N and Nm pooled; per axis in deployment/details.json) of the calibrated sensors and "
+    "foot sums while walking, against the labels (where exact) and the truth, beside raw; raw / "
+    "calibrated against truth is judged.",
+    "test_c": "Leg joint torques estimated from each leg sensor, raw and calibrated, against the true "
+    "torques during the pushes (Nm); the RMSE ratio of the judged joint is judged, the max error reported.",
+}
 
 
-def _table(header: list[str], rows: list[list[Any]]) -> str:
-    head = "".join(f"<th>{html.escape(h)}</th>" for h in header)
-    body = "".join("<tr>" + "".join(f"<td>{_f(c)}</td>" for c in row) + "</tr>" for row in rows)
-    return f"<table><tr>{head}</tr>{body}</table>"
-
-
-def day_section(day: str, result: dict[str, Any], figures: dict[str, str]) -> str:
-    parts = [f"<h2>{html.escape(day)}</h2>"]
-    a = result.get("test_a", {})
-    rows = [
-        [g, m, r["worst"], "FLAGGED" if r["flagged"] else "ok", "deployed" if m == a[g]["deployed"] else ""]
-        for g in a
-        for m, r in a[g]["models"].items()
-    ]
-    parts += ["<h3>Test A: output noise standing still (HF std / raw's, worst axis)</h3>"]
-    parts += [_table(["group", "model", "noise ratio", "verdict", ""], rows)]
-    parts += ["<h3>Test B: walking (RMSE, N and Nm pooled; per axis in deployment/details.json)</h3>"]
+def _test_a(a: Mapping[str, Any]) -> str:
     rows = []
-    for name, e in result.get("test_b", {}).items():
+    for group, entry in a.items():
+        for model, r in entry["models"].items():
+            deployed = model == entry["deployed"]
+            good = None if not deployed else not r["flagged"]
+            rows.append(
+                f"<tr><td>{esc(group)}</td><td>{esc(model)}{' (deployed)' if deployed else ''}</td>"
+                + cell(r["worst"], good, bold=deployed)
+                + f"<td>{'FLAGGED' if r['flagged'] else 'ok'}</td></tr>"
+            )
+    head = "".join(f"<th>{h}</th>" for h in ("group", "model", "noise ratio (worst axis)", "verdict"))
+    return f'<table class="num"><thead><tr>{head}</tr></thead><tbody>{"".join(rows)}</tbody></table>'
+
+
+def _test_b(b: Mapping[str, Any], target: float) -> str:
+    rows = []
+    for name, e in b.items():
         lab, tru = e["labels"], e.get("truth", {})
-        row = [name, lab["raw"]["rmse"], lab["calibrated"]["rmse"]]
-        row += [tru["raw"]["rmse"], tru["calibrated"]["rmse"], e["ratio_truth"]] if tru else ["", "", ""]
-        rows.append(row)
-    parts += [
-        _table(
-            [
-                "sensor / sum",
-                "raw vs labels",
-                "calibrated vs labels",
-                "raw vs truth",
-                "cal. vs truth",
-                "raw/cal",
-            ],
-            rows,
-        )
+        row = f"<tr><td>{esc(name)}</td>" + cell(lab["raw"]["rmse"]) + cell(lab["calibrated"]["rmse"])
+        if tru:
+            ratio = e["ratio_truth"]
+            row += cell(tru["raw"]["rmse"]) + cell(tru["calibrated"]["rmse"]) + cell(ratio, ratio >= target)
+        else:
+            row += "<td>n/a</td>" * 3
+        rows.append(row + "</tr>")
+    header = ["sensor / sum", "raw vs labels", "calibrated vs labels", "raw vs truth", "cal. vs truth"]
+    head = "".join(f"<th>{h}</th>" for h in [*header, f"raw / cal. (>= {target:g})"])
+    return f'<table class="num"><thead><tr>{head}</tr></thead><tbody>{"".join(rows)}</tbody></table>'
+
+
+def _test_c(c: Mapping[str, Any], joint: str, target: float) -> str:
+    rows = []
+    for leg, r in c.items():
+        for j, v in r["joints"].items():
+            judged = j.endswith(joint)
+            rows.append(
+                f"<tr><td>{esc(leg)}</td><td>{esc(j)}</td>"
+                + cell(v["raw"]["rmse"]) + cell(v["calibrated"]["rmse"])
+                + cell(v["ratio_rmse"], v["ratio_rmse"] >= target if judged else None, bold=judged)
+                + cell(v["raw"]["max"]) + cell(v["calibrated"]["max"]) + cell(v["ratio_max"]) + "</tr>"
+            )  # fmt: skip
+    header = ["sensor", "joint", "RMSE raw", "RMSE cal.", f"RMSE raw / cal. (>= {target:g})"]
+    head = "".join(f"<th>{h}</th>" for h in [*header, "max raw", "max cal.", "max raw / cal."])
+    return f'<table class="num"><thead><tr>{head}</tr></thead><tbody>{"".join(rows)}</tbody></table>'
+
+
+def verdict_table(summary: Mapping[str, Mapping[str, Any]]) -> str:
+    """One row per day: each test's pass and the day's verdict."""
+    rows = []
+    for day, s in summary.items():
+        passed = [bool(s.get(f"{t}.passed")) for t in "abc"]
+        cells = "".join(f'<td class="{"ok" if p else "bad"}">{"pass" if p else "fail"}</td>' for p in passed)
+        verdict = "fit to deploy" if s["fit_to_deploy"] else "recalibrate"
+        rows.append(f"<tr><td><a href='#{esc(day)}'>{esc(day)}</a></td>{cells}<td><b>{verdict}</b></td></tr>")
+    return table(["day", "Test A", "Test B", "Test C", "verdict"], [], cls="num").replace(
+        "<tbody></tbody>", f"<tbody>{''.join(rows)}</tbody>"
+    )
+
+
+def day_section(
+    day: str, result: Mapping[str, Any], figures: Mapping[str, str], targets: Mapping[str, Any]
+) -> str:
+    """A day's tables and figures (`figures`: caption -> path relative to the page)."""
+    parts = [
+        f"<h2 id='{esc(day)}'>{esc(day)}</h2>",
+        f"<p class='meta'>logs: {esc(', '.join(result['logs']))}</p>",
     ]
-    parts += ["<h3>Test C: joint torques during the pushes (Nm)</h3>"]
-    rows = [
-        [
-            leg,
-            j,
-            v["raw"]["rmse"],
-            v["calibrated"]["rmse"],
-            v["ratio_rmse"],
-            v["raw"]["max"],
-            v["calibrated"]["max"],
-            v["ratio_max"],
+    if "test_a" in result:
+        parts += ["<h3>Test A: output noise standing still</h3>", f"<p class='note'>{_NOTES['test_a']}</p>"]
+        parts.append(_test_a(result["test_a"]))
+    if "test_b" in result:
+        parts += ["<h3>Test B: walking</h3>", f"<p class='note'>{_NOTES['test_b']}</p>"]
+        parts.append(_test_b(result["test_b"], targets["b"]))
+    if "test_c" in result:
+        parts += [
+            "<h3>Test C: joint torques during the pushes</h3>",
+            f"<p class='note'>{_NOTES['test_c']}</p>",
         ]
-        for leg, r in result.get("test_c", {}).items()
-        for j, v in r["joints"].items()
-    ]
-    parts += [
-        _table(
-            [
-                "sensor",
-                "joint",
-                "RMSE raw",
-                "RMSE cal.",
-                "RMSE raw/cal",
-                "max raw",
-                "max cal.",
-                "max raw/cal",
-            ],
-            rows,
-        )
-    ]
-    parts += [
-        f'<p><img src="{html.escape(src)}" alt="{html.escape(k)}" style="max-width:100%"></p>'
-        for k, src in figures.items()
-    ]
+        parts.append(_test_c(result["test_c"], targets["joint"], targets["c"]))
+    parts += [img(src, caption) for caption, src in figures.items()]
     return "\n".join(parts)
 
 
-def write_page(
-    path: Path, days: dict[str, dict[str, Any]], figures: dict[str, dict[str, str]], verdict: str
-) -> None:
-    style = "table{border-collapse:collapse}td,th{border:1px solid #ccc;padding:2px 6px;text-align:right}"
-    body = [f"<h1>Deployment tests</h1><p>{html.escape(verdict)}</p>"]
-    body += [day_section(day, r, figures.get(day, {})) for day, r in days.items()]
-    write_text(path, f"<!doctype html><html><head><meta charset='utf-8'><style>{style}</style></head><body>"
-               + "\n".join(body) + "</body></html>\n")  # fmt: skip
+def render_page(
+    days: Mapping[str, Mapping[str, Any]],
+    summary: Mapping[str, Mapping[str, Any]],
+    figures: Mapping[str, Mapping[str, str]],
+    targets: Mapping[str, Any],
+) -> str:
+    """The deployment page: the verdict per day, then each day's tests (`targets`: b, c, joint)."""
+    now = datetime.now(timezone.utc).strftime("%Y-%m-%d %H:%M UTC")
+    nav = "".join(f"<a href='#{esc(d)}'>{esc(d)}</a>" for d in days)
+    parts = [
+        "<h1>FT sensor calibration: deployment tests</h1>",
+        f"<p class='meta'>generated {now} · the thesis's tests A, B, C (chapter 6) on logs no model has "
+        "seen, calibrated by the export as on the robot · N, Nm</p>",
+        f"<nav><a href='{REPORT_FILE}'>Evaluation report (its own page)</a><a href='#verdict'>Verdict</a>"
+        f"{nav}</nav>",
+        "<h2 id='verdict'>Verdict</h2>",
+        verdict_table(summary),
+    ]
+    parts += [day_section(d, r, figures.get(d, {}), targets) for d, r in days.items()]
+    return document("ftcal deployment tests", parts)
+
+
+def write_page(path: Path, *args: Any) -> None:
+    """Write `render_page(*args)` to `path`, atomically."""
+    write_text(path, render_page(*args))

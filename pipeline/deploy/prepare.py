@@ -1,7 +1,9 @@
 """Deployment logs through the pipeline's own steps: ingest, smooth, label (truth kept where simulated).
 
-The same library functions as the stages (`ingest_one`, `smooth_table`, `label_table`), into a work
-directory, so a deployment log is read exactly as a training log was. Real logs (no truth) too.
+The same library functions as the stages (`ingest_one`, `smooth_table`, `label_table`), into a day's
+tables directory (``ingested/``, ``smoothed/``, ``labelled/`` and ``logs.json``, the list of its logs:
+`write_day`, `read_day`), so a deployment log is read exactly as a training log was. Real logs (no truth)
+too.
 """
 
 from __future__ import annotations
@@ -9,8 +11,10 @@ from __future__ import annotations
 import json
 from dataclasses import dataclass
 from pathlib import Path
+from typing import Any
 
 from pipeline.core.config import LabelParams, Params, repo_root, resolve_urdf, stage_section
+from pipeline.core.errors import DataError
 from pipeline.logs import schema as S
 from pipeline.logs.smoothing import SmoothParams, smooth_table
 from pipeline.physics.robot import RobotModel, load_robot
@@ -91,3 +95,42 @@ def _experiment(table: Path) -> dict[str, str]:
     meta = pq.read_schema(table).metadata or {}
     raw = meta.get(S.META_EXPERIMENT)
     return json.loads(raw) if raw else {}
+
+
+DAY_FILE = "logs.json"  # a day's tables directory: its logs, in order (`write_day`)
+
+
+def write_day(out: Path, logs: list[DeployLog]) -> None:
+    """Write `out`/logs.json: each log's name, source file (as given), experiment record and whether it has
+    truth; `read_day` finds its tables again under the directory the day's tables end up in."""
+    from pipeline.core.io import write_json
+
+    write_json(
+        out / DAY_FILE,
+        [{"name": g.name, "source": str(g.source), "truth": g.truth is not None, "experiment": g.experiment}
+         for g in logs],
+    )  # fmt: skip
+
+
+def read_day(day: Path) -> list[DeployLog]:
+    """The logs of a day's tables directory (`write_day`); DataError naming the file if it is not one."""
+    file = day / DAY_FILE
+    try:
+        entries: list[dict[str, Any]] = json.loads(file.read_text(encoding="utf-8"))
+        out = []
+        for e in entries:
+            table = f"{e['name']}{S.PARQUET_SUFFIX}"
+            truth = day / "ingested" / f"{e['name']}{S.TRUTH_SUFFIX}{S.PARQUET_SUFFIX}"
+            out.append(
+                DeployLog(
+                    e["name"], Path(e["source"]), day / "smoothed" / table, day / "labelled" / table,
+                    truth if e["truth"] else None, dict(e["experiment"]),
+                )
+            )  # fmt: skip
+    except FileNotFoundError:
+        raise DataError(
+            f"{file}: not found (a deployment day's tables: run `dvc repro deploy_prepare`)"
+        ) from None
+    except (OSError, ValueError, KeyError, TypeError) as exc:
+        raise DataError(f"{file}: not a deployment day's list of logs: {exc}") from None
+    return out

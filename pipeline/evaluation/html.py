@@ -1,4 +1,5 @@
-"""HTML pieces of the report pages: number format, escaping, tables, cells, figures."""
+"""HTML pieces of the report pages: their one look (stylesheet and page frame), number format, escaping,
+tables, cells, figures. Both pages (reports/index.html, reports/deployment.html) are built from these."""
 
 from __future__ import annotations
 
@@ -52,3 +53,31 @@ def img(src: str, alt: str) -> str:
         f'<figure><a href="{src}"><img src="{src}" alt="{alt}" loading="lazy"></a>'
         f"<figcaption>{alt}</figcaption></figure>"
     )
+
+
+CSS = """
+body{font-family:system-ui,-apple-system,Segoe UI,Roboto,sans-serif;margin:0 auto;max-width:1500px;
+ padding:0 24px 60px;color:#222}
+h1{margin-bottom:4px} h2{border-bottom:2px solid #ddd;padding-bottom:4px;margin-top:48px}
+h3{margin-top:28px} h4{margin:18px 0 6px}
+.meta{color:#666;font-size:13px}
+table{border-collapse:collapse;margin:6px 0 14px;font-size:13px}
+th,td{border:1px solid #ccc;padding:3px 8px;text-align:right;white-space:nowrap}
+th{background:#f2f2f2;white-space:normal;text-align:center}
+td:first-child,th:first-child{text-align:left} td.deploy{text-align:left}
+table.num td{font-variant-numeric:tabular-nums}
+.ok{background:#e3f4e3} .bad{background:#fbe0e0}
+.flags{border:2px solid #c62828;background:#fdecea;padding:10px 16px;border-radius:6px;margin:14px 0}
+.flags.none{border-color:#2e7d32;background:#edf7ed}
+.tables{display:flex;flex-wrap:wrap;gap:22px;align-items:flex-start}
+figure{margin:10px 0 18px} figure img{max-width:100%;border:1px solid #ddd}
+figcaption{font-size:12px;color:#555}
+nav{font-size:13px;columns:3;background:#fafafa;border:1px solid #eee;padding:8px 16px}
+nav a{display:block} .note{font-size:13px;color:#444;max-width:1100px}
+"""
+
+
+def document(title: str, parts: Sequence[str]) -> str:
+    """A whole page in the reports' one look: `parts` (HTML) in a body under the shared stylesheet."""
+    head = f"<!DOCTYPE html><html lang='en'><head><meta charset='utf-8'><title>{esc(title)}</title>"
+    return "\n".join([f"{head}<style>{CSS}</style></head><body>", *parts, "</body></html>"])

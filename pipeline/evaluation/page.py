@@ -11,11 +11,12 @@ from typing import TYPE_CHECKING, Any
 
 from pipeline.core.io import write_text
 from pipeline.evaluation.html import cell as _cell
+from pipeline.evaluation.html import document, fmt
 from pipeline.evaluation.html import esc as _e
-from pipeline.evaluation.html import fmt
 from pipeline.evaluation.html import img as _img
 from pipeline.evaluation.html import table as _table
 from pipeline.evaluation.params import (
+    DEPLOYMENT_PAGE,
     LABELS,
     NN7,
     NN13,
@@ -76,28 +77,6 @@ def _git_commit() -> str:
         return out.stdout.strip() or "unknown"
     except (OSError, subprocess.SubprocessError):
         return "unknown"
-
-
-_CSS = """
-body{font-family:system-ui,-apple-system,Segoe UI,Roboto,sans-serif;margin:0 auto;max-width:1500px;
- padding:0 24px 60px;color:#222}
-h1{margin-bottom:4px} h2{border-bottom:2px solid #ddd;padding-bottom:4px;margin-top:48px}
-h3{margin-top:28px} h4{margin:18px 0 6px}
-.meta{color:#666;font-size:13px}
-table{border-collapse:collapse;margin:6px 0 14px;font-size:13px}
-th,td{border:1px solid #ccc;padding:3px 8px;text-align:right;white-space:nowrap}
-th{background:#f2f2f2;white-space:normal;text-align:center}
-td:first-child,th:first-child{text-align:left} td.deploy{text-align:left}
-table.num td{font-variant-numeric:tabular-nums}
-.ok{background:#e3f4e3} .bad{background:#fbe0e0}
-.flags{border:2px solid #c62828;background:#fdecea;padding:10px 16px;border-radius:6px;margin:14px 0}
-.flags.none{border-color:#2e7d32;background:#edf7ed}
-.tables{display:flex;flex-wrap:wrap;gap:22px;align-items:flex-start}
-figure{margin:10px 0 18px} figure img{max-width:100%;border:1px solid #ddd}
-figcaption{font-size:12px;color:#555}
-nav{font-size:13px;columns:3;background:#fafafa;border:1px solid #eee;padding:8px 16px}
-nav a{display:block} .note{font-size:13px;color:#444;max-width:1100px}
-"""
 
 
 def _headline_cells(r: GroupReport, name: str, refs: Sequence[str], cfg: EvaluateParams) -> str:
@@ -297,13 +276,11 @@ def render_html(
     labels = availability_section(availability)
     labels_link = "<a href='#labels'>Exact-label availability</a>" if labels else ""
     parts = [
-        "<!DOCTYPE html><html lang='en'><head><meta charset='utf-8'>",
-        f"<title>ftcal evaluation report</title><style>{_CSS}</style></head><body>",
         "<h1>FT sensor calibration: evaluation on the test logs</h1>",
         f"<p class='meta'>generated {now} · git {_e(_git_commit())} · groups: {_e(groups)} · "
         "errors in N and Nm; global = the 6 components pooled, as in the thesis</p>",
         "<nav><a href='#summary'>Summary and recommendation</a><a href='#noise'>Deployment noise check</a>"
-        f"{labels_link}{nav}</nav>",
+        f"{labels_link}{nav}<a href='{DEPLOYMENT_PAGE}'>Deployment tests (its own page)</a></nav>",
         "<h2 id='summary'>Summary and recommendation</h2>",
         _flags_box(results, cfg),
         summary_table(results, cfg),
@@ -322,8 +299,7 @@ def render_html(
     ]
     for r in results:
         parts += _group_section(r, cfg.fidelity_tolerance)
-    parts.append("</body></html>")
-    return "\n".join(parts)
+    return document("ftcal evaluation report", parts)
 
 
 def write_page(

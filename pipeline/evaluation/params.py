@@ -28,6 +28,7 @@ GROUPS_DIR = "groups"
 GROUP_REPORT = "report.json"
 METRICS_DIR = "metrics"
 REPORT_FILE = "index.html"
+DEPLOYMENT_PAGE = "deployment.html"  # the deployment tests' page beside it (pipeline.deploy.page)
 PLOTS_DIR = "plots"
 PLOTS_DATA_DIR = "plots_data"
 TRAIN_METRICS = "metrics.json"  # in models/<group>/

@@ -121,8 +121,8 @@ def metadata(entry: Mapping[str, Any], robot: str) -> dict[str, str]:
     }
 
 
-def document(robot: str, graphs: Mapping[str, Any]) -> dict[str, Any]:
-    """The content of manifest.json."""
+def document(robot: str, graphs: Mapping[str, Any], fused: str | None = FUSED) -> dict[str, Any]:
+    """The content of manifest.json (`fused`: the fused graph's name, None for one group's export)."""
     return {
         "format": FORMAT,
         "version": VERSION,
@@ -130,7 +130,7 @@ def document(robot: str, graphs: Mapping[str, Any]) -> dict[str, Any]:
         "opset": OPSET,
         "input": INPUT,
         "output": OUTPUT,
-        "fused": FUSED,
+        "fused": fused,
         "graphs": dict(graphs),
     }
 
@@ -151,42 +151,52 @@ def data_sha256(paths: Sequence[Path]) -> str:
     return digest.hexdigest()
 
 
-def build_graphs(
-    models: Sequence[GroupModel], topics: Any, robot: str, trainings: Mapping[str, Mapping[str, Any]]
-) -> dict[str, tuple[dict[str, Any], dict[str, Any]]]:
-    """name -> (manifest entry, {dtype: ONNX ModelProto}) of each group's graph and of the fused one."""
+def build_graph(
+    name: str,
+    models: Sequence[GroupModel],
+    topics: Any,
+    robot: str,
+    trainings: Mapping[str, Mapping[str, Any]],
+) -> tuple[dict[str, Any], dict[str, Any]]:
+    """(manifest entry, {dtype: ONNX ModelProto}) of a group's graph, or of the fused graph of `models`
+    (`name` FUSED: laid out for one sample per call)."""
     from pipeline.export import graph
 
-    out = {}
-    for name, members in [*((m.group, [m]) for m in models), (FUSED, list(models))]:
-        entry = graph_entry(members, topics, trainings)
-        props = metadata(entry, robot)
-        out[name] = (
-            entry,
-            {
-                dtype: graph.build(members, dtype, props, f"ftcal_{name}", per_sample=name == FUSED)
-                for dtype in graph.DTYPES
-            },
-        )
-    return out
+    entry = graph_entry(models, topics, trainings)
+    props = metadata(entry, robot)
+    graphs = {
+        dtype: graph.build(models, dtype, props, f"ftcal_{name}", per_sample=name == FUSED)
+        for dtype in graph.DTYPES
+    }
+    return entry, graphs
 
 
-def write_export(
-    out_dir: Path, robot: str, built: Mapping[str, tuple[dict[str, Any], dict[str, Any]]]
+def write_graphs(
+    out_dir: Path, name: str, entry: Mapping[str, Any], graphs: Mapping[str, Any]
 ) -> dict[str, Any]:
-    """Write every graph as ``<name>.<dtype>.onnx`` and manifest.json into `out_dir`; the manifest."""
+    """Write a graph's files ``<name>.<dtype>.onnx`` into `out_dir`; its entry with ``files`` (relative to
+    `out_dir`) and their ``sha256``."""
     import onnx
 
-    from pipeline.core.io import write_json
+    entry = dict(entry)
+    entry["files"] = {dtype: f"{name}.{dtype}.onnx" for dtype in graphs}
+    for dtype, model in graphs.items():
+        onnx.save_model(model, out_dir / entry["files"][dtype])
+    entry["sha256"] = {d: sha256_file(out_dir / f) for d, f in entry["files"].items()}
+    return entry
 
-    entries = {}
-    for name, (entry, graphs) in built.items():
-        entry = dict(entry)
-        entry["files"] = {dtype: f"{name}.{dtype}.onnx" for dtype in graphs}
-        for dtype, model in graphs.items():
-            onnx.save_model(model, out_dir / entry["files"][dtype])
-        entry["sha256"] = {d: sha256_file(out_dir / f) for d, f in entry["files"].items()}
-        entries[name] = entry
-    doc = document(robot, entries)
-    write_json(out_dir / MANIFEST_FILE, doc)
+
+def read_manifest(path: Path) -> dict[str, Any]:
+    """manifest.json of an export directory `path`; DataError naming the file if absent or not one."""
+    from pipeline.core.errors import DataError
+
+    file = path / MANIFEST_FILE
+    try:
+        doc = json.loads(file.read_text(encoding="utf-8"))
+    except FileNotFoundError:
+        raise DataError(f"{file}: not found (is {path} an export directory?)") from None
+    except (OSError, ValueError) as exc:
+        raise DataError(f"{file}: not a manifest: {exc}") from None
+    if not isinstance(doc, dict) or doc.get("format") != FORMAT or "graphs" not in doc:
+        raise DataError(f"{file}: not an ftcal export manifest (format {FORMAT!r})")
     return doc

@@ -16,7 +16,6 @@ in the other slots, whose outputs are discarded).
 
 from __future__ import annotations
 
-import json
 from collections.abc import Iterable, Mapping, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -67,20 +66,13 @@ class Deployment:
     def load(cls, path: str | Path, threads: int = 1) -> Deployment:
         """Read `path`/manifest.json and open the float64 graphs. Raises DataError naming the file."""
         from pipeline.export.check import session
-        from pipeline.export.manifest import FORMAT, MANIFEST_FILE, sha256_file
+        from pipeline.export.manifest import MANIFEST_FILE, read_manifest, sha256_file
 
         path = Path(path)
         file = path / MANIFEST_FILE
         if not path.is_dir():
-            raise DataError(f"{path}: models directory not found (run `dvc repro export`, or pass --models)")
-        try:
-            manifest = json.loads(file.read_text(encoding="utf-8"))
-        except FileNotFoundError:
-            raise DataError(f"{file}: not found (is {path} an export directory?)") from None
-        except (OSError, ValueError) as exc:
-            raise DataError(f"{file}: not a manifest: {exc}") from None
-        if not isinstance(manifest, dict) or manifest.get("format") != FORMAT or "graphs" not in manifest:
-            raise DataError(f"{file}: not an ftcal export manifest (format {FORMAT!r})")
+            raise DataError(f"{path}: models directory not found (run `dvc repro`, or pass --models)")
+        manifest = read_manifest(path)
         sessions = {}
         deployment = cls(path, manifest, sessions)
         for group, entry in deployment.groups().items():
@@ -294,3 +286,65 @@ def check_robot(deployment: Deployment, metadata: Mapping[str, Mapping[str, str]
         raise DataError(
             f"{where}: recorded on robot {recorded!r}, but the models in {deployment.path} are of {robot!r}"
         )
+
+
+def plan_log(reader: Any, deployment: Deployment, topics: Any) -> tuple[list[SensorPlan], list[str]]:
+    """(the plans of the modelled sensors present in the log of `reader` (`LogReader`), warnings).
+
+    DataError if the log cannot be calibrated by these models: another robot's, or a modelled sensor's
+    temperature or IMU topic (an input of its model) missing or of another type, or no modelled sensor.
+    """
+    from pipeline.logs.rosmsg import IMU, TEMPERATURE, WRENCH_STAMPED
+
+    check_robot(deployment, reader.metadata, reader.path)
+    present = {t: info for t, info in reader.topics.items() if info.message_count}
+    plans, modelled = [], set()
+    for plan in deployment.plans(topics):
+        modelled.add(plan.sensor)
+        if plan.wrench_topic not in present:
+            continue
+        for topic, msgtype in (
+            (plan.wrench_topic, WRENCH_STAMPED),
+            (plan.temperature_topic, TEMPERATURE),
+            (plan.imu_topic, IMU),
+        ):
+            if topic is None:
+                continue
+            if topic not in present:
+                need = f"its {plan.n_inputs}-input model ({plan.group})"
+                raise DataError(f"{reader.path}: has {plan.wrench_topic} but no {topic}, an input of {need}")
+            if present[topic].msgtype != msgtype:
+                raise DataError(
+                    f"{reader.path}: topic {topic} has type {present[topic].msgtype}, expected {msgtype}"
+                )
+        plans.append(plan)
+    if not plans:
+        raise DataError(
+            f"{reader.path}: none of the sensors of {deployment.path} ({', '.join(sorted(modelled))}) has "
+            f"messages on {topics.ft_wrench} (models of another robot, or other topic names?)"
+        )
+    others = sorted(set(sensors_in_topics(topics.ft_wrench, present)) - modelled)
+    warnings = [f"{reader.path}: no model for {s}: its wrenches pass through uncalibrated" for s in others]
+    return plans, warnings
+
+
+def calibrated_messages(
+    deployment: Deployment, reader: Any, topics: Any
+) -> dict[str, tuple[np.ndarray, np.ndarray]]:
+    """Sensor -> (stamps (n,) int64 ns, calibrated wrenches (n, 6) N/Nm) of every raw wrench message of a
+    modelled sensor in the log of `reader` that has causal inputs, sorted by stamp (`ftcal calibrate`'s
+    values, without writing a copy)."""
+    plans, _ = plan_log(reader, deployment, topics)
+    calibrator = CausalCalibrator(deployment, plans)
+    parts: dict[str, list[tuple[np.ndarray, np.ndarray]]] = {}
+    for batches in reader.iter_chunks(calibrator.topics()):
+        for c in calibrator.feed(batches):
+            parts.setdefault(c.plan.sensor, []).append((c.stamp, c.wrench))
+    for c in calibrator.flush():
+        parts.setdefault(c.plan.sensor, []).append((c.stamp, c.wrench))
+    out = {}
+    for sensor, chunks in parts.items():
+        t = np.concatenate([c[0] for c in chunks])
+        order = np.argsort(t, kind="stable")
+        out[sensor] = (t[order], np.concatenate([c[1] for c in chunks])[order])
+    return out

@@ -1,13 +1,16 @@
 """A copy of an MCAP log with messages added, every original record kept byte for byte.
 
 `LogAugmenter` streams the input file: the bytes of its data section (header, schemas, channels,
-metadata, attachments, chunks and their message indexes) are copied unchanged, and after any original
-chunk a new chunk of added messages can be inserted. The new channels (and their schema if the input has
-no standard one of that type) are written before the first chunk. At the end it writes a new DataEnd
-(CRC 0: not computed) and summary: the original schemas, channels, chunk/metadata/attachment indexes with
-their offsets moved by the inserted bytes, plus the new ones; statistics with the added counts. So every
-original message keeps its channel, sequence, log and publish times and bytes, and readers that use the
-summary (mcap, Foxglove) see the added messages in log-time order with the others. Memory is one chunk.
+metadata, attachments, chunks and their message indexes, messages outside chunks) are copied unchanged,
+and after any region of it (`LogReader.iter_regions`: an original chunk, or a block of a file without chunk
+indexes) a new chunk of added messages can be inserted. The new channels (and their schema if the input
+has no standard one of that type) are written after the first region. At the end it writes a new DataEnd
+(CRC 0: not computed) and, for an indexed input, a summary: the original schemas, channels,
+chunk/metadata/attachment indexes with their offsets moved by the inserted bytes, plus the new ones;
+statistics with the added counts. An input without chunk indexes gets no summary, as it had none usable
+(an index of the added chunks alone would hide the original messages from readers that trust it): readers
+scan it as they scanned the input. So every original message keeps its channel, sequence, log and publish
+times and bytes, and readers see the added messages with the others. Memory is one chunk.
 
 Written to ``<out>.part`` and renamed on `close`; `abort` (or an exception in the ``with`` block) deletes it.
 """
@@ -46,19 +49,15 @@ class LogAugmenter:
         self.part_path = self.path.with_name(self.path.name + ".part")
         self._compressor = zstandard.ZstdCompressor(level=compression_level)
         summary = reader.summary
-        if not reader.indexed or summary.statistics is None:
-            raise DataError(
-                f"{reader.path}: MCAP file without chunk indexes or statistics (unchunked or not indexed); "
-                "re-index it with `mcap recover`"
-            )
+        # with chunk indexes and statistics the copy gets a summary; without, none (readers scan it)
+        self._indexed = reader.indexed and summary.statistics is not None
         self._src = open(reader.path, "rb")  # noqa: SIM115 (closed in close()/abort())
         try:
             self._data_end = self._find_data_end()
         except BaseException:
             self._src.close()
             raise
-        self._schemas = dict(summary.schemas)
-        self._channels = dict(summary.channels)
+        self._schemas, self._channels = reader.schemas, reader.channels
         self._new_records: list[Any] = []  # schemas and channels to write before the first chunk
         self._new_chunk_indexes: list[Any] = []
         self._counts: dict[int, int] = {}
@@ -93,11 +92,14 @@ class LogAugmenter:
             raise RuntimeError("channels must be added before copying the first chunk")
         if any(c.topic == topic for c in self._channels.values()):
             raise DataError(f"{self.reader.path}: already has topic {topic}")
+        # An indexed copy reuses a standard schema of the input (readers take schemas from the summary); a
+        # scanned copy gets its own, written with the channel: the input's may first appear after it.
         schema_id = next(
             (
                 sid
                 for sid, s in sorted(self._schemas.items())
-                if s.name == msgtype
+                if self._indexed
+                and s.name == msgtype
                 and s.encoding == "ros2msg"
                 and schema_layout(s.name, s.data.decode("utf-8", "replace")) == STANDARD_LAYOUTS.get(msgtype)
             ),
@@ -125,13 +127,13 @@ class LogAugmenter:
         self._sequence[channel] = first + n
         return (np.arange(first, first + n, dtype=np.int64) & 0xFFFFFFFF).astype(np.uint32)
 
-    def copy_through(self, index: Any) -> None:
-        """Copy the input up to the end of the chunk of `index` and its message indexes."""
+    def copy_through(self, end: int | None) -> None:
+        """Copy the input up to byte `end` (a region's end, `LogReader.iter_regions`; None: the end of the
+        data section). The added channels and schemas are written after the first region."""
+        self._copy(self._data_end if end is None else end)
         if not self._started:
-            self._copy(index.chunk_start_offset)
             self._insert(b"".join(_record_bytes(r) for r in self._new_records))
             self._started = True
-        self._copy(index.chunk_start_offset + index.chunk_length + index.message_index_length)
 
     def add_chunk(self, parts: Sequence[tuple[int, np.ndarray, np.ndarray]]) -> None:
         """Insert one chunk of added messages: parts of (channel, records (n, size) uint8, log times (n,))."""
@@ -145,11 +147,7 @@ class LogAugmenter:
     def close(self) -> None:
         """Copy the rest of the data section, write DataEnd, summary and footer; rename to the output path."""
         try:
-            if not self._started:
-                self._copy(self._data_end)
-                self._insert(b"".join(_record_bytes(r) for r in self._new_records))
-                self._started = True
-            self._copy(self._data_end)
+            self.copy_through(None)
             self._finish()
             self._out.flush()
             os.fsync(self._out.fileno())
@@ -309,12 +307,17 @@ class LogAugmenter:
         ]
 
     def _finish(self) -> None:
-        """DataEnd, summary (schemas, channels, statistics, indexes), summary offsets, footer, magic."""
+        """DataEnd, summary (schemas, channels, statistics, indexes), summary offsets, footer, magic; for
+        an input without chunk indexes, DataEnd and a footer without summary, as the input had."""
         from mcap.data_stream import RecordBuilder
         from mcap.opcode import Opcode
         from mcap.records import DataEnd, Footer, SummaryOffset
 
         self._out.write(_record_bytes(DataEnd(data_section_crc=0)))
+        if not self._indexed:
+            self._out.write(_record_bytes(Footer(0, 0, 0)))
+            self._out.write(MAGIC)
+            return
         summary_start = self._out.tell()
         builder = RecordBuilder()
         offsets = []

@@ -135,10 +135,8 @@ class LogReader:
         """
         decoders = self._decoders(set(self.topics) if topics is None else set(topics), fast)
         if not self.indexed:
-            blocks = scan_blocks(self._file, self.size_bytes, str(self.path), self.validate_crcs)
-            for ordinal, (offset, consumed, data) in enumerate(blocks):
-                offsets = message_offsets(data, decoders.__contains__)
-                yield self._decode(data, offsets, ordinal, decoders, f"data at byte {offset}")
+            for _offset, consumed, batches in self._scanned_blocks(decoders):
+                yield batches
                 if progress is not None:
                     progress(consumed)
             return
@@ -149,18 +147,53 @@ class LogReader:
                 progress(index.chunk_length + index.message_index_length)
 
     @property
+    def schemas(self) -> dict[int, Any]:
+        """Schema id -> mcap.records.Schema (from the summary, or the scan of a file without one)."""
+        return dict(self._schemas)
+
+    @property
+    def channels(self) -> dict[int, Any]:
+        """Channel id -> mcap.records.Channel (from the summary, or the scan of a file without one)."""
+        return dict(self._channels)
+
+    @property
     def summary(self) -> Any:
         """The file's summary (mcap.reader Summary: schemas, channels, statistics, chunk indexes), or None."""
         return self._summary
 
-    def iter_indexed_chunks(
+    def iter_regions(
         self, topics: Iterable[str], *, fast: bool = True
-    ) -> Iterator[tuple[Any, list[Batch]]]:
-        """Yield every chunk of an indexed file in file order: (its ChunkIndex, the batches of `topics`)."""
-        if not self.indexed:
-            raise self._error("MCAP file without chunk indexes; re-index it with `mcap recover`")
-        for index, batches in self._indexed_chunks(self._decoders(set(topics), fast)):
-            yield index, batches or []
+    ) -> Iterator[tuple[int | None, list[Batch]]]:
+        """Yield the data section in file order as regions: (the file offset where the region ends, the
+        batches of `topics` in it); the last region's end is None (the end of the data section).
+
+        A region of an indexed file is a chunk with its message indexes; without chunk indexes, a block of
+        the scan (`pipeline.logs.mcap_scan`) up to the next block, so that whatever follows a chunk (its
+        message indexes) stays with it. Bytes may be inserted at each region's end (`LogAugmenter`).
+        """
+        decoders = self._decoders(set(topics), fast)
+        if self.indexed:
+            for index, batches in self._indexed_chunks(decoders):
+                yield (
+                    index.chunk_start_offset + index.chunk_length + index.message_index_length,
+                    batches or [],
+                )
+            return
+        previous: list[Batch] | None = None
+        for offset, _consumed, batches in self._scanned_blocks(decoders):
+            if previous is not None:
+                yield offset, previous
+            previous = batches
+        yield None, previous or []
+
+    def _scanned_blocks(
+        self, decoders: Mapping[int, ChannelDecoder]
+    ) -> Iterator[tuple[int, int, list[Batch]]]:
+        """(file offset, file bytes consumed, batches) of each block of a scan of the data section."""
+        blocks = scan_blocks(self._file, self.size_bytes, str(self.path), self.validate_crcs)
+        for ordinal, (offset, consumed, data) in enumerate(blocks):
+            offsets = message_offsets(data, decoders.__contains__)
+            yield offset, consumed, self._decode(data, offsets, ordinal, decoders, f"data at byte {offset}")
 
     def _indexed_chunks(
         self, decoders: Mapping[int, ChannelDecoder]

@@ -1,31 +1,31 @@
-"""Stage `export`: the recommended calibration of every sensor group as ONNX graphs a robot can run.
+"""Stages `export@<group>` and `export_fused`: the recommended calibrations as ONNX graphs a robot can run.
 
-``ftcal export MODELS METRICS LABELLED OUT`` takes, per group of ``train.groups``, the model that
-`evaluate@<group>` recommends (``recommended`` of ``METRICS/<group>.json``; ``export.models.<group>``
-overrides it), whichever its family (network, polynomial, affine, raw), and writes ``OUT``:
-
-- ``<group>.float32.onnx``, ``<group>.float64.onnx``: the group's graph (`pipeline.export.graph`):
-  input ``inputs`` (N, S x 7 or 13) raw wrench, temperature [, accelerometer, gyroscope] per sensor, output
-  ``calibrated`` (N, S x 6), normalisation inside;
-- ``all.float32.onnx``, ``all.float64.onnx``: every group fused, one call per sample for all sensors;
-- ``manifest.json``: inputs and outputs (order, names, units, source topics), sensors, the model and its
-  training provenance (logs, data hash, MLflow run, test errors) and the checks (`pipeline.export.manifest`;
-  the same in each file's ONNX metadata).
+``ftcal export MODELS METRICS LABELLED OUT --group G`` (stage ``export@<group>``) takes the model that
+`evaluate@<group>` recommends (``recommended`` of ``METRICS/<group>/<headline>.json``;
+``export.models.<group>`` overrides it), whichever its family (network, polynomial, affine, raw), and
+writes ``OUT/groups/<group>/``: ``<group>.float32.onnx``, ``<group>.float64.onnx`` (the group's graph,
+`pipeline.export.graph`: input ``inputs`` (N, S x 7 or 13) raw wrench, temperature [, accelerometer,
+gyroscope] per sensor, output ``calibrated`` (N, S x 6), normalisation inside) and the group's
+``manifest.json`` (an export directory of its own). ``ftcal export ... --fused`` (stage ``export_fused``)
+assembles every group's export: the fused graph of every group (``all.float32.onnx``, ``all.float64.onnx``:
+one call per sample for all sensors) and ``OUT/manifest.json`` (`pipeline.export.manifest`: inputs and
+outputs (order, names, units, source topics), sensors, each group's model and its training provenance, the
+checks; the same in each file's ONNX metadata). Without either option, both: every group, then the
+assembly. One group's change re-exports that group and the light assembly only.
 
 Every graph is checked with onnxruntime on every test sample of its groups before anything is written
-(`pipeline.export.check`): float32 against the stored test predictions within ``export.tolerance_float32``,
-float64 against the project's own model in float64 within ``export.tolerance_float64``. The output
-directory is replaced whole, atomically. The MLflow run ``export`` logs the files under ``onnx/``, registers
-them as a version of the registered model ``ftcal-onnx``, and tags the registered training version of each
-exported network (``ftcal-<group>-<inputs>``) with where its ONNX graphs are.
+(`pipeline.export.check`): float32 against the project's float32 prediction within
+``export.tolerance_float32_ulps`` float32 steps, float64 against the project's own model in float64 within
+``export.tolerance_float64`` N/Nm. Outputs are replaced atomically. Each run logs its files to MLflow under
+``onnx/``; a group's run tags the registered training version of its exported network
+(``ftcal-<group>-<inputs>``) with its graphs, the assembly registers the whole export as a version of
+``ftcal-onnx``.
 """
 
 from __future__ import annotations
 
 import argparse
 import json
-import os
-import shutil
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -35,8 +35,7 @@ from pipeline.core.cliargs import add_params_option
 from pipeline.core.errors import ConfigError, DataError
 
 STAGE = "export"
-REGISTERED_MODEL = "ftcal-onnx"
-ARTIFACT_DIR = "onnx"
+GROUPS_DIR = "groups"  # OUT/groups/<group>: each group's export
 
 
 @dataclass
@@ -61,14 +60,17 @@ def group_names(params: Any) -> list[str]:
     return [str(g) for g in groups]
 
 
-def choose_models(groups: list[str], report: Path, overrides: dict[str, str]) -> dict[str, str]:
-    """group -> model to export: ``export.models`` where given, else evaluate's recommendation
-    (``recommended`` of the files ``<report>/<group>/*.json``, the evaluate@<group> metrics)."""
+def choose_models(
+    groups: list[str], report: Path, overrides: dict[str, str], only: list[str] | None = None
+) -> dict[str, str]:
+    """group -> model to export, for the groups `only` (default all): ``export.models`` where given, else
+    evaluate's recommendation (``recommended`` of the files ``<report>/<group>/*.json``, the
+    evaluate@<group> metrics)."""
     unknown = sorted(set(overrides) - set(groups))
     if unknown:
         raise ConfigError(f"export.models.{unknown[0]}: not a group of train.groups ({', '.join(groups)})")
     chosen = {}
-    for group in groups:
+    for group in groups if only is None else only:
         name = overrides.get(group)
         if not name:
             files = sorted((report / group).glob("*.json"))
@@ -88,177 +90,191 @@ def choose_models(groups: list[str], report: Path, overrides: dict[str, str]) ->
     return chosen
 
 
-def _train_run(client: Any, group: str, metrics: dict[str, Any]) -> str | None:
-    """The train@<group> MLflow run that wrote models/<group>: metrics.json's ``mlflow_run``, else the
-    latest run of that stage whose logged test RMSE of every model equals metrics.json's."""
-    import math
+def _config(params: Any) -> tuple[Any, dict[str, float]]:
+    from pipeline.core.config import ExportParams, stage_section
 
-    if metrics.get("mlflow_run"):
-        return str(metrics["mlflow_run"])
-    experiment = client.get_experiment_by_name("ftcal")
-    if experiment is None:
-        return None
-    runs = client.search_runs(
-        [experiment.experiment_id],
-        f"tags.`dvc.stage` = 'train@{group}'",
-        order_by=["attributes.start_time DESC"],
-    )
-    test = metrics.get("test") or {}
-
-    def same(logged: dict[str, float], name: str, errors: dict[str, Any]) -> bool:
-        a, b = logged.get(f"test.{name}.rmse"), errors.get("rmse")
-        return a is not None and b is not None and math.isclose(a, b, rel_tol=1e-9, abs_tol=1e-12)
-
-    for r in runs:
-        measured = [(n, e) for n, e in test.items() if isinstance(e.get("rmse"), float)]
-        if measured and all(same(r.data.metrics, n, e) for n, e in measured):
-            return r.info.run_id
-    return None
+    cfg = stage_section(params, STAGE, ExportParams)
+    return cfg, {"float32": cfg.tolerance_float32_ulps, "float64": cfg.tolerance_float64}
 
 
-def _register(client: Any, run: Any, manifest: dict[str, Any]) -> dict[str, str]:
-    """Register the exported files as a version of REGISTERED_MODEL; tag the exported networks' versions."""
+def _training(client: Any, model: Any, models_dir: Path, labelled: Path) -> dict[str, Any]:
+    """A group model's provenance for the manifest: its training logs' hash and its MLflow run."""
+    from pipeline.export import manifest
+    from pipeline.export.registry import train_run
+    from pipeline.export.trained import read_metrics
+
+    metrics = read_metrics(models_dir)
+    logs = [*(metrics.get("logs") or {}).get("train", []), *(metrics.get("logs") or {}).get("val", [])]
+    paths = [labelled / f"{log}.parquet" for log in logs]
+    missing = [p for p in paths if not p.is_file()]
+    if missing:
+        raise DataError(f"{missing[0]}: training log of {model.group} not found (for the data hash)")
+    return manifest.training(model, manifest.data_sha256(paths), train_run(client, model.group, metrics))
+
+
+def _check_dirs(*paths: tuple[Path, str]) -> None:
+    for path, what in paths:
+        if not path.is_dir():
+            raise DataError(f"{path}: {what} directory not found")
+
+
+def run_group(
+    params: Any,
+    group: str,
+    models_dir: str | Path,
+    report: str | Path,
+    labelled_dir: str | Path,
+    out_dir: str | Path,
+) -> ExportResult:
+    """Export one group into `out_dir`/groups/<group>/ (module docstring)."""
     import mlflow
 
-    registered = {}
-    try:
-        client.get_registered_model(REGISTERED_MODEL)
-    except mlflow.exceptions.MlflowException:
-        client.create_registered_model(
-            REGISTERED_MODEL, description="ftcal calibrations as ONNX (manifest.json)"
+    from pipeline.core.io import atomic_dir, write_json
+    from pipeline.core.tracking import stage_run
+    from pipeline.export import check, manifest
+    from pipeline.export.registry import ARTIFACT_DIR, tag_network
+    from pipeline.export.trained import read_group
+
+    t0 = time.perf_counter()
+    cfg, tolerance = _config(params)
+    models_dir, labelled, out = Path(models_dir), Path(labelled_dir), Path(out_dir) / GROUPS_DIR / group
+    _check_dirs((models_dir, "models"), (labelled, "labelled"))
+    groups = group_names(params)
+    if group not in groups:
+        raise ConfigError(f"train.groups has no group {group!r} ({', '.join(groups)})")
+    name = choose_models([group], Path(report), {k: v for k, v in cfg.models.items() if k == group}, groups)[
+        group
+    ]
+    model = read_group(models_dir / group, name, group)
+    samples = check.load_samples(models_dir / group, model, labelled)
+    stage_params = {
+        STAGE: {k: v for k, v in vars(cfg).items() if k != "models"},
+        "group": group,
+        "model": name,
+    }
+    with stage_run(f"{STAGE}@{group}", stage_params) as active:
+        client = mlflow.MlflowClient()
+        training = _training(client, model, models_dir / group, labelled)
+        entry, graphs = manifest.build_graph(
+            group, [model], params.topics, params.robot.urdf, {group: training}
         )
-    groups = {g: t["model"] for g, t in manifest["graphs"]["all"]["training"].items()}
-    version = client.create_model_version(
-        REGISTERED_MODEL,
-        f"{run.info.artifact_uri}/{ARTIFACT_DIR}",
-        run_id=run.info.run_id,
-        tags={f"model.{g}": name for g, name in groups.items()},
-        description="one graph per group and one fused graph; see manifest.json",
-    )
-    registered[REGISTERED_MODEL] = str(version.version)
-    for group, entry in manifest["graphs"].items():
-        training = entry["training"].get(group)
-        if training is None or training["family"] != "network" or not training.get("mlflow_run"):
-            continue
-        name = f"ftcal-{group}-{training['inputs_per_sensor']}"
-        for mv in client.search_model_versions(f"name = '{name}' and run_id = '{training['mlflow_run']}'"):
-            for dtype, file in entry["files"].items():
-                client.set_model_version_tag(
-                    name, mv.version, f"onnx.{dtype}", f"runs:/{run.info.run_id}/{ARTIFACT_DIR}/{file}"
-                )
-            client.set_model_version_tag(
-                name, mv.version, "onnx.registered", f"{REGISTERED_MODEL}/{version.version}"
+        entry["check"] = check.check_group(graphs, samples)
+        check.assert_within(group, entry["check"], tolerance)
+        with atomic_dir(out) as tmp:
+            entry = manifest.write_graphs(tmp, group, entry, graphs)
+            doc = manifest.document(params.robot.urdf, {group: entry}, fused=None)
+            write_json(tmp / manifest.MANIFEST_FILE, doc)
+        _log_checks(doc)
+        mlflow.set_tags({"group": group, "model": name, "out_dir": str(out)})
+        mlflow.log_artifacts(str(out), ARTIFACT_DIR)
+        registered = tag_network(client, active, group, entry)
+        run_id = active.info.run_id
+    files = sorted(p.name for p in out.iterdir())
+    return ExportResult(out, doc, files, time.perf_counter() - t0, run_id, registered)
+
+
+def run_fused(
+    params: Any, models_dir: str | Path, labelled_dir: str | Path, out_dir: str | Path
+) -> ExportResult:
+    """The fused graph of the groups' exports under `out_dir`/groups and `out_dir`/manifest.json."""
+    import mlflow
+
+    from pipeline.core.io import write_json
+    from pipeline.core.tracking import stage_run
+    from pipeline.export import check, manifest
+    from pipeline.export.registry import ARTIFACT_DIR, register_export
+    from pipeline.export.trained import read_group
+
+    t0 = time.perf_counter()
+    _, tolerance = _config(params)
+    models_dir, labelled, out = Path(models_dir), Path(labelled_dir), Path(out_dir)
+    _check_dirs((models_dir, "models"), (labelled, "labelled"))
+    entries = {}
+    for group in group_names(params):
+        doc = manifest.read_manifest(out / GROUPS_DIR / group)
+        if group not in doc["graphs"]:
+            raise DataError(
+                f"{out / GROUPS_DIR / group}: no graph of {group} (run `dvc repro export@{group}`)"
             )
-            registered[name] = str(mv.version)
-    return registered
+        entry = dict(doc["graphs"][group])
+        entry["files"] = {d: f"{GROUPS_DIR}/{group}/{f}" for d, f in entry["files"].items()}
+        entries[group] = entry
+    models = [read_group(models_dir / g, e["models"][g], g) for g, e in entries.items()]
+    samples = [check.load_samples(models_dir / m.group, m, labelled) for m in models]
+    trainings = {g: e["training"][g] for g, e in entries.items()}
+    with stage_run(f"{STAGE}_fused", {"models": {g: e["models"][g] for g, e in entries.items()}}) as active:
+        entry, graphs = manifest.build_graph(
+            manifest.FUSED, models, params.topics, params.robot.urdf, trainings
+        )
+        entry["check"] = check.check_fused(graphs, samples)
+        check.assert_within(manifest.FUSED, entry["check"], tolerance)
+        entries[manifest.FUSED] = manifest.write_graphs(out, manifest.FUSED, entry, graphs)
+        doc = manifest.document(params.robot.urdf, entries)
+        write_json(out / manifest.MANIFEST_FILE, doc)  # last: it names (and hashes) the files above
+        _log_checks(doc)
+        for name in (*entries[manifest.FUSED]["files"].values(), manifest.MANIFEST_FILE):
+            mlflow.log_artifact(str(out / name), ARTIFACT_DIR)
+        mlflow.log_artifacts(str(out / GROUPS_DIR), f"{ARTIFACT_DIR}/{GROUPS_DIR}")
+        registered = register_export(mlflow.MlflowClient(), active, doc)
+        run_id = active.info.run_id
+    files = sorted(p.name for p in out.iterdir())
+    return ExportResult(out, doc, files, time.perf_counter() - t0, run_id, registered)
 
 
-def _replace_dir(tmp: Path, out: Path) -> None:
-    """Move the finished directory `tmp` to `out`, replacing an older export."""
-    old = out.with_name(f".{out.name}.{os.getpid()}.old")
-    if out.exists():
-        os.replace(out, old)
-    os.replace(tmp, out)
-    shutil.rmtree(old, ignore_errors=True)
+def _log_checks(doc: dict[str, Any]) -> None:
+    import mlflow
+
+    mlflow.log_metrics(
+        {
+            f"check.{name}.{dtype}.{k}": v
+            for name, e in doc["graphs"].items()
+            if "check" in e
+            for dtype, r in e["check"].items()
+            for k, v in r.items()
+            if k.startswith("max_")
+        }
+    )
 
 
 def run(
     params: Any, models_dir: str | Path, report: str | Path, labelled_dir: str | Path, out_dir: str | Path
 ) -> ExportResult:
-    """Export, check, write `out_dir` and log to MLflow (module docstring)."""
-    import mlflow
-
-    from pipeline.core.config import ExportParams, stage_section
-    from pipeline.core.tracking import stage_run
-    from pipeline.export import check, manifest
-    from pipeline.export.trained import read_group, read_metrics
-
-    t0 = time.perf_counter()
-    cfg = stage_section(params, STAGE, ExportParams)
-    models_dir, labelled, out = Path(models_dir), Path(labelled_dir), Path(out_dir)
-    for path, what in ((models_dir, "models"), (labelled, "labelled")):
-        if not path.is_dir():
-            raise DataError(f"{path}: {what} directory not found")
+    """Every group's export, then the fused graph and manifest (what the stages do one by one)."""
+    cfg, _ = _config(params)
     groups = group_names(params)
-    chosen = choose_models(groups, Path(report), cfg.models)
-    models = [read_group(models_dir / g, chosen[g], g) for g in groups]
-    samples = [check.load_samples(models_dir / m.group, m, labelled) for m in models]
-    tolerance = {"float32": cfg.tolerance_float32, "float64": cfg.tolerance_float64}
-    robot = params.robot.urdf
-
-    stage_params = {
-        STAGE: {"tolerance_float32": cfg.tolerance_float32, "tolerance_float64": cfg.tolerance_float64}
-    }
-    stage_params["models"] = chosen
-    with stage_run(STAGE, stage_params) as active:
-        client = mlflow.MlflowClient()
-        trainings = {}
-        for m in models:
-            metrics = read_metrics(models_dir / m.group)
-            logs = [
-                *(metrics.get("logs") or {}).get("train", []),
-                *(metrics.get("logs") or {}).get("val", []),
-            ]
-            paths = [labelled / f"{log}.parquet" for log in logs]
-            missing = [p for p in paths if not p.is_file()]
-            if missing:
-                raise DataError(f"{missing[0]}: training log of {m.group} not found (for the data hash)")
-            trainings[m.group] = manifest.training(
-                m, manifest.data_sha256(paths), _train_run(client, m.group, metrics)
-            )
-
-        out.parent.mkdir(parents=True, exist_ok=True)
-        tmp = out.with_name(f".{out.name}.{os.getpid()}.tmp")
-        shutil.rmtree(tmp, ignore_errors=True)
-        tmp.mkdir()
-        try:
-            built = manifest.build_graphs(models, params.topics, robot, trainings)
-            for name, (entry, graphs) in built.items():
-                if name == manifest.FUSED:
-                    entry["check"] = check.check_fused(graphs, samples)
-                else:
-                    entry["check"] = check.check_group(graphs, samples[groups.index(name)])
-                check.assert_within(name, entry["check"], tolerance)
-            doc = manifest.write_export(tmp, robot, built)
-            _replace_dir(tmp, out)
-        except BaseException:
-            shutil.rmtree(tmp, ignore_errors=True)
-            raise
-        files = sorted(p.name for p in out.iterdir())
-        mlflow.log_metrics(
-            {
-                f"check.{name}.{dtype}.max_abs_diff": r["max_abs_diff"]
-                for name, e in doc["graphs"].items()
-                for dtype, r in e["check"].items()
-            }
-        )
-        mlflow.set_tags({f"model.{g}": n for g, n in chosen.items()} | {"out_dir": str(out)})
-        mlflow.log_artifacts(str(out), ARTIFACT_DIR)
-        registered = _register(client, active, doc)
-        run_id = active.info.run_id
-    return ExportResult(out, doc, files, time.perf_counter() - t0, run_id, registered)
+    choose_models(groups, Path(report), cfg.models)  # every group's model known before anything is written
+    _check_dirs((Path(models_dir), "models"), (Path(labelled_dir), "labelled"))
+    for group in groups:
+        run_group(params, group, models_dir, report, labelled_dir, out_dir)
+    return run_fused(params, models_dir, labelled_dir, out_dir)
 
 
 def _cmd(args: argparse.Namespace) -> int:
     from pipeline.core.config import load_params
 
-    result = run(load_params(args.params), args.models, args.report, args.labelled, args.out)
-    worst = {
-        dtype: max(e["check"][dtype]["max_abs_diff"] for e in result.manifest["graphs"].values())
-        for dtype in ("float32", "float64")
+    params = load_params(args.params)
+    if args.group:
+        result = run_group(params, args.group, args.models, args.report, args.labelled, args.out)
+    elif args.fused:
+        result = run_fused(params, args.models, args.labelled, args.out)
+    else:
+        result = run(params, args.models, args.report, args.labelled, args.out)
+    graphs = result.manifest["graphs"]
+    checks = {
+        d: max(e["check"][d][k] for e in graphs.values())
+        for d, k in (("float32", "max_ulps"), ("float64", "max_abs_diff"))
     }
-    models = ", ".join(f"{g} {e['models'][g]}" for g, e in result.manifest["graphs"].items() if g != "all")
+    models = ", ".join(f"{g} {e['models'][g]}" for g, e in graphs.items() if g in e["models"])
     print(
         f"export: {models} -> {result.out_dir} ({len(result.files)} files); onnxruntime vs the project's "
-        f"predictions on the test samples: max |diff| {worst['float32']:.2g} (float32), "
-        f"{worst['float64']:.2g} (float64) N/Nm; registered {REGISTERED_MODEL} "
-        f"version {result.registered.get(REGISTERED_MODEL)} ({result.seconds:.0f} s)"
+        f"predictions on the test samples: max |diff| {checks['float32']:.2g} float32 steps, "
+        f"{checks['float64']:.2g} N/Nm (float64) ({result.seconds:.0f} s)"
     )
     return 0
 
 
 def add_cli(subparsers: Any) -> None:
-    """Add `ftcal export MODELS METRICS LABELLED OUT`."""
+    """Add `ftcal export MODELS METRICS LABELLED OUT [--group G | --fused]`."""
     parser = subparsers.add_parser(
         STAGE,
         help="the recommended models as ONNX graphs with a manifest",
@@ -268,11 +284,18 @@ def add_cli(subparsers: Any) -> None:
         "models", type=Path, help="directory of the groups' model directories (models/<group>)"
     )
     parser.add_argument(
-        "report", type=Path, help="evaluate's metrics.json (the recommended model of each group)"
+        "report",
+        type=Path,
+        help="evaluate's metrics directory (<group>/<headline>.json: the recommended model)",
     )
     parser.add_argument(
         "labelled", type=Path, help="directory of labelled <log>.parquet tables (test inputs)"
     )
     parser.add_argument("out", type=Path, help="output directory of the ONNX files and manifest.json")
+    which = parser.add_mutually_exclusive_group()
+    which.add_argument("--group", default=None, help="export this group only, into OUT/groups/<group>")
+    which.add_argument(
+        "--fused", action="store_true", help="assemble the groups' exports: fused graph, manifest"
+    )
     add_params_option(parser)
     parser.set_defaults(func=_cmd)

@@ -5,14 +5,18 @@ root) on first use, starts the server on 127.0.0.1:PORT with databases
 ``ftcal`` for Optuna and ``mlflow`` for an MLflow server, owned by the role ``ftcal`` (trust
 authentication on loopback only: a local, single-user server), and prints their URLs;
 ``ftcal db stop [DIR]`` stops it. It runs the PostgreSQL binaries of the machine (Debian: ``apt-get install
-postgresql``); run as root, the server runs as the ``postgres`` user, as PostgreSQL requires. A lab with its
-own server skips this and sets ``train.storage`` (or ``$FTCAL_OPTUNA_STORAGE``) to its URL.
+postgresql``); run as root, the server runs as the ``postgres`` user, as PostgreSQL requires, and where that
+user cannot enter the way to DIR (a checkout under /root, or any home it may not read), the cluster is kept
+in that user's home (``~postgres/ftcal/<name>-<hash>``) with DIR a link to it. A lab with its own server
+skips this and sets ``train.storage`` (or ``$FTCAL_OPTUNA_STORAGE``) to its URL.
 """
 
 from __future__ import annotations
 
 import argparse
+import hashlib
 import os
+import pwd
 import shutil
 import subprocess
 from pathlib import Path
@@ -52,6 +56,37 @@ def _run(cmd: list[str], what: str) -> subprocess.CompletedProcess[str]:
     return proc
 
 
+def _server_can_enter(path: Path) -> bool:
+    """Whether the server's user can reach `path` (search permission on every directory on the way)."""
+    while not path.exists():
+        path = path.parent
+    check = subprocess.run(_as_server_user(["test", "-x", str(path)]), capture_output=True, check=False)
+    return check.returncode == 0
+
+
+def cluster_dir(data_dir: Path) -> Path:
+    """The directory that holds cluster `data_dir`: itself, or, run as root where the server's user cannot
+    reach it, a directory in that user's home, `data_dir` becoming a link to it (module docstring)."""
+    data_dir = data_dir.absolute()
+    if os.geteuid() != 0 or data_dir.is_symlink() or _server_can_enter(data_dir.parent):
+        return data_dir.resolve()
+    if data_dir.is_dir() and not any(data_dir.iterdir()):
+        data_dir.rmdir()  # an empty one, left by a start that failed here
+    if data_dir.exists():
+        raise DatabaseError(
+            f"{data_dir}: the {_RUN_AS} user cannot enter it and PostgreSQL does not run as root: move it "
+            f"away and run `ftcal db start` again (the cluster then lives in ~{_RUN_AS}/ftcal)"
+        )
+    digest = hashlib.sha256(str(data_dir).encode()).hexdigest()[:12]
+    home = Path(pwd.getpwnam(_RUN_AS).pw_dir) / "ftcal"
+    target = home / f"{data_dir.parent.name or 'root'}{data_dir.name}-{digest}"
+    target.mkdir(parents=True, exist_ok=True)
+    shutil.chown(home, _RUN_AS, _RUN_AS)
+    data_dir.parent.mkdir(parents=True, exist_ok=True)
+    data_dir.symlink_to(target, target_is_directory=True)
+    return target
+
+
 def url(port: int, host: str = "127.0.0.1", database: str = DATABASE) -> str:
     """The URL of one of the local server's databases."""
     return f"postgresql://{ROLE}@{host}:{port}/{database}"
@@ -66,7 +101,7 @@ def start(data_dir: Path, port: int = DEFAULT_PORT, settings: dict[str, str] | N
     bindir = find_bindir()
     if bindir is None:
         raise DatabaseError("PostgreSQL server binaries not found (Debian: apt-get install postgresql)")
-    data_dir = data_dir.resolve()
+    data_dir = cluster_dir(data_dir)
     if not (data_dir / "PG_VERSION").exists():
         data_dir.mkdir(parents=True, exist_ok=True)
         if os.geteuid() == 0:
@@ -118,7 +153,13 @@ def _cmd(args: argparse.Namespace) -> int:
     data_dir = args.dir if args.dir is not None else _default_dir()
     if args.action == "start":
         address = start(data_dir, args.port)
-        print(f"PostgreSQL running in {data_dir} at {address}")
+        where = data_dir.resolve()
+        kept = (
+            f" (kept in {where}: the {_RUN_AS} user cannot enter {data_dir.parent})"
+            if where != data_dir.absolute()
+            else ""
+        )
+        print(f"PostgreSQL running in {data_dir}{kept} at {address}")
         print(f"  export FTCAL_OPTUNA_STORAGE={address}")
         backend = url(args.port, database=MLFLOW_DATABASE).replace("postgresql://", "postgresql+psycopg://")
         print(f"  mlflow server --backend-store-uri {backend} --artifacts-destination ./mlartifacts")

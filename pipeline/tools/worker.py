@@ -6,43 +6,20 @@ per network size, in the stage's order) and run their trials until each holds it
 then picks the best network and writes its outputs as it always does. A worker prepares the data with the
 stage's own code (`pipeline.calib.fit.prepare`), so it finds the study by the same name, a hash of
 params, data and code: a worker with other data or code waits for a study that never comes, and says so.
-Trials are logged to MLflow as children of the stage's run where the worker reaches the same tracking
-store. Stop a worker at any time: a trial it was running is failed and run again by another process.
+A worker needs no MLflow: each trial's record stays in the study, and the stage logs every trial of its
+search, wherever it ran, once as a child of its own MLflow run. Stop a worker at any time: a trial it was
+running is failed and run again by another process.
 """
 
 from __future__ import annotations
 
 import argparse
-import sys
 from pathlib import Path
 from typing import Any
 
 from pipeline.core.errors import ConfigError
 
 DEFAULT_WAIT = 600.0  # s a worker waits for the stage to open a study
-
-
-def _trial_logger(group: str, name: str, study: Any) -> Any:
-    """The stage's MLflow trial logger under the stage's run, or None where that run is out of reach."""
-    import mlflow
-
-    from pipeline.calib.records import log_trial_run
-    from pipeline.calib.studies import MLFLOW_PARENT
-    from pipeline.core.tracking import quiet_mlflow, tracking_uri
-
-    parent = study.user_attrs.get(MLFLOW_PARENT)
-    if not parent:
-        return None
-    quiet_mlflow()
-    mlflow.set_tracking_uri(tracking_uri())
-    try:
-        mlflow.MlflowClient().get_run(parent)
-    except Exception:  # another machine's sqlite store, or no server: trials stay in the study only
-        print(
-            f"worker: MLflow run {parent} not found at {tracking_uri()}: trials not logged", file=sys.stderr
-        )
-        return None
-    return log_trial_run(group, name, parent)
 
 
 def run_worker_group(
@@ -86,9 +63,8 @@ def run_worker_group(
         for n_inputs in prep.gp.inputs:
             data = (prep.train, prep.val)
             gp, group, seed = prep.gp, prep.group, params.seed
-            search = _Search(gp, group, data, start, n_inputs, seed, storage, identity, ui, None)
+            search = _Search(gp, group, data, start, n_inputs, seed, storage, identity, ui)
             search.join(wait)
-            search.log_trial = _trial_logger(prep.group.name, search.name, search.study)
             ran[search.name], _ = search.run()
     return ran
 

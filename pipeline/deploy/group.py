@@ -1,0 +1,120 @@
+"""One sensor group's deployment tests on one day: every test that is per group, and its figures.
+
+A test is a function of the group on the day (`GroupDay`: its sensors, its trained models, its export, the
+params) and one of the day's logs, registered in `DAY_TESTS` under the experiment type of the log it runs
+on: Test A on a standing-still log, Test B on a walking log, Test C on a pushed pole log. Each returns its
+result (JSON-able; empty: nothing of this group to test) and the figures it drew. A new per-group test is
+one more entry; the deployment page and verdict (`pipeline.deploy.verdict`) gather the groups' results.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from pipeline.deploy.prepare import DeployLog
+
+
+@dataclass
+class GroupDay:
+    """One sensor group on one deployment day: what each of its tests reads. Figures go to
+    ``figures/<day>_<name>.png``."""
+
+    group: str
+    sensors: list[str]
+    models: Path  # the group's train output (models/<group>): every trained model, for Test A
+    exported: Path  # the group's export directory: the deployed calibration, run causally on the logs
+    deployed: str  # the exported model's name
+    params: Any
+    dp: Any  # DeployParams
+    cfg: Any  # EvaluateParams
+    robot: Any  # the nominal RobotModel
+    day: str
+    figures: Path
+    _calibrated: dict[str, dict[str, np.ndarray]] = field(default_factory=dict, repr=False)
+
+    def calibrated(self, log: DeployLog, table: Any) -> dict[str, np.ndarray]:
+        """Sensor -> (N, 6) calibrated wrench of the group's sensors at the table's stamps (per log, once)."""
+        from pipeline.deploy.models import calibrated_wrenches
+
+        if log.name not in self._calibrated:
+            wrenches = calibrated_wrenches(self.exported, log.source, table, self.params.topics)
+            self._calibrated[log.name] = {s: w for s, w in wrenches.items() if s in self.sensors}
+        return self._calibrated[log.name]
+
+    def figure(self, name: str) -> Path:
+        return self.figures / f"{self.day}_{name}.png"
+
+
+TestResult = tuple[dict[str, Any], dict[str, str]]  # (result, figure name -> file name)
+
+
+def a_noise(ctx: GroupDay, log: DeployLog) -> TestResult:
+    """Test A: every trained model's output noise standing still, against raw."""
+    from pipeline.deploy.checks import standing_noise
+
+    return standing_noise(log, ctx.models, ctx.cfg, ctx.deployed), {}
+
+
+def b_walking(ctx: GroupDay, log: DeployLog) -> TestResult:
+    """Test B: error tables of the calibrated sensors and foot sums while walking; the fz figure of the
+    group's leg sensors (else of its sensors)."""
+    import pandas as pd
+
+    from pipeline.deploy.checks import walking_errors
+    from pipeline.deploy.page import plot_walking
+
+    table = pd.read_parquet(log.labelled)
+    calibrated = ctx.calibrated(log, table)
+    if not calibrated:
+        return {}, {}
+    result = walking_errors(log, ctx.robot, ctx.params, calibrated)
+    truth = pd.read_parquet(log.truth) if log.truth is not None else None
+    shown = [s for s in ctx.dp.torque_limbs if s in calibrated] or sorted(calibrated)
+    plot_walking(table, truth, calibrated, shown, ctx.figure("walking"))
+    return result, {"walking": ctx.figure("walking").name}
+
+
+def c_torques(ctx: GroupDay, log: DeployLog) -> TestResult:
+    """Test C: leg joint torques from the group's leg sensors, raw and calibrated, during the pushes."""
+    import pandas as pd
+
+    from pipeline.deploy.checks import push_torques
+    from pipeline.deploy.page import plot_torques
+
+    calibrated = ctx.calibrated(log, pd.read_parquet(log.labelled))
+    if not any(s in calibrated for s in ctx.dp.torque_limbs):
+        return {}, {}
+    result, series = push_torques(log, ctx.robot, ctx.params, ctx.dp, calibrated)
+    if not result:
+        return {}, {}
+    name = ctx.dp.figure_joint
+    plot_torques(series, name, ctx.figure(name))
+    return result, {"torques": ctx.figure(name).name}
+
+
+# test name -> (the experiment type of the log it runs on, the test)
+DAY_TESTS: dict[str, tuple[str, Callable[[GroupDay, DeployLog], TestResult]]] = {
+    "test_a": ("standing", a_noise),
+    "test_b": ("walking", b_walking),
+    "test_c": ("pole", c_torques),
+}
+
+
+def run_day(ctx: GroupDay, logs: list[DeployLog]) -> TestResult:
+    """Every test of `DAY_TESTS` on the first log of its type (a day without one skips the test)."""
+    result: dict[str, Any] = {"logs": [log.name for log in logs]}
+    figures: dict[str, str] = {}
+    for name, (kind, test) in DAY_TESTS.items():
+        log = next((g for g in logs if g.experiment.get("type", "") == kind), None)
+        if log is None:
+            continue
+        out, drawn = test(ctx, log)
+        if out:
+            result[name] = out
+            figures.update(drawn)
+    return result, figures

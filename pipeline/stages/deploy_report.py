@@ -1,0 +1,102 @@
+"""Stage `deploy_report`: every group's deployment tests gathered into the deployment page and verdict.
+
+``ftcal deploy-report GROUPS REPORTS``: reads GROUPS/<group>/result.json of every group of
+``train.groups`` (`deploy_test@<group>`), gathers each day's results (`pipeline.deploy.verdict`), and
+writes ``REPORTS/deployment.html`` (the verdict per day, then each day's tables and the groups' figures;
+linked with the report page), ``REPORTS/deployment.json`` (per day the verdict and the smallest Test B and
+C ratios: `dvc metrics show`) and ``REPORTS/deployment/details.json`` (every table). A light assembly: one
+group's change re-runs that group's tests and this page only. Logs one MLflow run.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+from pathlib import Path
+from typing import Any
+
+from pipeline.core.cliargs import add_params_option
+from pipeline.core.errors import DataError
+
+STAGE = "deploy_report"
+COMMAND = "deploy-report"
+PAGE, METRICS, DETAILS = "deployment.html", "deployment.json", "deployment/details.json"
+
+
+def _group_results(groups_dir: Path, groups: list[str]) -> dict[str, dict[str, Any]]:
+    from pipeline.deploy.verdict import RESULT_FILE
+
+    out = {}
+    for group in groups:
+        path = groups_dir / group / RESULT_FILE
+        try:
+            out[group] = json.loads(path.read_text(encoding="utf-8"))
+        except FileNotFoundError:
+            raise DataError(f"{path}: not found (run `dvc repro deploy_test@{group}`)") from None
+        except (OSError, ValueError) as exc:
+            raise DataError(f"{path}: not a deployment test result: {exc}") from None
+    return out
+
+
+def run(params: Any, groups_dir: str | Path, reports: str | Path) -> dict[str, Any]:
+    """Gather, judge and write the deployment page and metrics (module docstring)."""
+    import mlflow
+
+    from pipeline.core.io import write_json
+    from pipeline.core.tracking import stage_run
+    from pipeline.deploy.page import write_page
+    from pipeline.deploy.params import deploy_params
+    from pipeline.deploy.verdict import headline, merge, summarize
+
+    dp, groups_dir, reports = deploy_params(params), Path(groups_dir), Path(reports)
+    results = _group_results(groups_dir, [str(g) for g in params.raw["train"]["groups"]])
+    target_b = float(params.raw["evaluate"]["target_raw_over_nn7"])
+    targets = {"b": target_b, "c": dp.torque_target, "joint": dp.figure_joint}
+    days = list(dict.fromkeys(day for r in results.values() for day in r["days"]))
+    details = {
+        day: merge({g: r["days"][day] for g, r in results.items() if day in r["days"]}) for day in days
+    }
+    figures = {  # caption -> path relative to the page
+        day: {
+            f"{group}: {kind}": Path(os.path.relpath(groups_dir / group / file, reports)).as_posix()
+            for group, r in results.items()
+            for kind, file in r["figures"].get(day, {}).items()
+        }
+        for day in days
+    }
+    summary = {day: summarize(d, dp, target_b, dp.figure_joint) for day, d in details.items()}
+    with stage_run(STAGE, {"groups": list(results)}):
+        for day, s in summary.items():
+            mlflow.log_metrics({f"{day}.{k}": float(v) for k, v in s.items() if isinstance(v, int | float)})
+        write_json(reports / METRICS, {day: headline(s) for day, s in summary.items()})
+        write_json(reports / DETAILS, {"summary": summary, "details": details})
+        write_page(reports / PAGE, details, summary, figures, targets)
+        for name in (PAGE, METRICS, DETAILS):
+            mlflow.log_artifact(str(reports / name), "deployment" if name == DETAILS else None)
+    return {"summary": summary, "details": details}
+
+
+def _cmd(args: argparse.Namespace) -> int:
+    from pipeline.core.config import load_params
+
+    out = run(load_params(args.params), args.groups, args.reports)
+    for day, s in out["summary"].items():
+        print(f"{day}: {'fit to deploy' if s['fit_to_deploy'] else 'recalibrate'}")
+    if not out["summary"]:
+        print("no deployment logs: nothing tested")
+    return 0
+
+
+def add_cli(subparsers: Any) -> None:
+    p = subparsers.add_parser(
+        COMMAND,
+        help="the deployment page and verdict of every group's tests",
+        description=__doc__.splitlines()[0],
+    )
+    p.add_argument(
+        "groups", type=Path, help="the groups' deployment test results (reports/deployment/groups)"
+    )
+    p.add_argument("reports", type=Path, help="reports directory (deployment.html, deployment.json)")
+    add_params_option(p)
+    p.set_defaults(func=_cmd)
