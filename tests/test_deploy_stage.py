@@ -39,7 +39,17 @@ LOGS = [
     {"type": "standing", "duration_s": 10},  # Test A: quasi-static runs >= 1 s, 1 s from the ends
     {"type": "walking", "duration_s": 6},
     {"type": "pole", "duration_s": 5},
+    {"type": "interaction", "duration_s": 12},  # Test D: pushes at every site, then a load in each hand
 ]
+INTERACTION = {  # short: 1 s, 8 sites x 2 directions x 0.5 s, then 2 hands x (1 s + 0.5 s): 11.5 s
+    "force_n": [10.0, 40.0],
+    "duration_s": 0.3,
+    "period_s": 0.5,
+    "directions": [[1, 0, 0], [0, 1, 0]],
+    "sites": {},
+    "load_kg": 2.0,
+    "load_s": 1.0,
+}
 DEPLOYED = {LEG: "nn13", PAIR: "affine"}
 LINEAR = {  # the hidden distortion without its temperature terms, nonlinearity and hysteresis
     "temperature_gain": 0.0,
@@ -91,7 +101,7 @@ def stage(trained_models: dict, tmp_path_factory: pytest.TempPathFactory) -> dic
     data["simulate"]["workers"] = 1
     data["simulate"]["sensors"].update(LINEAR)
     (root / "real").mkdir()  # deploy.real_logs: a folder without logs yet
-    data["deploy"].update(logs=LOGS, push=PUSH, real_logs=str(root / "real"))
+    data["deploy"].update(logs=LOGS, push=PUSH, interaction=INTERACTION, real_logs=str(root / "real"))
     params = root / "params.yaml"
     params.write_text(yaml.safe_dump(data, sort_keys=False))
     day, tables = root / "later", root / "tables"
@@ -135,10 +145,12 @@ def test_stages_write_pages_metrics_details_and_figures(stage: dict[str, Any]) -
     assert set(headline) == {"later"} and isinstance(headline["later"]["fit"], bool)
     assert sorted(p.name for p in (reports / "deployment" / "groups" / LEG).iterdir()) == [
         "later_hip_pitch.png",
+        "later_interaction.png",
         "later_walking.png",
         "result.json",
     ]
     assert sorted(p.name for p in (reports / "deployment" / "groups" / PAIR).iterdir()) == [
+        "later_interaction.png",
         "later_walking.png",
         "result.json",
     ]
@@ -148,8 +160,9 @@ def test_stages_write_pages_metrics_details_and_figures(stage: dict[str, Any]) -
     ):
         assert f'src="{src}"' in page and (reports / src).is_file()
     later = stage["trained"]["details"]["later"]
-    assert later["logs"] == ["00_standing_test", "01_walking_test", "02_pole_test"]
-    assert {"test_a", "test_b", "test_c"} <= set(later)
+    assert later["logs"] == ["00_standing_test", "01_walking_test", "02_pole_test", "03_interaction_test"]
+    assert {"test_a", "test_b", "test_c", "test_d"} <= set(later)
+    assert "Test D: interaction fidelity" in page
     assert read_day(stage["tables"] / "real") == []  # a recorded-logs folder without logs: nothing tested
 
 
@@ -304,7 +317,14 @@ def test_exact_calibration_passes_with_its_expected_ratios(stage: dict[str, Any]
     summary = stage["exact"]["summary"]["later"]
     assert summary["c.r_hip_pitch.ratio"] == pytest.approx(c["raw"]["rmse"] / expected, rel=1e-2)
     assert summary["c.r_hip_pitch.ratio"] >= dp.torque_target
-    assert summary["a.passed"] and summary["b.passed"] and summary["c.passed"] and summary["fit_to_deploy"]
+    # Test D: the exact inverse of a distortion without hysteresis is the oracle: the same slopes (to the
+    # float32 export run causally at the FT stamps, the oracle aligned from them)
+    for sensor, d in later["test_d"].items():
+        pushes = d["pushes"]
+        assert pushes["calibrated"]["slopes"] == pytest.approx(pushes["oracle"]["slopes"], abs=1e-3), sensor
+        assert d["verdict"]["pass"] and d["verdict"]["change_ratio"] == pytest.approx(1.0, abs=0.01)
+    assert set(later["test_d"]) == {LEG, FRONT, REAR}  # every pushed sensor of the exported groups
+    assert all(summary[k] for k in ("a.passed", "b.passed", "c.passed", "d.passed", "fit_to_deploy"))
     assert json.loads((stage["exact_reports"] / "deployment.json").read_text())["later"]["fit"] is True
 
 
@@ -316,13 +336,19 @@ def test_factory_calibration_fails_with_every_ratio_one(stage: dict[str, Any]) -
     for v in later["test_c"][LEG]["joints"].values():
         assert v["ratio_rmse"] == pytest.approx(1.0, abs=1e-9)
     assert summary["a.passed"] and not summary["b.passed"] and not summary["c.passed"]
+    # Test D: the factory map reports a push with its own gain and coupling errors, the day's drifted
+    # offsets aside (a change): slopes near 1, and a reading whose error is the offsets'
+    for d in later["test_d"].values():
+        assert d["pushes"]["raw"]["slopes"] == d["pushes"]["calibrated"]["slopes"]
+        assert d["pushes"]["calibrated"]["rmse_force"] > 10 * d["pushes"]["oracle"]["rmse_force"]
     assert summary["fit_to_deploy"] is False
     assert json.loads((stage["raw_reports"] / "deployment.json").read_text())["later"]["fit"] is False
 
 
 def test_each_test_decides_the_verdict() -> None:
     """The day fails when any one test fails: a flagged or unmeasured deployed model (A), a Test B ratio
-    below evaluate.target_raw_over_nn7, a Test C ratio of the judged joint below deploy.torque_target."""
+    below evaluate.target_raw_over_nn7, a Test C ratio of the judged joint below deploy.torque_target, a
+    sensor failing Test D."""
     from pipeline.deploy.verdict import summarize
 
     dp = type("DP", (), {"torque_target": 5.0})()
@@ -332,6 +358,7 @@ def test_each_test_decides_the_verdict() -> None:
         "test_b": {LEG: {"truth": {"raw": {"rmse": 20.0}, "calibrated": {"rmse": 1.0}}, "ratio_truth": 20.0}},
         "test_c": {LEG: {"joints": {"r_hip_pitch": {"raw": {"rmse": 6.0}, "calibrated": {"rmse": 1.0},
                                                     "ratio_rmse": 6.0, "ratio_max": 2.0}}}},
+        "test_d": {LEG: {"verdict": {"pass": True, "worst_slope_excess": 0.02, "change_ratio": 1.1}}},
     }  # fmt: skip
     assert summarize(passing, dp, 10.0, "hip_pitch")["fit_to_deploy"] is True
     failing = {
@@ -339,6 +366,7 @@ def test_each_test_decides_the_verdict() -> None:
         "unmeasured": {**model, "worst": float("nan")},
         "b": 9.0,
         "c": 4.0,
+        "d": False,
     }
     for case, value in failing.items():
         result = json.loads(json.dumps(passing))
@@ -346,6 +374,8 @@ def test_each_test_decides_the_verdict() -> None:
             result["test_a"][LEG]["models"]["nn7"] = value
         elif case == "b":
             result["test_b"][LEG]["ratio_truth"] = value
+        elif case == "d":
+            result["test_d"][LEG]["verdict"]["pass"] = value
         else:
             result["test_c"][LEG]["joints"]["r_hip_pitch"]["ratio_rmse"] = value
         s = summarize(result, dp, 10.0, "hip_pitch")

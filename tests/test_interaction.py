@@ -16,9 +16,10 @@ from pipeline.deploy.interaction import fidelity, judge
 from pipeline.physics.dynamics import ContactCase, expected_wrenches
 from pipeline.physics.loads import Load, loads_from_metadata, loads_to_metadata, with_loads
 from pipeline.physics.robot import RobotModel
+from pipeline.sim.interaction import InteractionParams
 from pipeline.sim.kinematics import Kinematics
 from pipeline.sim.motion import MotionGenerator, MotionParams
-from pipeline.sim.push import LOAD, PUSH, InteractionParams, add_interaction, interaction_events
+from pipeline.sim.push import LOAD, PUSH, add_interaction, interaction_events
 from pipeline.sim.sites import KIND_ANKLE, KIND_FOOT, KIND_HAND, free_side, interaction_sites
 from pipeline.sim.truth import TruthComputer
 from tests.conftest import FOOT_PAIRS, GRAVITY, foot_pairs

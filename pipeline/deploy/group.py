@@ -17,6 +17,7 @@ from typing import Any
 import numpy as np
 
 from pipeline.deploy.prepare import DeployLog
+from pipeline.logs import schema as S
 
 
 @dataclass
@@ -97,11 +98,33 @@ def c_torques(ctx: GroupDay, log: DeployLog) -> TestResult:
     return result, {"torques": ctx.figure(name).name}
 
 
+def d_interaction(ctx: GroupDay, log: DeployLog) -> TestResult:
+    """Test D: how the deployed calibration reports the pushes and loads at its sensors' sites (simulated
+    logs: it needs their true share of each wrench); how far the log lies outside the training excitation."""
+    import pandas as pd
+
+    from pipeline.deploy.interaction import interaction_test, load_mask, outside_during, plot_interaction
+
+    if log.truth is None:
+        return {}, {}
+    table = pd.read_parquet(log.labelled)
+    truth = table[[S.STAMP]].merge(pd.read_parquet(log.truth), on=S.STAMP, how="left")
+    calibrated = ctx.calibrated(log, table)
+    loads = load_mask(table[S.TIME].to_numpy(np.float64), ctx.robot, ctx.params, ctx.dp)
+    result = interaction_test(table, truth, calibrated, loads, ctx.dp)
+    if not result:
+        return {}, {}
+    outside_during(result, ctx.models, truth, calibrated)
+    drawn = plot_interaction(table, truth, calibrated, ctx.figure("interaction"))
+    return result, {"interaction": ctx.figure("interaction").name} if drawn else {}
+
+
 # test name -> (the experiment type of the log it runs on, the test)
 DAY_TESTS: dict[str, tuple[str, Callable[[GroupDay, DeployLog], TestResult]]] = {
     "test_a": ("standing", a_noise),
     "test_b": ("walking", b_walking),
     "test_c": ("pole", c_torques),
+    "test_d": ("interaction", d_interaction),
 }
 
 

@@ -25,7 +25,9 @@ the truth's as the oracle's within ``deploy.slope_tolerance``, the change's erro
 
 from __future__ import annotations
 
+import json
 from collections.abc import Mapping
+from pathlib import Path
 from typing import Any
 
 import numpy as np
@@ -145,6 +147,20 @@ def judge(entry: Mapping[str, Any], tolerance: float, rmse_target: float) -> dic
     }
 
 
+def load_mask(time_s: np.ndarray, robot: Any, params: Any, dp: Any) -> np.ndarray:
+    """(N,) the samples of the interaction log's carried loads (their schedule, as the simulator's)."""
+    from pipeline.sim.push import LOAD, interaction_events
+    from pipeline.sim.sites import interaction_sites
+
+    soles = {s: p.sole for p in params.robot.foot_pairs for s in (p.front, p.rear)}
+    events = interaction_events(interaction_sites(robot, soles, dp.interaction.sites), dp.interaction)
+    out = np.zeros(len(time_s), dtype=bool)
+    for e in events:
+        if e.kind == LOAD:
+            out |= (time_s >= e.start_s) & (time_s <= e.end_s)
+    return out
+
+
 def interaction_test(
     table: Any, truth: Any, calibrated: Mapping[str, np.ndarray], load_mask: np.ndarray, dp: Any
 ) -> dict[str, Any]:
@@ -171,3 +187,73 @@ def interaction_test(
         entry["verdict"] = judge(entry, dp.slope_tolerance, dp.push_rmse_target)
         out[sensor] = entry
     return out
+
+
+def outside_during(
+    result: dict[str, Any], models: Path, truth: Any, calibrated: Mapping[str, np.ndarray]
+) -> None:
+    """Add to each sensor's entry of `result` how far the deployed output lies outside its training
+    excitation (`pipeline.calib.excitation`, from models/<group>/metrics.json), during the pushes and
+    loads and on the rest of the log; nothing where train recorded no excitation."""
+    from pipeline.evaluation.fidelity import outside_stats
+
+    try:
+        excitation = json.loads((Path(models) / "metrics.json").read_text(encoding="utf-8")).get("excitation")
+    except (OSError, ValueError):
+        excitation = None
+    for sensor, entry in result.items():
+        if not excitation or sensor not in excitation or sensor not in calibrated:
+            continue
+        external = truth[S.wrench_cols(S.EXTERNAL, sensor)].to_numpy(np.float64)
+        pushed = np.abs(np.nan_to_num(external)).max(axis=1) > ON_N
+        w = np.asarray(calibrated[sensor], dtype=np.float64)
+        entry["outside"] = {
+            part: outside_stats({sensor: excitation[sensor]}, {sensor: w[mask]}).get(sensor)
+            for part, mask in (("pushed", pushed), ("rest", ~pushed))
+        }
+
+
+def plot_interaction(table: Any, truth: Any, calibrated: Mapping[str, np.ndarray], path: Any) -> bool:
+    """Per sensor pushed: the reported change of each force axis against the true one during the pushes,
+    raw, deployed and oracle (one dot per sample, a tenth of them), the identity dashed. False if none."""
+    from pipeline.evaluation.figures import pyplot, save_figure
+
+    time_s = table[S.TIME].to_numpy(np.float64)
+    shown = [s for s in calibrated if S.wrench_cols(S.EXTERNAL, s)[0] in truth]
+    panels = []
+    for sensor in shown:
+        external = truth[S.wrench_cols(S.EXTERNAL, sensor)].to_numpy(np.float64)
+        true = truth[S.wrench_cols(S.TRUE, sensor)].to_numpy(np.float64)
+        active = np.isfinite(external).all(axis=1) & (np.abs(np.nan_to_num(external)).max(axis=1) > ON_N)
+        if active.any():
+            panels.append((sensor, external, true, active))
+    if not panels:
+        return False
+    plt = pyplot()
+    cols = min(4, len(panels))
+    rows = -(-len(panels) // cols)
+    fig, axes = plt.subplots(rows, cols, figsize=(3.4 * cols, 3.2 * rows), squeeze=False)
+    quiet_all = {}
+    for ax, (sensor, external, true, active) in zip(axes.flat, panels, strict=False):
+        quiet_all[sensor] = np.isfinite(external).all(axis=1) & ~active
+        windows = _windows(active)
+        outputs = {
+            "raw": (table[S.wrench_cols(S.FT, sensor)].to_numpy(np.float64), "tab:red"),
+            "deployed": (np.asarray(calibrated[sensor], dtype=np.float64), "tab:blue"),
+            "oracle": (truth[S.wrench_cols(S.ORACLE, sensor)].to_numpy(np.float64), "tab:green"),
+        }
+        lim = float(np.abs(external[active, :3]).max())
+        for name, (pred, color) in outputs.items():
+            change = _reported_change(pred - (true - external), windows, time_s, quiet_all[sensor])
+            pick = np.flatnonzero(active)[::10]
+            ax.scatter(external[pick, :3].ravel(), change[pick, :3].ravel(), s=2, color=color, label=name)
+        ax.plot([-lim, lim], [-lim, lim], ls="--", color="k", lw=0.8)
+        ax.set_title(sensor, fontsize=9)
+        ax.set_xlabel("true change (N)", fontsize=8)
+        ax.set_ylabel("reported change (N)", fontsize=8)
+    for ax in list(axes.flat)[len(panels) :]:
+        ax.axis("off")
+    axes[0, 0].legend(fontsize=7, markerscale=4)
+    fig.tight_layout()
+    save_figure(fig, path)
+    return True

@@ -73,6 +73,14 @@ _NOTES = {
     "calibrated against truth is judged.",
     "test_c": "Leg joint torques estimated from each leg sensor, raw and calibrated, against the true "
     "torques during the pushes (Nm); the RMSE ratio of the judged joint is judged, the max error reported.",
+    "test_d": "Pushes of 10-40 N at every sensor's site (hands, ankles, front and rear of the soles) in "
+    "several directions, then a load carried in each hand, the robot on the pole: per sensor and axis the "
+    "slope of the reported change against the true one (1 = follows the push), raw, deployed and oracle; "
+    "the error of the reported change and of the reading itself during the pushes (N). Judged: the "
+    "deployed slopes' error (against 1) at most the oracle's plus the tolerance (the oracle's own slopes "
+    "carry the sensors' hysteresis), and the change's error at most the target x the oracle's. "
+    "<i>outside</i>: how far the deployed output lies outside the training excitation (p95, noise units), "
+    "during the pushes and on the rest of the log.",
 }
 
 
@@ -123,15 +131,47 @@ def _test_c(c: Mapping[str, Any], joint: str, target: float) -> str:
     return f'<table class="num"><thead><tr>{head}</tr></thead><tbody>{"".join(rows)}</tbody></table>'
 
 
+def _slopes(values: list[Any]) -> str:
+    return " ".join("-" if v is None else f"{v:.2f}" for v in values)
+
+
+def _test_d(d: Mapping[str, Any], tolerance: float, target: float) -> str:
+    rows = []
+    for sensor, e in d.items():
+        verdict = e["verdict"]
+        for kind in ("pushes", "loads"):
+            if kind not in e:
+                continue
+            entry = e[kind]
+            for model in ("raw", "calibrated", "oracle"):
+                r = entry[model]
+                judged = model == "calibrated" and kind == "pushes"
+                excess = verdict.get("worst_slope_excess") if judged else None
+                ratio = verdict.get("change_ratio") if judged else None
+                outside = ((e.get("outside") or {}).get("pushed") or {}).get("p95") if judged else None
+                rows.append(
+                    f"<tr><td>{esc(sensor)}</td><td>{kind} ({entry['windows']})</td><td>{esc(model)}</td>"
+                    f"<td>{esc(_slopes(r['slopes']))}</td>"
+                    + cell(excess, None if excess is None else excess <= tolerance, bold=judged)
+                    + cell(r["rmse_change_force"])
+                    + cell(ratio, None if ratio is None else ratio <= target, bold=judged)
+                    + cell(r["rmse_force"]) + cell(r["max_force"]) + cell(outside) + "</tr>"
+                )  # fmt: skip
+    header = ["sensor", "what", "model", "slopes fx fy fz tx ty tz", f"slope excess (<= {tolerance:g})",
+              "change RMSE", f"/ oracle's (<= {target:g})", "RMSE", "max", "outside p95"]  # fmt: skip
+    head = "".join(f"<th>{esc(h)}</th>" for h in header)
+    return f'<table class="num"><thead><tr>{head}</tr></thead><tbody>{"".join(rows)}</tbody></table>'
+
+
 def verdict_table(summary: Mapping[str, Mapping[str, Any]]) -> str:
     """One row per day: each test's pass and the day's verdict."""
     rows = []
     for day, s in summary.items():
-        passed = [bool(s.get(f"{t}.passed")) for t in "abc"]
+        passed = [bool(s.get(f"{t}.passed", True)) for t in "abcd"]
         cells = "".join(f'<td class="{"ok" if p else "bad"}">{"pass" if p else "fail"}</td>' for p in passed)
         verdict = "fit to deploy" if s["fit_to_deploy"] else "recalibrate"
         rows.append(f"<tr><td><a href='#{esc(day)}'>{esc(day)}</a></td>{cells}<td><b>{verdict}</b></td></tr>")
-    return table(["day", "Test A", "Test B", "Test C", "verdict"], [], cls="num").replace(
+    return table(["day", "Test A", "Test B", "Test C", "Test D", "verdict"], [], cls="num").replace(
         "<tbody></tbody>", f"<tbody>{''.join(rows)}</tbody>"
     )
 
@@ -156,6 +196,9 @@ def day_section(
             f"<p class='note'>{_NOTES['test_c']}</p>",
         ]
         parts.append(_test_c(result["test_c"], targets["joint"], targets["c"]))
+    if "test_d" in result:
+        parts += ["<h3>Test D: interaction fidelity</h3>", f"<p class='note'>{_NOTES['test_d']}</p>"]
+        parts.append(_test_d(result["test_d"], targets["d_slope"], targets["d_change"]))
     parts += [img(src, caption) for caption, src in figures.items()]
     return "\n".join(parts)
 
@@ -166,13 +209,14 @@ def render_page(
     figures: Mapping[str, Mapping[str, str]],
     targets: Mapping[str, Any],
 ) -> str:
-    """The deployment page: the verdict per day, then each day's tests (`targets`: b, c, joint)."""
+    """The deployment page: the verdict per day, then each day's tests (`targets`: b, c, joint, d_slope,
+    d_change)."""
     now = datetime.now(timezone.utc).strftime("%Y-%m-%d %H:%M UTC")
     nav = "".join(f"<a href='#{esc(d)}'>{esc(d)}</a>" for d in days)
     parts = [
         "<h1>FT sensor calibration: deployment tests</h1>",
-        f"<p class='meta'>generated {now} · the thesis's tests A, B, C (chapter 6) on logs no model has "
-        "seen, calibrated by the export as on the robot · N, Nm</p>",
+        f"<p class='meta'>generated {now} · the thesis's tests A, B, C (chapter 6) and D (interaction "
+        "fidelity) on logs no model has seen, calibrated by the export as on the robot · N, Nm</p>",
         f"<nav><a href='{REPORT_FILE}'>Evaluation report (its own page)</a><a href='#verdict'>Verdict</a>"
         f"{nav}</nav>",
         "<h2 id='verdict'>Verdict</h2>",

@@ -12,8 +12,8 @@ from typing import Any
 
 from pipeline.core.config import Params
 from pipeline.core.errors import ConfigError
+from pipeline.sim.interaction import InteractionParams
 from pipeline.sim.params import DeploymentShift, LogSpec, PushParams, simulate_params
-from pipeline.sim.push import InteractionParams
 
 VARIANTS = ("later", "drifted")  # the default deployment logs and the drift check's
 
@@ -41,8 +41,8 @@ class DeployParams:
     figure_joint: str  # suffix of the joint drawn in the Test C figure (e.g. hip_pitch)
     torque_target: float  # Test C passes when raw RMSE / calibrated RMSE of the joint torque is >= this
     interaction: InteractionParams  # interaction log: pushes and a carried load at every sensor's site
-    slope_tolerance: float  # Test D: per-axis slope within this fraction of the oracle's
-    push_rmse_target: float  # Test D: force RMSE during the pushes at most this x the oracle's
+    slope_tolerance: float  # Test D: per-axis slope error (vs 1) at most the oracle's + this
+    push_rmse_target: float  # Test D: error of the pushes' reported change at most this x the oracle's
 
 
 def _num(value: Any, key: str, lo: float, hi: float) -> float:

@@ -3,7 +3,9 @@
 A day is fit to deploy when every test passes: Test A, no deployed model flagged for output noise (and its
 noise measured); Test B, raw / calibrated RMSE against the truth at least ``evaluate.target_raw_over_nn7``
 for every calibrated sensor and foot sum; Test C, raw / calibrated RMSE of the judged joint's torque
-(``deploy.figure_joint``) at least ``deploy.torque_target``. Otherwise it is time to recalibrate.
+(``deploy.figure_joint``) at least ``deploy.torque_target``; Test D, every pushed sensor's deployed
+calibration following the pushes as the oracle does (`pipeline.deploy.interaction.judge`). Otherwise it is
+time to recalibrate.
 """
 
 from __future__ import annotations
@@ -17,7 +19,7 @@ RESULT_FILE = "result.json"  # a group's results of every day (`pipeline.stages.
 
 def merge(groups: Mapping[str, Mapping[str, Any]]) -> dict[str, Any]:
     """One day's result from its groups' (group -> `pipeline.deploy.group.run_day` result): the logs,
-    Test A per group, Tests B and C per sensor (and foot sum)."""
+    Test A per group, Tests B, C and D per sensor (and foot sum)."""
     out: dict[str, Any] = {"logs": []}
     for group, result in groups.items():
         out["logs"] = out["logs"] or list(result.get("logs", []))
@@ -52,20 +54,29 @@ def summarize(result: dict[str, Any], dp: Any, target_b: float, joint: str) -> d
                 out[f"c.{j}.rmse_calibrated"] = v["calibrated"]["rmse"]
                 out[f"c.{j}.ratio"] = v["ratio_rmse"]
                 out[f"c.{j}.ratio_max"] = v["ratio_max"]
+    for sensor, d in result.get("test_d", {}).items():
+        verdict = d["verdict"]
+        for key in ("worst_slope_excess", "change_ratio", "slope_gap", "rmse_ratio"):
+            if verdict.get(key) is not None:
+                out[f"d.{sensor}.{key}"] = verdict[key]
+        out[f"d.{sensor}.passed"] = verdict["pass"]
     # a deployed model whose noise could not be measured (no quasi-static stretch) has not passed Test A
     deployed = [a["models"][a["deployed"]] for a in result.get("test_a", {}).values()]
     ok_a = all(not r["flagged"] and math.isfinite(r["worst"]) for r in deployed)
     ok_b = all(v >= target_b for k, v in out.items() if k.startswith("b.") and k.endswith(".ratio"))
     ok_c = all(v >= dp.torque_target for k, v in out.items() if k.startswith("c.") and k.endswith(".ratio"))
-    out.update({"a.passed": ok_a, "b.passed": ok_b, "c.passed": ok_c})
-    out["fit_to_deploy"] = bool(ok_a and ok_b and ok_c)
+    ok_d = all(d["verdict"]["pass"] for d in result.get("test_d", {}).values())
+    out.update({"a.passed": ok_a, "b.passed": ok_b, "c.passed": ok_c, "d.passed": ok_d})
+    out["fit_to_deploy"] = bool(ok_a and ok_b and ok_c and ok_d)
     return out
 
 
 def headline(summary: dict[str, Any]) -> dict[str, Any]:
     """A day's few numbers for `dvc metrics show`: the verdict (``fit``), the smallest Test B and Test C
     ratios (raw / calibrated against truth: ``b_min``, ``c_min``), the largest output noise ratio of a
-    deployed model (``a_max``); every number is in deployment/details.json."""
+    deployed model (``a_max``), Test D's worst slope excess over the oracle's error and its worst ratio of
+    the pushes' change error to the oracle's (``d_slope``, ``d_change``); every number is in
+    deployment/details.json."""
 
     def pick(prefix: str, suffix: str) -> list[float]:
         return [v for k, v in summary.items() if k.startswith(prefix) and k.endswith(suffix)]
@@ -75,6 +86,8 @@ def headline(summary: dict[str, Any]) -> dict[str, Any]:
         ("b_min", pick("b.", ".ratio"), min),
         ("c_min", pick("c.", ".ratio"), min),
         ("a_max", pick("a.", ".deployed_noise_ratio"), max),
+        ("d_slope", pick("d.", ".worst_slope_excess"), max),
+        ("d_change", pick("d.", ".change_ratio"), max),
     ):
         if values:
             out[key] = round(float(best(values)), 4)

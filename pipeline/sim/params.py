@@ -407,7 +407,7 @@ class SimulateParams:
     imu: ImuNoiseParams = field(default_factory=ImuNoiseParams)
     timing: TimingParams = field(default_factory=TimingParams)
     push: PushParams | None = None  # external pushes in pole logs (deployment logs only)
-    # pushes and loads of interaction logs (deployment only): a pipeline.sim.push.InteractionParams
+    # pushes and loads of interaction logs (deployment only): a pipeline.sim.interaction.InteractionParams
     interaction: Any = None
     shift: DeploymentShift | None = None  # deployment logs: their own seed and drifted offsets
 

@@ -52,7 +52,13 @@ def run(params: Any, groups_dir: str | Path, reports: str | Path) -> dict[str, A
     dp, groups_dir, reports = deploy_params(params), Path(groups_dir), Path(reports)
     results = _group_results(groups_dir, [str(g) for g in params.raw["train"]["groups"]])
     target_b = float(params.raw["evaluate"]["target_raw_over_nn7"])
-    targets = {"b": target_b, "c": dp.torque_target, "joint": dp.figure_joint}
+    targets = {
+        "b": target_b,
+        "c": dp.torque_target,
+        "joint": dp.figure_joint,
+        "d_slope": dp.slope_tolerance,
+        "d_change": dp.push_rmse_target,
+    }
     days = list(dict.fromkeys(day for r in results.values() for day in r["days"]))
     details = {
         day: merge({g: r["days"][day] for g, r in results.items() if day in r["days"]}) for day in days
