@@ -17,7 +17,14 @@ import torch
 from pipeline.calib.excitation import OUTSIDE, WEAK, excitation, lever_relation, noise_std
 from pipeline.calib.fidelity import model_fidelity, worst_gap
 from pipeline.calib.models import GroupNet, NetConfig, fit_linear_baseline, monomial_powers
-from pipeline.calib.pushes import IMU_STD, PushPrior, linear_push_gram, push_gram, push_penalty
+from pipeline.calib.pushes import (
+    IMU_STD,
+    PushPrior,
+    linear_push_gram,
+    output_weights,
+    push_gram,
+    push_penalty,
+)
 
 LEVER = np.array([0.0, 0.0, 0.15])  # m
 NOISE = np.array([0.6, 0.6, 0.6, 0.03, 0.03, 0.03])  # N, Nm
@@ -148,3 +155,23 @@ def test_a_network_reading_the_imu_pays_for_it() -> None:
 
     penalty = float(push_penalty(reads_acc, x, 13, 1, PUSH, gen))
     assert penalty == pytest.approx(IMU_STD[0] ** 2 / 6, rel=0.05)
+
+
+def test_output_weights_measure_each_axis_in_its_noise() -> None:
+    noise = np.array([NOISE, [np.nan] * 6])
+    weights = output_weights(noise)
+    np.testing.assert_allclose(weights[0], [1, 1, 1, 400, 400, 400])
+    np.testing.assert_allclose(weights[1], 1.0)  # no estimate: unweighted
+    # a correction that answers a pure force with a torque of 0.03 Nm per 20 N pays as 0.6 N would
+    x = torch.zeros(1000, 7, dtype=torch.float64)
+
+    def torque_from_force(xs: torch.Tensor) -> torch.Tensor:
+        out = torch.zeros(len(xs), 6, dtype=xs.dtype)
+        out[:, 3] = xs[:, 0] * (0.03 / 20.0)
+        return out
+
+    gen = torch.Generator().manual_seed(0)
+    w = torch.as_tensor(weights[:1])
+    plain = float(push_penalty(torque_from_force, x, 7, 1, PUSH, gen))
+    weighted = float(push_penalty(torque_from_force, x, 7, 1, PUSH, torch.Generator().manual_seed(0), w))
+    assert weighted == pytest.approx(400 * plain)

@@ -112,8 +112,10 @@ def push_penalty(
     n_sensors: int,
     prior: PushPrior,
     generator: torch.Generator,
+    axis_weights: torch.Tensor | None = None,
 ) -> torch.Tensor:
-    """The network's term: ``mean over the batch of sum_s mean_axes |c_s(x + delta) - c_s(x)|^2``.
+    """The network's term: ``mean over the batch of sum_s mean_axes w_sa (c_sa(x + delta) - c_sa(x))^2``,
+    `axis_weights` w (S, 6) (`output_weights`; ones if None).
 
     correction: maps flat inputs (B, S * n_inputs) to the corrections (B, S * 6) (N, Nm). One virtual
     push per sample and sensor, drawn from `generator`, on each sensor's raw wrench columns; with 13 inputs
@@ -130,5 +132,25 @@ def push_penalty(
     delta = torch.zeros_like(x)
     noise = torch.randn((len(x), n_sensors, width), generator=generator, dtype=x.dtype) * scale
     delta.view(len(x), n_sensors, n_inputs)[:, :, :width] = noise
-    change = correction(x + delta) - correction(x)
-    return change.view(len(x), n_sensors, WRENCH).square().mean(dim=2).sum(dim=1).mean()
+    change = (correction(x + delta) - correction(x)).view(len(x), n_sensors, WRENCH).square()
+    if axis_weights is not None:
+        change = change * axis_weights
+    return change.mean(dim=2).sum(dim=1).mean()
+
+
+def output_weights(noise: np.ndarray) -> np.ndarray:
+    """(S, 6) weights of a network's push response per output axis, from the raw readings' noise std
+    (S, 6): each axis in units of its own noise, scaled so that the force axes weigh about 1 (N^2).
+
+    A network's correction models what the affine map cannot (temperature-dependent gains, nonlinearity,
+    hysteresis): effects a push barely moves. In N^2 and Nm^2 a torque's change would count for
+    nothing beside a force's (0.03 Nm of noise against 0.6 N); measured in each axis's noise a network
+    cannot answer a sideways push at a sole with a torque it never saw. Axes without a noise estimate
+    weigh 1.
+    """
+    noise = np.asarray(noise, dtype=np.float64)
+    ok = np.isfinite(noise) & (noise > 0)
+    count = ok[:, :3].sum(axis=1, keepdims=True)
+    force = np.where(ok[:, :3], noise[:, :3], 0.0).sum(axis=1, keepdims=True) / np.maximum(count, 1)
+    weights = (force / np.where(ok, noise, 1.0)) ** 2
+    return np.where(ok & (count > 0), weights, 1.0)

@@ -13,6 +13,7 @@ import torch
 
 from pipeline.calib.cuts import cut_sums
 from pipeline.calib.data import Group, GroupData, group_errors
+from pipeline.calib.excitation import noise_std
 from pipeline.calib.models import (
     WRENCH,
     GroupNet,
@@ -22,7 +23,7 @@ from pipeline.calib.models import (
     switched_loss,
 )
 from pipeline.calib.params import GroupParams
-from pipeline.calib.pushes import PushPrior, push_penalty
+from pipeline.calib.pushes import PushPrior, output_weights, push_penalty
 
 PUSHED_SHARE = 4  # one sample of a batch in this many gets a virtual push (pipeline.calib.pushes)
 
@@ -84,6 +85,7 @@ class Tensors:
     cut_alpha: torch.Tensor | None = None  # (N, C) bool
     poses: torch.Tensor | None = None  # (N, P, 12)
     prior: torch.Tensor | None = None  # (N, S, 6) the affine map's output, N and Nm
+    push_weights: torch.Tensor | None = None  # (S, 6) the push response's weight per output axis
 
 
 def flat_inputs(data: GroupData, n_inputs: int) -> np.ndarray:
@@ -161,7 +163,7 @@ def _batch_loss(
         # forward and backward pass costs a quarter of the step instead of doubling it
         some = t.x[idx[: max(1, len(idx) // PUSHED_SHARE)]]
         penalty = push_penalty(
-            model.correction, some, setting.n_inputs, model.n_sensors, setting.push, pushes
+            model.correction, some, setting.n_inputs, model.n_sensors, setting.push, pushes, t.push_weights
         )
         loss = loss + setting.push.weight * penalty
     return loss
@@ -265,6 +267,10 @@ def train_network(
     best_state, best_err = None, math.inf
     prior = start.predict(train.x) if start is not None and setting.lambda_prior > 0 else None
     t = to_tensors(train, setting.n_inputs, group, prior)
+    noise = np.stack(
+        [noise_std(train.x[:, s, :WRENCH], train.log, train.stamp) for s in range(t.labels.shape[1])]
+    )
+    t.push_weights = torch.as_tensor(output_weights(noise), dtype=torch.float32)
     lambdas = torch.tensor(setting.lambdas, dtype=torch.float32)
     transforms = None if group.transforms is None else torch.as_tensor(group.transforms, dtype=torch.float32)
     if start is not None:
