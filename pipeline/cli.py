@@ -38,6 +38,7 @@ COMMANDS: dict[str, tuple[str, str]] = {
         "deployment tests A, B, C on logs recorded after training",
     ),
     "convert-mat": ("pipeline.tools.convert_mat", "convert a robot-logger .mat file to a contract MCAP"),
+    "convert-dumper": ("pipeline.tools.convert_dumper", "convert a YARP dataDumper run to a contract MCAP"),
     "worker": ("pipeline.tools.worker", "run Optuna trials of a group's search beside the stage (database)"),
     "db": ("pipeline.tools.db", "start or stop a local PostgreSQL server (shared studies, MLflow server)"),
 }
