@@ -260,7 +260,7 @@ def _run_cli(args: list[str], capsys: pytest.CaptureFixture[str]) -> tuple[int, 
     [
         ("nope", None, "train.groups has no group 'nope'"),
         ("x", {"x": {"sensor": "l_knee_ft"}}, "train.groups.x.sensor: 'l_knee_ft' is not an FT sensor"),
-        ("x", {"x": {"pair": "l_hand"}}, "train.groups.x.pair: 'l_hand' is not in robot.foot_pairs"),
+        ("x", {"x": {"pair": "l_hand"}}, "train.groups.x.pair: 'l_hand' is not a foot pair of the robot"),
     ],
 )
 def test_cli_bad_group_is_one_line(

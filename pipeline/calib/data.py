@@ -34,6 +34,7 @@ from pipeline.core.errors import ConfigError, DataError
 from pipeline.logs import schema as S
 
 ROLE_TRAIN, ROLE_TEST = "train", "test"
+FEET = "feet"  # in a group's sensors: every foot sensor of the robot (pipeline.physics.feet)
 SPLITS = ("train", "val", "test")
 
 
@@ -169,6 +170,25 @@ def find_logs(in_dir: Path) -> list[LogInfo]:
     return logs
 
 
+def expand_feet(gp: GroupParams, logs: Sequence[LogInfo]) -> GroupParams:
+    """`gp` with `FEET` in its `sensors` replaced by every foot sensor of the labelled tables (their
+    ``ftcal.label`` feet, by foot name, front before rear): the same group on any robot's feet."""
+    if gp.sensors is None or FEET not in gp.sensors:
+        return gp
+    meta = S.read_metadata(pq.read_schema(logs[0].path), S.META_LABEL) or {}
+    feet = meta.get("feet") or {
+        name: {"sensors": [p["front"], p["rear"]]} for name, p in (meta.get("pairs") or {}).items()
+    }
+    names = [str(s) for _, foot in sorted(feet.items()) for s in foot.get("sensors", ())]
+    if not names:
+        raise DataError(
+            f"{logs[0].path}: train.groups.{gp.name}.sensors names {FEET!r}, but the labelled tables know "
+            "no foot"
+        )
+    sensors = [n for s in gp.sensors for n in (names if s == FEET else [s])]
+    return replace(gp, sensors=tuple(dict.fromkeys(sensors)))
+
+
 def resolve_group(gp: GroupParams, params: Params, logs: Sequence[LogInfo]) -> Group:
     """The group `gp` trains, checked against the labelled tables (see `_resolve_group`)."""
     return replace(_resolve_group(gp, params, logs), n_inputs=max(gp.inputs))
@@ -195,26 +215,35 @@ def _resolve_group(gp: GroupParams, params: Params, logs: Sequence[LogInfo]) -> 
                     f"{', '.join(have) or 'none'})"
                 )
         return Group(gp.name, gp.sensors, cuts=_cut_terms(gp.sensors, logs))
-    pairs = {p.name: p for p in params.robot.foot_pairs}
+    pairs = _foot_pairs(params, logs)
     if gp.pair not in pairs:
         raise ConfigError(
-            f"{key}.pair: {gp.pair!r} is not in robot.foot_pairs (have: {', '.join(pairs) or 'none'})"
+            f"{key}.pair: {gp.pair!r} is not a foot pair of the robot (have: {', '.join(pairs) or 'none'})"
         )
-    pair = pairs[gp.pair]
+    name, sensors = gp.pair, pairs[gp.pair]
     transforms = None
     for log in logs:
         meta = S.read_metadata(pq.read_schema(log.path), S.META_LABEL) or {}
-        entry = (meta.get("pairs") or {}).get(pair.name)
+        entry = (meta.get("pairs") or {}).get(name)
         try:
             t = np.array([entry["sole_X_front"], entry["sole_X_rear"]], dtype=np.float64).reshape(2, 6, 6)
         except (TypeError, KeyError, ValueError):
             raise DataError(
-                f"{log.path}: metadata ftcal.label has no 6x6 pairs.{pair.name}.sole_X_front/rear"
+                f"{log.path}: metadata ftcal.label has no 6x6 pairs.{name}.sole_X_front/rear"
             ) from None
         if transforms is not None and not np.allclose(t, transforms, rtol=1e-9, atol=1e-12):
-            raise DataError(f"{log.path}: pairs.{pair.name} transforms differ from {logs[0].name}'s")
+            raise DataError(f"{log.path}: pairs.{name} transforms differ from {logs[0].name}'s")
         transforms = t
-    return Group(gp.name, pair.sensors, pair.name, transforms)
+    return Group(gp.name, sensors, name, transforms)
+
+
+def _foot_pairs(params: Params, logs: Sequence[LogInfo]) -> dict[str, tuple[str, str]]:
+    """The robot's foot pairs, name -> (front, rear): robot.foot_pairs of params, else those the labelled
+    tables were labelled with (the pairs of the URDF's feet, metadata ``ftcal.label``)."""
+    if params.robot.foot_pairs is not None:
+        return {p.name: (p.front, p.rear) for p in params.robot.foot_pairs}
+    meta = S.read_metadata(pq.read_schema(logs[0].path), S.META_LABEL) or {}
+    return {str(k): (str(v["front"]), str(v["rear"])) for k, v in (meta.get("pairs") or {}).items()}
 
 
 def _cut_terms(sensors: Sequence[str], logs: Sequence[LogInfo]) -> tuple[CutTerm, ...]:

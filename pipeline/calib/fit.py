@@ -13,6 +13,7 @@ from pipeline.calib.data import (
     Group,
     GroupData,
     concat,
+    expand_feet,
     find_logs,
     group_errors,
     input_cols,
@@ -57,8 +58,8 @@ def prepare(params: Params, group_name: str, in_dir: Path) -> Prepared:
         DataError: missing directory or tables, no train/test logs, no exact label to train or validate on.
     """
     cfg = stage_section(params, "train", TrainParams)
-    gp = cfg.group(group_name)
     logs = find_logs(in_dir)
+    gp = expand_feet(cfg.group(group_name), logs)
     group = resolve_group(gp, params, logs)
     split = split_logs(logs, cfg.val_logs, params.seed, cfg.folds)
     log_names = [log.name for log in logs]

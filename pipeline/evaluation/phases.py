@@ -54,7 +54,14 @@ class Foot:
 
 
 def feet_of(label_meta: Mapping[str, Any]) -> dict[str, Foot]:
-    """Foot pair -> `Foot` from a labelled table's ``ftcal.label`` metadata (module docstring)."""
+    """Foot -> `Foot` from a labelled table's ``ftcal.label`` metadata: its ``feet`` (every foot, one
+    or two sensors, with the links its sensors cut off), else its foot pairs (module docstring)."""
+    feet = label_meta.get("feet") or {}
+    if feet:
+        return {
+            str(name): Foot(str(f.get("sole") or ""), frozenset(str(x) for x in f.get("links") or ()), True)
+            for name, f in feet.items()
+        }
     pairs = label_meta.get("pairs") or {}
     cuts = {
         str(c.get("label")): c for c in (label_meta.get("cut_sets") or {}).values() if isinstance(c, dict)
