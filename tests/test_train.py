@@ -132,7 +132,7 @@ def test_repo_params_resolve_every_group() -> None:
         ),
         ({"defaults": {"search": {"dropout": [0.1]}}}, "unknown key train.groups.r_leg_ft.search.dropout"),
         ({"defaults": {"search": {"lr": {"low": 0.1, "high": 0.01}}}}, "search.lr needs low < high"),
-        ({"defaults": {"inputs": [6]}}, "inputs must be a non-empty list of (7, 13)"),
+        ({"defaults": {"inputs": [5]}}, "inputs must be a non-empty list of (6, 7, 13)"),
         ({"val_logs": 0}, "train.val_logs must be an integer >= 1"),
         ({"folds": 0}, "train.folds must be an integer >= 1"),
     ],

@@ -69,8 +69,8 @@ class Group:
 
 
 def input_cols(sensor: str, n_inputs: int = 13) -> list[str]:
-    """Input columns of one sensor's network, in the order of `pipeline.calib.models`."""
-    cols = [*S.wrench_cols(S.FT, sensor), S.temperature_col(sensor)]
+    """Input columns of one sensor's network (6, 7 or 13), in the order of `pipeline.calib.models`."""
+    cols = [*S.wrench_cols(S.FT, sensor)] + ([S.temperature_col(sensor)] if n_inputs >= 7 else [])
     if n_inputs == 13:
         cols += S.vector_cols(S.ACC, sensor) + S.vector_cols(S.GYR, sensor)
     return cols
@@ -282,19 +282,20 @@ def _cut_terms(sensors: Sequence[str], logs: Sequence[LogInfo]) -> tuple[CutTerm
 
 
 def _input_ok(log: LogInfo, group: Group, sensor: str, col: Any) -> np.ndarray:
-    """(N,) bool: the sensor's input streams the group's networks need are ok (wrench, temperature, and
-    the FT board's IMU for 13 inputs). A needed stream absent from the whole log is an error naming it."""
-    streams = [S.WRENCH_STREAM, S.TEMPERATURE_STREAM] + ([S.IMU_STREAM] if group.n_inputs == 13 else [])
+    """(N,) bool: the sensor's input streams the group's networks need are ok (wrench; temperature from 7
+    inputs on; the FT board's IMU for 13). A needed stream absent from the whole log is an error naming it."""
+    streams = [S.WRENCH_STREAM] + ([S.TEMPERATURE_STREAM] if group.n_inputs >= 7 else [])
+    streams += [S.IMU_STREAM] if group.n_inputs == 13 else []
     ok = np.ones(len(col(S.STAMP)), dtype=bool)
     for stream in streams:
         flag = col(S.ok_col(stream, sensor)).astype(bool)
         if len(flag) and not flag.any():
             what = {S.IMU_STREAM: "IMU (accelerometer, gyroscope)", S.TEMPERATURE_STREAM: "temperature"}
-            need = (
-                f"a 13-input network needs it (train.groups.{group.name}.inputs: [7] trains without it)"
-                if stream == S.IMU_STREAM
-                else "every model of the group needs it"
-            )
+            key = f"train.groups.{group.name}.inputs"
+            need = {
+                S.IMU_STREAM: f"a 13-input network needs it ({key}: [7] trains without it)",
+                S.TEMPERATURE_STREAM: f"7- and 13-input models need it ({key}: [6] uses the wrench alone)",
+            }.get(stream, "every model of the group needs it")
             flag_col = S.ok_col(stream, sensor)
             raise DataError(
                 f"{log.path}: no {what.get(stream, stream)} for {sensor} ({flag_col} is false on every "

@@ -25,7 +25,7 @@ from pipeline.calib.models import (
     LinearBaseline,
     fit_linear_baseline,
 )
-from pipeline.calib.params import AFFINE, GroupParams, TrainParams, poly_name
+from pipeline.calib.params import AFFINE, GroupParams, TrainParams, baseline_inputs, poly_name
 from pipeline.calib.records import flatten_metrics
 from pipeline.calib.search import NetResult
 from pipeline.calib.training import NetSetting
@@ -112,6 +112,7 @@ def _fit_group_baselines(
         "alpha_sum": train.alpha_sum,
         "transforms": group.transforms,
         "lambda_sum": lambda_sum,
+        "n_inputs": baseline_inputs(gp.inputs),
     }
     out = {AFFINE: fit_linear_baseline(AFFINE, order=1, ridge=0.0, **args)}
     for order in gp.poly_orders:
