@@ -1,11 +1,11 @@
-"""One recording, several logs: the sidecar's window and train/test segments, for every log format; a
-recording split by segments trains and tests, and no sample of its test segment reaches training."""
+"""One recording, several logs: the sidecar's window and train/test segments, for every log format (a
+recording split by segments trains and tests, and no sample of its test segment reaches training:
+tests/test_recorded.py)."""
 
 from __future__ import annotations
 
 from pathlib import Path
 
-import numpy as np
 import pandas as pd
 import pyarrow.parquet as pq
 import pytest
@@ -13,7 +13,7 @@ import yaml
 
 from pipeline.logs import schema as S
 from pipeline.logs.mcap_table import ingest_log
-from tests import dumperfile, matfile
+from tests import matfile
 from tests.test_ingest import JOINTS, SENSORS, TOPICS, write_log
 from tests.test_matlog import CFG_MAT
 
@@ -86,53 +86,3 @@ def test_segments_closer_than_the_smoothing_window_are_an_error(tmp_path: Path) 
     ):
         ingest_log(mat, tmp_path / "out", "log", CFG_MAT, TOPICS, JOINTS, SENSORS, (), None, 21)
     assert not (tmp_path / "out").exists() or not list((tmp_path / "out").iterdir())
-
-
-def test_one_recording_split_by_segments_trains_and_tests(tmp_path: Path, mlflow_store: None) -> None:
-    """A simulated iCub 2.x recording written as a dataDumper run, its sidecar splitting it into two
-    training segments and a test segment: ingest -> smooth -> label -> train@r_arm_ft (wrench only); the
-    training and validation samples all lie outside the test segment, the test samples all inside."""
-    from pipeline.calib.fit import prepare
-    from pipeline.core.config import load_params
-    from pipeline.stages import ingest, label, simulate, smooth
-    from pipeline.stages.train import train_group
-
-    data = yaml.safe_load((REPO / "params.yaml").read_text())
-    data["robot"]["urdf"] = "iCubGenova02"
-    data["simulate"].update({"logs": [{"type": "pole", "duration_s": 24, "role": "train"}], "workers": 1})
-    data["simulate"]["plots"] = False
-    data["train"].update({"val_logs": 1, "folds": 1})
-    data["train"]["defaults"].update(
-        {"inputs": [6], "n_trials": 1, "epochs": 2, "hidden": 64, "poly_orders": [1]}
-    )
-    data["train"]["groups"] = {"r_arm_ft": {"sensor": "r_arm_ft"}}
-    (tmp_path / "params.yaml").write_text(yaml.safe_dump(data, sort_keys=False))
-    params = load_params(tmp_path / "params.yaml")
-    simulate.run(params, tmp_path / "sim", progress=False)
-    (mcap,) = sorted((tmp_path / "sim").glob("*.mcap"))
-    dumper = data["ingest"]["dumper"]
-    segments = [
-        {"start_s": 0.5, "end_s": 7.5, "role": "train"},
-        {"start_s": 8.0, "end_s": 15.0, "role": "train"},
-        {"start_s": 16.0, "end_s": 23.0, "role": "test"},
-    ]
-    side = {"type": "pole", "robot": "iCubGenova02", "contacts": "root_link", "segments": segments}
-    dumperfile.mcap_to_run(
-        mcap, tmp_path / "raw" / "yoga", TOPICS, dumper["ft_ports"], dumper["joints"], sidecar=side
-    )
-    ingest.run(params, tmp_path / "raw", tmp_path / "ingested", progress=False)
-    smooth.run(params, tmp_path / "ingested", tmp_path / "smoothed", progress=False)
-    label.run(params, tmp_path / "smoothed", tmp_path / "labelled", progress=False)
-    prep = prepare(params, "r_arm_ft", tmp_path / "labelled")
-    assert sorted([*prep.split["train"], *prep.split["val"]]) == ["yoga__seg0", "yoga__seg1"]
-    assert prep.split["test"] == ["yoga__seg2"]
-    test_stamps = pd.read_parquet(tmp_path / "labelled" / "yoga__seg2.parquet", columns=[S.STAMP])[S.STAMP]
-    lo, hi = int(test_stamps.min()), int(test_stamps.max())
-    for part in (prep.train, prep.val):
-        assert len(part) and not ((part.stamp >= lo) & (part.stamp <= hi)).any()
-    assert len(prep.test) and ((prep.test.stamp >= lo) & (prep.test.stamp <= hi)).all()
-    result = train_group(
-        params, "r_arm_ft", tmp_path / "labelled", tmp_path / "models", tmp_path / "st", progress=False
-    )
-    assert np.isfinite(result.metrics["test"]["nn6"]["rmse"])
-    assert result.metrics["test"]["affine"]["rmse"] < 0.2 * result.metrics["test"]["raw"]["rmse"]

@@ -140,6 +140,7 @@ class LogInfo:
     path: Path
     role: str  # train | test
     kind: str  # experiment type[/foot[/part]], e.g. half_foot/l_foot/front
+    simulated: bool = False  # the simulator wrote it (experiment ``sim: true``): a log with truth
 
 
 def find_logs(in_dir: Path) -> list[LogInfo]:
@@ -166,7 +167,8 @@ def find_logs(in_dir: Path) -> list[LogInfo]:
         kind = "/".join(
             str(experiment[k]) for k in ("type", "foot", "part") if str(experiment.get(k, "")).strip()
         )
-        logs.append(LogInfo(path.name[: -len(S.PARQUET_SUFFIX)], path, role, kind))
+        simulated = str(experiment.get("sim", "")).strip().lower() == "true"
+        logs.append(LogInfo(path.name[: -len(S.PARQUET_SUFFIX)], path, role, kind, simulated))
     return logs
 
 

@@ -48,6 +48,7 @@ class Prepared:
     test: GroupData  # every test sample with ok inputs
     # the other cross-validation folds (1..folds-1): (training samples with a loss term, validation samples)
     folds: list[tuple[GroupData, GroupData]] = field(default_factory=list)
+    recorded: list[str] = field(default_factory=list)  # the logs that are recordings (no truth)
 
 
 def prepare(params: Params, group_name: str, in_dir: Path) -> Prepared:
@@ -84,7 +85,8 @@ def prepare(params: Params, group_name: str, in_dir: Path) -> Prepared:
             )
         if k:
             folds.append((fold_train.subset(fold_train.labelled()), val))
-    return Prepared(cfg, gp, group, split, log_names, train, data["val"], data["test"], folds)
+    recorded = [log.name for log in logs if not log.simulated]
+    return Prepared(cfg, gp, group, split, log_names, train, data["val"], data["test"], folds, recorded)
 
 
 def fit_baselines(gp: GroupParams, group: Group, train: GroupData) -> dict[str, LinearBaseline]:
@@ -182,6 +184,12 @@ def score(
         "pairs": {c.label: [group.sensors[m] for m in c.members] for c in group.cuts if c.pair is not None},
         "cut_sets": [c.label for c in group.cuts],
         "logs": prep.split,
+        # simulated (with truth), recorded (labels only: nothing to check against a truth) or mixed
+        "data": "simulated"
+        if not prep.recorded
+        else "recorded"
+        if len(prep.recorded) == len(prep.log_names)
+        else "mixed",
         "samples": {"train": len(prep.train), "val": len(prep.val), "test": len(prep.test)},
         "selection": cv["rule"],
         "cv": dict(cv),

@@ -318,6 +318,8 @@ def group_metrics(r: GroupReport, name: str | None = None) -> dict[str, Any]:
         row = {k: round(v, 4) for k, v in row.items() if v is not None}
         if row:
             out[ref] = row
+    if TRUTH not in out:  # recorded test logs: said plainly in `dvc metrics show`
+        out[TRUTH] = "none: recorded logs, errors against the labels only"
     out["noise"] = {m: round(v, 3) for m in (NN6, NN7, NN13) if (v := r.noise.ratio.get(m)) is not None}
     out["flagged"] = len(r.noise.flagged)
     return out

@@ -6,7 +6,9 @@ calibrated with the deployed models, and tested: A on its standing log (output n
 raw), B on its walking log (error tables vs labels and truth), C on its pushed pole log (leg joint torques
 from raw vs calibrated leg sensors against the true torques). Writes ``<reports>/deployment.html``,
 ``deployment.json`` (per day the few numbers and the verdict, `dvc metrics`), ``deployment/details.json``
-(every table) and ``deployment/*.png``; logs one MLflow run.
+(every table) and ``deployment/*.png``; logs one MLflow run. Models trained on recorded logs (train's
+``data``) are tested on ``deploy.real_logs`` only, never on the simulated days (another robot); with no
+such logs the page and ``deployment.json`` say there is nothing to test.
 """
 
 from __future__ import annotations
@@ -132,6 +134,7 @@ def run(params: Any, models: Path, exported: Path, days: dict[str, Path], report
     from pipeline.deploy.page import write_page
     from pipeline.deploy.params import deploy_params
     from pipeline.deploy.prepare import load_nominal_robot
+    from pipeline.stages.ingest import find_logs
 
     dp = deploy_params(params)
     models = Path(models)
@@ -139,7 +142,10 @@ def run(params: Any, models: Path, exported: Path, days: dict[str, Path], report
         raise DataError(f"{models}: models directory not found")
     real = Path(dp.real_logs)
     days = {k: Path(v) for k, v in days.items()}
-    if real.is_dir() and (any(real.rglob("*.mcap")) or any(real.rglob("*.mat"))):
+    recorded = trained_on_recordings(models)
+    if recorded:  # a real robot's calibration is not tested on the simulated robot's logs
+        days = {}
+    if real.is_dir() and find_logs(real):
         days["real"] = real
     for day, path in days.items():
         if not path.is_dir():
@@ -161,15 +167,42 @@ def run(params: Any, models: Path, exported: Path, days: dict[str, Path], report
             )
         verdict = "; ".join(
             f"{day}: {'fit to deploy' if s['fit_to_deploy'] else 'recalibrate'}" for day, s in summary.items()
-        )
-        write_json(reports / "deployment.json", {day: _headline(s) for day, s in summary.items()})
+        ) or nothing_to_test(recorded, real)
+        headlines = {day: _headline(s) for day, s in summary.items()}
+        write_json(reports / "deployment.json", headlines or {"nothing_to_test": True})
         write_json(figs / "details.json", {"summary": summary, "details": results})
         write_page(reports / "deployment.html", results, figures, verdict)
         mlflow.log_artifact(str(reports / "deployment.html"))
         mlflow.log_artifact(str(reports / "deployment.json"))
         mlflow.log_artifact(str(figs / "details.json"))
         mlflow.log_artifacts(str(figs), artifact_path="deployment")
-    return {"summary": summary, "details": results}
+    return {"summary": summary, "details": results, "verdict": verdict}
+
+
+def trained_on_recordings(models: Path) -> list[str]:
+    """The groups of `models` trained on recorded logs (train's metrics.json ``data``: not simulated)."""
+    import json
+
+    out = []
+    for metrics in sorted(Path(models).glob("*/metrics.json")):
+        try:
+            data = json.loads(metrics.read_text(encoding="utf-8")).get("data", "simulated")
+        except (OSError, ValueError) as exc:
+            raise DataError(f"{metrics}: not a train output: {exc}") from None
+        if data != "simulated":
+            out.append(metrics.parent.name)
+    return out
+
+
+def nothing_to_test(recorded: list[str], real: Path) -> str:
+    """The page's sentence when no day has logs to test."""
+    why = (
+        f"the models ({', '.join(recorded)}) were trained on recorded logs, so the simulated deployment days "
+        "would test them on another robot's logs"
+        if recorded
+        else "there are no deployment days"
+    )
+    return f"Nothing to test: {why}, and deploy.real_logs ({real}) holds no recorded deployment log."
 
 
 def _cmd(args: argparse.Namespace) -> int:
@@ -180,6 +213,8 @@ def _cmd(args: argparse.Namespace) -> int:
     out = run(load_params(args.params), args.models, args.exported, days, args.reports)
     for day, s in out["summary"].items():
         print(f"{day}: {'fit to deploy' if s['fit_to_deploy'] else 'recalibrate'}")
+    if not out["summary"]:
+        print(out["verdict"])
     return 0
 
 
