@@ -212,8 +212,10 @@ def mcap_to_mat(
     sidecar: bool = True,
     empty: Sequence[str] = (),
     drop: Sequence[str] = (),
+    compression: str | None = "gzip",
 ) -> Path:
     """Write the MCAP log's joint states, wrenches, IMUs and temperatures as a logger .mat file.
+    `compression` None: every dataset contiguous (no HDF5 chunks, as the logger writes by default).
 
     Channels in `empty` are written as empty structs (buffer empty at save time), those in `drop` not
     at all; `naming` is a key of NAMINGS. The experiment record goes to the sidecar ``<stem>.yaml``.
@@ -253,7 +255,10 @@ def mcap_to_mat(
     for path in drop:
         channels.pop(path, None)
     tree = logger_tree(channels, joints, experiment.get("robot", "iCubGenova09"))
-    (write_v73 if version == "7.3" else write_v5)(out, tree, root)
+    if version == "7.3":
+        write_v73(out, tree, root, compression=compression)
+    else:
+        write_v5(out, tree, root)
     if sidecar:
         out.with_suffix(".yaml").write_text(yaml.safe_dump(experiment, sort_keys=False))
     return out
