@@ -130,6 +130,7 @@ class _LogIngest:
                 raise
         self.report.output = str(table.tables[0].path)
         self.report.outputs = [str(t.path) for t in table.tables]
+        self.report.kept = sum(table.rows)
         self.report.truth_output = str(truth.tables[0].path) if truth is not None else None
         self.report.seconds = time.perf_counter() - t0
         return self.report

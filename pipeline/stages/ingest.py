@@ -315,10 +315,13 @@ def summary_line(summary: IngestSummary, out: str | Path) -> str:
     from pipeline.logs import schema as S
 
     rows = sum(r.samples for r in summary.reports)
+    kept = sum(r.samples if r.kept is None else r.kept for r in summary.reports)
     tables = sum(max(len(r.outputs), 1) for r in summary.reports)
-    parts = [f"ingested {len(summary.reports)} log(s), {rows} samples, into {out}"]
+    parts = [f"ingested {len(summary.reports)} log(s), {kept} samples, into {out}"]
+    if kept != rows:
+        parts[0] += f" ({rows} read, kept in the experiments' windows and segments)"
     if tables != len(summary.reports):
-        parts[0] += f" ({tables} tables: segments)"
+        parts[0] += f" as {tables} tables (segments)"
     absent = [f"{Path(r.source).name}: {', '.join(r.absent)}" for r in summary.reports if r.absent]
     if absent:
         parts.append("absent: " + "; ".join(absent))
