@@ -14,7 +14,7 @@ from typing import Any
 import pytest
 import yaml
 
-from pipeline.core.config import load_params
+from pipeline.core.config import load_params, stage_section
 from pipeline.stages import deploy_test, evaluate, export, ingest, label, report, simulate, smooth, train
 from tests import dumperfile
 from tests.conftest import REPO
@@ -75,7 +75,15 @@ def recorded_run(tmp_path_factory: pytest.TempPathFactory) -> dict[str, Any]:
         deployed = deploy_test.run(params, d["models"], d["exported"], {"later": d["sim"]}, d["reports"])
     finally:
         patch.undo()
-    return {"dirs": d, "trained": trained, "result": result, "exported": exported, "deployed": deployed}
+    cfg = stage_section(params, "ingest", ingest.IngestParams)
+    return {
+        "dirs": d,
+        "trained": trained,
+        "result": result,
+        "exported": exported,
+        "deployed": deployed,
+        "cfg": cfg,
+    }
 
 
 def test_no_test_segment_sample_is_used_in_training(recorded_run: dict[str, Any]) -> None:
@@ -125,3 +133,44 @@ def test_wrench_only_export_and_nothing_to_deploy_on(recorded_run: dict[str, Any
     assert json.loads((d["reports"] / "deployment.json").read_text()) == {"nothing_to_test": True}
     page = (d["reports"] / "deployment.html").read_text()
     assert "Nothing to test: the models (r_leg_ft) were trained on recorded logs" in page
+
+
+def test_a_simulated_log_written_as_a_run_ingests_like_its_mcap(recorded_run: dict[str, Any]) -> None:
+    """The simulator's walking test log, ingested from its MCAP and from its dataDumper run: the same rows,
+    joint positions and velocities within half a printed unit (1e-6 deg, deg/s), the same wrench flags and
+    wrenches within the printed unit plus what 1.2 us of stamp rounding moves an interpolation by (the
+    bound of tests/test_dumper.py); the run has no temperature or IMU (flagged)."""
+    import numpy as np
+    import pandas as pd
+
+    from pipeline.logs import schema as S
+    from pipeline.physics.robot import load_robot
+    from pipeline.stages.ingest import RobotLogSpec, ingest_one
+    from tests.test_dumper import HALF_PRINTED, STAMP_TOL_NS, _bound
+
+    d = recorded_run["dirs"]
+    params = load_params(d["sim"].parent / "params.yaml")
+    robot = load_robot("iCubGenova02")
+    spec = RobotLogSpec(recorded_run["cfg"], params.topics, robot.joint_names, list(robot.sensors), [])
+    name = "02_walking_test"
+    ref = pd.read_parquet(
+        ingest_one(d["sim"] / f"{name}.mcap", d["sim"].parent / "mcap", name, spec, None).output
+    )
+    got = pd.read_parquet(d["ingested"] / f"{name}.parquet")
+    assert (
+        len(got) == len(ref)
+        and np.abs(got[S.STAMP].to_numpy() - ref[S.STAMP].to_numpy()).max() <= STAMP_TOL_NS
+    )
+    for j in robot.joint_names:
+        for quantity in (S.Q, S.DQ_ENC):
+            c = S.joint_col(quantity, j)
+            np.testing.assert_allclose(
+                got[c], ref[c], atol=HALF_PRINTED * np.pi / 180 + 1e-12, rtol=0, err_msg=c
+            )
+    for s in robot.sensors:
+        np.testing.assert_array_equal(got[S.ok_col(S.WRENCH_STREAM, s)], ref[S.ok_col(S.WRENCH_STREAM, s)])
+        for c in S.wrench_cols(S.FT, s):
+            np.testing.assert_allclose(
+                got[c], ref[c], atol=_bound(ref, c, HALF_PRINTED, 0.005), rtol=0, err_msg=c
+            )
+        assert not got[S.ok_col(S.TEMPERATURE_STREAM, s)].any() and not got[S.ok_col(S.IMU_STREAM, s)].any()
