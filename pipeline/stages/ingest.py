@@ -276,6 +276,7 @@ def _log_mlflow(active: Any, summary: IngestSummary) -> None:
             for key in flags:
                 flags[key] += getattr(st, key)
     metrics.update({f"messages_{k}": v for k, v in flags.items()})
+    metrics["samples_frozen"] = sum(n for r in summary.reports for n in r.frozen.values())
     mlflow.log_metrics({k: float(v) for k, v in metrics.items()})
     mlflow.log_text("\n".join(summary.warnings) + ("\n" if summary.warnings else ""), "warnings.txt")
     mlflow.log_dict(
@@ -289,6 +290,9 @@ def _log_mlflow(active: Any, summary: IngestSummary) -> None:
                     "messages": r.messages,
                     "seconds": r.seconds,
                     "streams": {k: asdict(v) for k, v in r.streams.items()},
+                    "absent": r.absent,
+                    "frozen_samples": r.frozen,
+                    "tables": r.outputs,
                 }
                 for r in summary.reports
             ],
