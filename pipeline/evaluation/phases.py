@@ -102,9 +102,9 @@ def phases_of(contacts: np.ndarray, feet: Mapping[str, Foot]) -> np.ndarray:
 
 def phase_models(models: Sequence[str], ranking: Sequence[str], recommended: str | None) -> list[str]:
     """The models of the phase tables, in order: raw, affine, the polynomial ranked best on validation,
-    the two networks, the recommended model, the oracle (those the group has, each once)."""
+    the networks (6, 7, 13 inputs), the recommended model, the oracle (those the group has, each once)."""
     polys = [m for m in ranking if m.startswith("poly") and m in models]
-    wanted = ["raw", "affine", *polys[:1], "nn7", "nn13", recommended or "", "oracle"]
+    wanted = ["raw", "affine", *polys[:1], "nn6", "nn7", "nn13", recommended or "", "oracle"]
     return [m for m in dict.fromkeys(wanted) if m in models]
 
 
