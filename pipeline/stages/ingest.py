@@ -326,7 +326,14 @@ def summary_line(summary: IngestSummary, out: str | Path) -> str:
         parts[0] += f" ({rows} read, kept in the experiments' windows and segments)"
     if tables != len(summary.reports):
         parts[0] += f" as {tables} tables (segments)"
-    absent = [f"{Path(r.source).name}: {', '.join(r.absent)}" for r in summary.reports if r.absent]
+    by_lack: dict[tuple[str, ...], list[str]] = {}  # logs lacking the same streams, named once
+    for r in summary.reports:
+        if r.absent:
+            by_lack.setdefault(tuple(r.absent), []).append(Path(r.source).name)
+    absent = [
+        f"{', '.join(logs) if len(logs) <= 3 else f'{len(logs)} logs'}: {', '.join(lack)}"
+        for lack, logs in by_lack.items()
+    ]
     if absent:
         parts.append("absent: " + "; ".join(absent))
     frozen = []
