@@ -5,8 +5,9 @@ front and rear sensors of one foot, coupled by the sum of their wrenches in the 
 here works on arrays of shape (N, S, ...) with S = 1 or 2 sensors; nothing reads files or params.
 
 Inputs of one sensor, in this order (thesis 5.3): raw wrench f (6: fx, fy, fz N; tx, ty, tz Nm, the
-primary calibration's output), temperature T (degC) [7 inputs]; then FT-board accelerometer (3, m/s^2)
-and gyroscope (3, rad/s) [13 inputs]. Output: the calibrated wrench (6, N and Nm, sensor frame).
+primary calibration's output) [6 inputs: a board without thermometer]; temperature T (degC) [7 inputs];
+then FT-board accelerometer (3, m/s^2) and gyroscope (3, rad/s) [13 inputs]. Output: the calibrated
+wrench (6, N and Nm, sensor frame).
 
 Networks (`SensorNet`): the thesis's MLP, hidden layers of `hidden` neurons with one activation each
 (default LeakyReLU then ReLU), xavier_uniform weights, a linear output layer. Two choices of ours:
@@ -59,7 +60,8 @@ from pipeline.calib.params import ACTIVATION_NAMES, INPUT_SIZES, NORMALISATIONS
 from pipeline.calib.scores import WRENCH
 from pipeline.core.errors import DataError
 
-AFFINE_INPUTS = 7  # raw wrench + temperature: the inputs of the affine map and the polynomials
+AFFINE_INPUTS = 7  # raw wrench + temperature: the inputs of the affine map and the polynomials (6 where
+# a group trains on the wrench alone: `fit_linear_baseline(n_inputs=6)`, the networks' affine map then 6 wide)
 ACTIVATIONS: dict[str, type[nn.Module]] = {
     "relu": nn.ReLU,
     "leaky_relu": nn.LeakyReLU,
@@ -137,7 +139,7 @@ class SensorNet(nn.Module):
         self.register_buffer("in_offset", torch.zeros(config.n_inputs))
         self.register_buffer("in_scale", torch.ones(config.n_inputs))
         self.register_buffer("out_scale", torch.ones(WRENCH))
-        self.register_buffer("affine_weight", torch.zeros(WRENCH, AFFINE_INPUTS))
+        self.register_buffer("affine_weight", torch.zeros(WRENCH, min(config.n_inputs, AFFINE_INPUTS)))
         self.register_buffer("affine_bias", torch.zeros(WRENCH))
 
     def reset_parameters(self) -> None:
@@ -150,7 +152,12 @@ class SensorNet(nn.Module):
         nn.init.zeros_(self.mlp[-1].weight)
 
     def set_affine(self, weight: np.ndarray, bias: np.ndarray) -> None:
-        """The affine map the correction starts from: weight (6, 7) on [f_raw, T], bias (6,) (N, Nm)."""
+        """The affine map the correction starts from: weight (6, 7) on [f_raw, T] (or (6, 6) on f_raw),
+        bias (6,) (N, Nm)."""
+        if tuple(np.shape(weight)) != tuple(self.affine_weight.shape):  # a wrench-only affine map
+            self.register_buffer(
+                "affine_weight", torch.zeros(np.shape(weight), dtype=self.affine_weight.dtype)
+            )
         self.affine_weight.copy_(torch.as_tensor(np.asarray(weight), dtype=self.affine_weight.dtype))
         self.affine_bias.copy_(torch.as_tensor(np.asarray(bias), dtype=self.affine_bias.dtype))
 
@@ -160,7 +167,7 @@ class SensorNet(nn.Module):
             buffer.copy_(torch.as_tensor(np.asarray(value), dtype=buffer.dtype))
 
     def forward(self, x: torch.Tensor) -> torch.Tensor:
-        affine = x[:, :AFFINE_INPUTS] @ self.affine_weight.T + self.affine_bias
+        affine = x[:, : self.affine_weight.shape[1]] @ self.affine_weight.T + self.affine_bias
         return x[:, :WRENCH] + affine + self.out_scale * self.mlp((x - self.in_offset) / self.in_scale)
 
 
@@ -232,6 +239,9 @@ def load_model(path: str | Path) -> tuple[GroupNet, dict[str, Any]]:
         raise DataError(f"{config_file}: not a model config: {exc}") from None
     try:
         state = torch.load(weights_file, map_location="cpu", weights_only=True)
+        for s, net in enumerate(model.nets):  # the width of the affine map each network corrects (6 or 7)
+            shape = state.get(f"nets.{s}.affine_weight", net.affine_weight).shape
+            net.register_buffer("affine_weight", torch.zeros(tuple(shape), dtype=net.affine_weight.dtype))
         model.load_state_dict(state)
     except pickle.UnpicklingError:
         raise DataError(
@@ -349,8 +359,9 @@ class LinearBaseline:
     weights: np.ndarray
 
     def features(self, x: np.ndarray, s: int) -> np.ndarray:
-        """(N, P) features of sensor s from its raw inputs x (N, >= 7)."""
-        return _monomials((x[:, :7] - self.offset[s]) / self.scale[s], self.powers)
+        """(N, P) features of sensor s from its raw inputs x (N, >= 7; >= 6 for a wrench-only model)."""
+        k = self.offset.shape[1]  # 7, or 6 without temperature
+        return _monomials((x[:, :k] - self.offset[s]) / self.scale[s], self.powers)
 
     def predict(self, x: np.ndarray) -> np.ndarray:
         """(N, S, 6) calibrated wrenches from raw inputs x (N, S, >= 7)."""
@@ -361,11 +372,12 @@ class LinearBaseline:
 
     def affine_map(self, s: int) -> tuple[np.ndarray, np.ndarray]:
         """Sensor s's model as ``f_raw + weight @ x[:7] + bias``: (weight (6, 7), bias (6,)); order 1 only."""
-        if len(self.powers) != AFFINE_INPUTS + 1 or self.powers.sum(axis=1).max() > 1:
+        k = self.offset.shape[1]
+        if len(self.powers) != k + 1 or self.powers.sum(axis=1).max() > 1:
             raise ValueError(f"{self.name}: not an affine model (monomials of order > 1)")
         w = self.weights[s]  # columns: constant, then z_v = (x_v - offset_v) / scale_v in input order
         order = np.argmax(self.powers[1:], axis=1)  # which input each linear column multiplies
-        weight = np.zeros((WRENCH, AFFINE_INPUTS))
+        weight = np.zeros((WRENCH, k))
         weight[:, order] = w[:, 1:] / self.scale[s][order]
         bias = w[:, 0] - weight @ self.offset[s]
         return weight, bias
@@ -373,7 +385,7 @@ class LinearBaseline:
     def to_dict(self) -> dict[str, Any]:
         return {
             "name": self.name,
-            "model": "f = f_raw + W phi((x[:7] - offset) / scale), phi = monomials with these powers",
+            "model": "f = f_raw + W phi((x[:k] - offset) / scale), k = len(offset), phi = monomials (powers)",
             "offset": self.offset.tolist(),
             "scale": self.scale.tolist(),
             "powers": self.powers.tolist(),
@@ -393,6 +405,7 @@ def fit_linear_baseline(
     alpha_sum: np.ndarray | None = None,
     transforms: np.ndarray | None = None,
     lambda_sum: float = 1.0,
+    n_inputs: int = AFFINE_INPUTS,
 ) -> LinearBaseline:
     """Minimise the switched loss of `switched_loss` over W in closed form (normal equations).
 
@@ -405,6 +418,7 @@ def fit_linear_baseline(
     Args:
         x: (N, S, >= 7) raw inputs; labels (N, S, 6); switches (N, S) bool; other arrays as in
             `switched_loss` (numpy). `ridge` is per sample, on standardised features.
+        n_inputs: the inputs the model reads, 7 (wrench and temperature) or 6 (the wrench alone).
 
     Raises:
         DataError: no sample has a switch set.
@@ -414,10 +428,10 @@ def fit_linear_baseline(
     use_sum = sum_label is not None and alpha_sum is not None and transforms is not None and alpha_sum.any()
     if not switches.any() and not use_sum:
         raise DataError(f"{name}: no training sample with an exact label")
-    inputs = x[:, :, :7]
+    inputs = x[:, :, :n_inputs]
     offset = inputs.mean(axis=0)
     scale = np.where(inputs.std(axis=0) > _TINY, inputs.std(axis=0), 1.0)
-    powers = monomial_powers(7, order)
+    powers = monomial_powers(n_inputs, order)
     model = LinearBaseline(name, offset, scale, powers, np.zeros((n_sensors, WRENCH, len(powers))))
     phis = [model.features(x[:, s], s) for s in range(n_sensors)]
     p = len(powers)
