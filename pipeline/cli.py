@@ -40,13 +40,14 @@ COMMANDS: dict[str, tuple[str, str]] = {
         "the deployment page and verdict of every group's tests",
     ),
     "convert-mat": ("pipeline.tools.convert_mat", "convert a robot-logger .mat file to a contract MCAP"),
+    "convert-dumper": ("pipeline.tools.convert_dumper", "convert a YARP dataDumper run to a contract MCAP"),
     "worker": ("pipeline.tools.worker", "run Optuna trials of a group's search beside the stage (database)"),
     "db": ("pipeline.tools.db", "start or stop a local PostgreSQL server (shared studies, MLflow server)"),
 }
 
 
 def _cmd_robot(args: argparse.Namespace) -> int:
-    """Print the robot's FT sensors (and which foot pair each belongs to) as a table."""
+    """Print the robot's FT sensors (and which foot each belongs to) as a table."""
     from rich.console import Console
     from rich.table import Table
 
@@ -58,13 +59,24 @@ def _cmd_robot(args: argparse.Namespace) -> int:
     urdf = args.urdf if args.urdf is not None else resolve_urdf(params.robot.urdf, repo_root())
     robot = load_robot(urdf)
 
+    from pipeline.physics.feet import derive_feet
+
+    # the feet as params name them (robot.foot_pairs), else as the URDF has them (one or two sensors each)
+    feet = params.robot.foot_pairs
+    named = (
+        [(p.name, p.sensors) for p in feet]
+        if feet is not None
+        else [(f.name, f.sensors) for f in derive_feet(robot)]
+    )
     pair_of = {}
-    for pair in params.robot.foot_pairs:
-        pair_of[pair.front] = f"{pair.name} (front)"
-        pair_of[pair.rear] = f"{pair.name} (rear)"
+    for name, sensors in named:
+        for sensor, part in zip(
+            sensors, (" (front)", " (rear)") if len(sensors) == 2 else ("",), strict=True
+        ):
+            pair_of[sensor] = name + part
 
     table = Table(title=f"{robot.name}: {len(robot.sensors)} FT sensors", title_justify="left")
-    for header in ("sensor", "joint", "parent link", "child link", "frame", "direction", "foot pair"):
+    for header in ("sensor", "joint", "parent link", "child link", "frame", "direction", "foot"):
         table.add_column(header, no_wrap=True)
     for sensor in robot.sensors.values():
         table.add_row(

@@ -120,7 +120,7 @@ LOGS = [
 def labelled_metadata(kind: str, role: str, log: str) -> dict[bytes, Any]:
     """The Parquet metadata of a labelled table: its experiment and the r_foot pair's transforms."""
     return {
-        S.META_EXPERIMENT: {"type": kind, "role": role, "log": log},
+        S.META_EXPERIMENT: {"type": kind, "role": role, "log": log, "sim": "true"},  # generated: a simulation
         S.META_LABEL: {
             "pairs": {
                 PAIR: {

@@ -215,6 +215,7 @@ def mcap_to_mat(
     compression: str | None = "gzip",
 ) -> Path:
     """Write the MCAP log's joint states, wrenches, IMUs and temperatures as a logger .mat file.
+    `compression` None: every dataset contiguous (no HDF5 chunks, as the logger writes by default).
 
     Channels in `empty` are written as empty structs (buffer empty at save time), those in `drop` not
     at all; `naming` is a key of NAMINGS. The experiment record goes to the sidecar ``<stem>.yaml``.

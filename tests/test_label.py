@@ -219,7 +219,10 @@ def test_bad_inputs(tmp_path: Path, default_run: Path, mlflow_store: None) -> No
     with pytest.raises(ConfigError, match=r"label.cut_max_sensors must be an integer in \[1, 6\], got 0"):
         run(load_params(path), default_run / "smoothed", tmp_path / "out")
     data = yaml.safe_load(write_params(tmp_path, "p").read_text())
-    data["robot"]["foot_pairs"]["l_foot"]["front"] = "l_toe_ft"
+    data["robot"]["foot_pairs"] = {
+        "l_foot": {"front": "l_toe_ft", "rear": "l_foot_rear_ft", "sole": "l_sole"},
+        "r_foot": {"front": "r_foot_front_ft", "rear": "r_foot_rear_ft", "sole": "r_sole"},
+    }
     path.write_text(yaml.safe_dump(data))
     with pytest.raises(RobotModelError, match="no force_torque sensor named 'l_toe_ft'"):
         run(load_params(path), default_run / "smoothed", tmp_path / "out")

@@ -82,6 +82,23 @@ def mcap_log(tmp_path_factory: pytest.TempPathFactory) -> tuple[Path, pd.DataFra
     return path, ingest(path, tmp / "out")
 
 
+@pytest.mark.parametrize("compression", ["gzip", None])
+def test_both_hdf5_layouts_ingest_like_the_mcap_over_several_chunks(tmp_path: Path, compression) -> None:
+    """Chunked and compressed, or contiguous (the logger's default): a log read in several 30 s chunks keeps
+    every channel, the slow temperature included, to its end, as its MCAP does."""
+    from h5py import File
+
+    mcap = write_log(tmp_path / "log.mcap", duration=70.0)
+    ref = ingest(mcap, tmp_path / "ref")
+    mat = matfile.mcap_to_mat(mcap, tmp_path / "log.mat", TOPICS, SENSORS, compression=compression)
+    with File(mat, "r") as f:
+        chunks = f["robot_logger_device/temperatures/s_one/data"].chunks
+    assert (chunks is None) == (compression is None)
+    table = ingest(mat, tmp_path / "out")
+    assert_same_table(table, ref)
+    assert table[S.ok_col(S.TEMPERATURE_STREAM, "s_one")].iloc[10:-10].all()
+
+
 @pytest.mark.parametrize(
     ("naming", "version"), [("2022", "7.3"), ("2023", "7.3"), ("2024", "7.3"), ("2024", "5")]
 )

@@ -9,6 +9,7 @@ import numpy as np
 import pytest
 import torch
 
+from pipeline.calib.losses import sum_in_sole, switched_loss
 from pipeline.calib.models import (
     GroupNet,
     NetConfig,
@@ -17,8 +18,6 @@ from pipeline.calib.models import (
     monomial_powers,
     normalisation_constants,
     save_model,
-    sum_in_sole,
-    switched_loss,
 )
 from pipeline.calib.scores import wrench_errors
 from pipeline.core.errors import DataError

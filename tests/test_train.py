@@ -135,7 +135,7 @@ def test_repo_params_resolve_every_group() -> None:
         ),
         ({"defaults": {"search": {"dropout": [0.1]}}}, "unknown key train.groups.r_leg_ft.search.dropout"),
         ({"defaults": {"search": {"lr": {"low": 0.1, "high": 0.01}}}}, "search.lr needs low < high"),
-        ({"defaults": {"inputs": [6]}}, "inputs must be a non-empty list of (7, 13)"),
+        ({"defaults": {"inputs": [5]}}, "inputs must be a non-empty list of (6, 7, 13)"),
         ({"val_logs": 0}, "train.val_logs must be an integer >= 1"),
         ({"folds": 0}, "train.folds must be an integer >= 1"),
     ],
@@ -263,7 +263,7 @@ def _run_cli(args: list[str], capsys: pytest.CaptureFixture[str]) -> tuple[int, 
     [
         ("nope", None, "train.groups has no group 'nope'"),
         ("x", {"x": {"sensor": "l_knee_ft"}}, "train.groups.x.sensor: 'l_knee_ft' is not an FT sensor"),
-        ("x", {"x": {"pair": "l_hand"}}, "train.groups.x.pair: 'l_hand' is not in robot.foot_pairs"),
+        ("x", {"x": {"pair": "l_hand"}}, "train.groups.x.pair: 'l_hand' is not a foot pair of the robot"),
     ],
 )
 def test_cli_bad_group_is_one_line(

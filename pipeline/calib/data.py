@@ -34,6 +34,7 @@ from pipeline.core.errors import ConfigError, DataError
 from pipeline.logs import schema as S
 
 ROLE_TRAIN, ROLE_TEST = "train", "test"
+FEET = "feet"  # in a group's sensors: every foot sensor of the robot (pipeline.physics.feet)
 SPLITS = ("train", "val", "test")
 
 
@@ -68,8 +69,8 @@ class Group:
 
 
 def input_cols(sensor: str, n_inputs: int = 13) -> list[str]:
-    """Input columns of one sensor's network, in the order of `pipeline.calib.models`."""
-    cols = [*S.wrench_cols(S.FT, sensor), S.temperature_col(sensor)]
+    """Input columns of one sensor's network (6, 7 or 13), in the order of `pipeline.calib.models`."""
+    cols = [*S.wrench_cols(S.FT, sensor)] + ([S.temperature_col(sensor)] if n_inputs >= 7 else [])
     if n_inputs == 13:
         cols += S.vector_cols(S.ACC, sensor) + S.vector_cols(S.GYR, sensor)
     return cols
@@ -140,6 +141,7 @@ class LogInfo:
     role: str  # train | test
     kind: str  # experiment type[/foot[/part]], e.g. half_foot/l_foot/front
     known_load: bool = False  # the experiment declares known loads (pipeline.physics.loads)
+    simulated: bool = False  # the simulator wrote it (experiment ``sim: true``): a log with truth
 
 
 def find_logs(in_dir: Path) -> list[LogInfo]:
@@ -167,8 +169,28 @@ def find_logs(in_dir: Path) -> list[LogInfo]:
             str(experiment[k]) for k in ("type", "foot", "part") if str(experiment.get(k, "")).strip()
         )
         loaded = str(experiment.get("loads", "")).strip() not in ("", "[]")
-        logs.append(LogInfo(path.name[: -len(S.PARQUET_SUFFIX)], path, role, kind, loaded))
+        simulated = str(experiment.get("sim", "")).strip().lower() == "true"
+        logs.append(LogInfo(path.name[: -len(S.PARQUET_SUFFIX)], path, role, kind, loaded, simulated))
     return logs
+
+
+def expand_feet(gp: GroupParams, logs: Sequence[LogInfo]) -> GroupParams:
+    """`gp` with `FEET` in its `sensors` replaced by every foot sensor of the labelled tables (their
+    ``ftcal.label`` feet, by foot name, front before rear): the same group on any robot's feet."""
+    if gp.sensors is None or FEET not in gp.sensors:
+        return gp
+    meta = S.read_metadata(pq.read_schema(logs[0].path), S.META_LABEL) or {}
+    feet = meta.get("feet") or {
+        name: {"sensors": [p["front"], p["rear"]]} for name, p in (meta.get("pairs") or {}).items()
+    }
+    names = [str(s) for _, foot in sorted(feet.items()) for s in foot.get("sensors", ())]
+    if not names:
+        raise DataError(
+            f"{logs[0].path}: train.groups.{gp.name}.sensors names {FEET!r}, but the labelled tables know "
+            "no foot"
+        )
+    sensors = [n for s in gp.sensors for n in (names if s == FEET else [s])]
+    return replace(gp, sensors=tuple(dict.fromkeys(sensors)))
 
 
 def resolve_group(gp: GroupParams, params: Params, logs: Sequence[LogInfo]) -> Group:
@@ -197,26 +219,35 @@ def _resolve_group(gp: GroupParams, params: Params, logs: Sequence[LogInfo]) -> 
                     f"{', '.join(have) or 'none'})"
                 )
         return Group(gp.name, gp.sensors, cuts=_cut_terms(gp.sensors, logs))
-    pairs = {p.name: p for p in params.robot.foot_pairs}
+    pairs = _foot_pairs(params, logs)
     if gp.pair not in pairs:
         raise ConfigError(
-            f"{key}.pair: {gp.pair!r} is not in robot.foot_pairs (have: {', '.join(pairs) or 'none'})"
+            f"{key}.pair: {gp.pair!r} is not a foot pair of the robot (have: {', '.join(pairs) or 'none'})"
         )
-    pair = pairs[gp.pair]
+    name, sensors = gp.pair, pairs[gp.pair]
     transforms = None
     for log in logs:
         meta = S.read_metadata(pq.read_schema(log.path), S.META_LABEL) or {}
-        entry = (meta.get("pairs") or {}).get(pair.name)
+        entry = (meta.get("pairs") or {}).get(name)
         try:
             t = np.array([entry["sole_X_front"], entry["sole_X_rear"]], dtype=np.float64).reshape(2, 6, 6)
         except (TypeError, KeyError, ValueError):
             raise DataError(
-                f"{log.path}: metadata ftcal.label has no 6x6 pairs.{pair.name}.sole_X_front/rear"
+                f"{log.path}: metadata ftcal.label has no 6x6 pairs.{name}.sole_X_front/rear"
             ) from None
         if transforms is not None and not np.allclose(t, transforms, rtol=1e-9, atol=1e-12):
-            raise DataError(f"{log.path}: pairs.{pair.name} transforms differ from {logs[0].name}'s")
+            raise DataError(f"{log.path}: pairs.{name} transforms differ from {logs[0].name}'s")
         transforms = t
-    return Group(gp.name, pair.sensors, pair.name, transforms)
+    return Group(gp.name, sensors, name, transforms)
+
+
+def _foot_pairs(params: Params, logs: Sequence[LogInfo]) -> dict[str, tuple[str, str]]:
+    """The robot's foot pairs, name -> (front, rear): robot.foot_pairs of params, else those the labelled
+    tables were labelled with (the pairs of the URDF's feet, metadata ``ftcal.label``)."""
+    if params.robot.foot_pairs is not None:
+        return {p.name: (p.front, p.rear) for p in params.robot.foot_pairs}
+    meta = S.read_metadata(pq.read_schema(logs[0].path), S.META_LABEL) or {}
+    return {str(k): (str(v["front"]), str(v["rear"])) for k, v in (meta.get("pairs") or {}).items()}
 
 
 def _cut_terms(sensors: Sequence[str], logs: Sequence[LogInfo]) -> tuple[CutTerm, ...]:
@@ -255,19 +286,20 @@ def _cut_terms(sensors: Sequence[str], logs: Sequence[LogInfo]) -> tuple[CutTerm
 
 
 def _input_ok(log: LogInfo, group: Group, sensor: str, col: Any) -> np.ndarray:
-    """(N,) bool: the sensor's input streams the group's networks need are ok (wrench, temperature, and
-    the FT board's IMU for 13 inputs). A needed stream absent from the whole log is an error naming it."""
-    streams = [S.WRENCH_STREAM, S.TEMPERATURE_STREAM] + ([S.IMU_STREAM] if group.n_inputs == 13 else [])
+    """(N,) bool: the sensor's input streams the group's networks need are ok (wrench; temperature from 7
+    inputs on; the FT board's IMU for 13). A needed stream absent from the whole log is an error naming it."""
+    streams = [S.WRENCH_STREAM] + ([S.TEMPERATURE_STREAM] if group.n_inputs >= 7 else [])
+    streams += [S.IMU_STREAM] if group.n_inputs == 13 else []
     ok = np.ones(len(col(S.STAMP)), dtype=bool)
     for stream in streams:
         flag = col(S.ok_col(stream, sensor)).astype(bool)
         if len(flag) and not flag.any():
             what = {S.IMU_STREAM: "IMU (accelerometer, gyroscope)", S.TEMPERATURE_STREAM: "temperature"}
-            need = (
-                f"a 13-input network needs it (train.groups.{group.name}.inputs: [7] trains without it)"
-                if stream == S.IMU_STREAM
-                else "every model of the group needs it"
-            )
+            key = f"train.groups.{group.name}.inputs"
+            need = {
+                S.IMU_STREAM: f"a 13-input network needs it ({key}: [7] trains without it)",
+                S.TEMPERATURE_STREAM: f"7- and 13-input models need it ({key}: [6] uses the wrench alone)",
+            }.get(stream, "every model of the group needs it")
             flag_col = S.ok_col(stream, sensor)
             raise DataError(
                 f"{log.path}: no {what.get(stream, stream)} for {sensor} ({flag_col} is false on every "

@@ -14,6 +14,7 @@ from pipeline.calib.data import (
     GroupData,
     concat,
     derive_seed,
+    expand_feet,
     find_logs,
     group_errors,
     input_cols,
@@ -25,7 +26,7 @@ from pipeline.calib.models import (
     LinearBaseline,
     fit_linear_baseline,
 )
-from pipeline.calib.params import AFFINE, GroupParams, TrainParams, poly_name
+from pipeline.calib.params import AFFINE, GroupParams, TrainParams, baseline_inputs, poly_name
 from pipeline.calib.records import flatten_metrics
 from pipeline.calib.search import NetResult
 from pipeline.calib.training import NetSetting
@@ -49,6 +50,7 @@ class Prepared:
     test: GroupData  # every test sample with ok inputs
     # the other cross-validation folds (1..folds-1): (training samples with a loss term, validation samples)
     folds: list[tuple[GroupData, GroupData]] = field(default_factory=list)
+    recorded: list[str] = field(default_factory=list)  # the logs that are recordings (no truth)
 
 
 def prepare(params: Params, group_name: str, in_dir: Path) -> Prepared:
@@ -59,8 +61,8 @@ def prepare(params: Params, group_name: str, in_dir: Path) -> Prepared:
         DataError: missing directory or tables, no train/test logs, no exact label to train or validate on.
     """
     cfg = stage_section(params, "train", TrainParams)
-    gp = cfg.group(group_name)
     logs = find_logs(in_dir)
+    gp = expand_feet(cfg.group(group_name), logs)
     group = resolve_group(gp, params, logs)
     split = split_logs(logs, cfg.val_logs, params.seed, cfg.folds)
     log_names = [log.name for log in logs]
@@ -85,8 +87,9 @@ def prepare(params: Params, group_name: str, in_dir: Path) -> Prepared:
             )
         if k:
             folds.append((fold_train.subset(fold_train.labelled()), val))
+    recorded = [log.name for log in logs if not log.simulated]
     seed = derive_seed(params.seed, group_name, "pushes")
-    return Prepared(cfg, gp, seed, group, split, log_names, train, data["val"], data["test"], folds)
+    return Prepared(cfg, gp, seed, group, split, log_names, train, data["val"], data["test"], folds, recorded)
 
 
 def fit_baselines(gp: GroupParams, group: Group, train: GroupData, seed: int) -> dict[str, LinearBaseline]:
@@ -122,6 +125,7 @@ def _fit_group_baselines(
         "alpha_sum": train.alpha_sum,
         "transforms": group.transforms,
         "lambda_sum": lambda_sum,
+        "n_inputs": baseline_inputs(gp.inputs),
     }
     out = {AFFINE: fit_linear_baseline(AFFINE, order=1, ridge=0.0, **args)}
     for order in gp.poly_orders:
@@ -198,6 +202,12 @@ def score(
         "pairs": {c.label: [group.sensors[m] for m in c.members] for c in group.cuts if c.pair is not None},
         "cut_sets": [c.label for c in group.cuts],
         "logs": prep.split,
+        # simulated (with truth), recorded (labels only: nothing to check against a truth) or mixed
+        "data": "simulated"
+        if not prep.recorded
+        else "recorded"
+        if len(prep.recorded) == len(prep.log_names)
+        else "mixed",
         "samples": {"train": len(prep.train), "val": len(prep.val), "test": len(prep.test)},
         "selection": cv["rule"],
         "cv": dict(cv),

@@ -5,8 +5,9 @@ front and rear sensors of one foot, coupled by the sum of their wrenches in the 
 here works on arrays of shape (N, S, ...) with S = 1 or 2 sensors; nothing reads files or params.
 
 Inputs of one sensor, in this order (thesis 5.3): raw wrench f (6: fx, fy, fz N; tx, ty, tz Nm, the
-primary calibration's output), temperature T (degC) [7 inputs]; then FT-board accelerometer (3, m/s^2)
-and gyroscope (3, rad/s) [13 inputs]. Output: the calibrated wrench (6, N and Nm, sensor frame).
+primary calibration's output) [6 inputs: a board without thermometer]; temperature T (degC) [7 inputs];
+then FT-board accelerometer (3, m/s^2) and gyroscope (3, rad/s) [13 inputs]. Output: the calibrated
+wrench (6, N and Nm, sensor frame).
 
 Networks (`SensorNet`): the thesis's MLP, hidden layers of `hidden` neurons with one activation each
 (default LeakyReLU then ReLU), xavier_uniform weights, a linear output layer. Two choices of ours:
@@ -24,15 +25,7 @@ Networks (`SensorNet`): the thesis's MLP, hidden layers of `hidden` neurons with
   O(1) in every axis (N and Nm differ by two orders of magnitude). The loss stays the thesis's: MSE of
   the wrench in N and Nm (``switched_loss``).
 
-Losses (`switched_loss`), per sample i, averaged over the batch (thesis eqs. 5.4-5.12):
-
-    L_i = sum_s alpha_si lambda_s mse(f_si^exp - f_si^NN)
-          + alpha_sum,i lambda_sum mse(sum_s X_s f_si^exp - sum_s X_s f_si^NN)
-
-where mse is the mean over the 6 components, alpha_si the exact-label switch of sensor s (eq. 5.5, 5.11),
-X_s the 6x6 wrench transform ``sole_X_s`` and alpha_sum = sw_pair (1 - prod_s sw_s) (eq. 5.12). With one
-sensor and no sum this is eq. 5.4; for a foot it is L_front + L_rear of eqs. 5.6-5.7 with the sum term
-counted once, whose gradient with respect to each network is exactly that of its own eq. 5.6 or 5.7.
+Losses: `pipeline.calib.losses` (the thesis's switched losses, eqs. 5.4-5.12).
 
 Baselines (`LinearBaseline`): the same switched least-squares objective with a model linear in its
 parameters, ``f = f_raw + W phi(x)``, fitted in closed form: ``affine`` (phi = [f, T, 1], least squares,
@@ -61,7 +54,8 @@ from pipeline.calib.pushes import PushPrior, linear_push_gram
 from pipeline.calib.scores import WRENCH
 from pipeline.core.errors import DataError
 
-AFFINE_INPUTS = 7  # raw wrench + temperature: the inputs of the affine map and the polynomials
+AFFINE_INPUTS = 7  # raw wrench + temperature: the inputs of the affine map and the polynomials (6 where
+# a group trains on the wrench alone: `fit_linear_baseline(n_inputs=6)`, the networks' affine map then 6 wide)
 ACTIVATIONS: dict[str, type[nn.Module]] = {
     "relu": nn.ReLU,
     "leaky_relu": nn.LeakyReLU,
@@ -139,7 +133,7 @@ class SensorNet(nn.Module):
         self.register_buffer("in_offset", torch.zeros(config.n_inputs))
         self.register_buffer("in_scale", torch.ones(config.n_inputs))
         self.register_buffer("out_scale", torch.ones(WRENCH))
-        self.register_buffer("affine_weight", torch.zeros(WRENCH, AFFINE_INPUTS))
+        self.register_buffer("affine_weight", torch.zeros(WRENCH, min(config.n_inputs, AFFINE_INPUTS)))
         self.register_buffer("affine_bias", torch.zeros(WRENCH))
 
     def reset_parameters(self) -> None:
@@ -152,7 +146,12 @@ class SensorNet(nn.Module):
         nn.init.zeros_(self.mlp[-1].weight)
 
     def set_affine(self, weight: np.ndarray, bias: np.ndarray) -> None:
-        """The affine map the correction starts from: weight (6, 7) on [f_raw, T], bias (6,) (N, Nm)."""
+        """The affine map the correction starts from: weight (6, 7) on [f_raw, T] (or (6, 6) on f_raw),
+        bias (6,) (N, Nm)."""
+        if tuple(np.shape(weight)) != tuple(self.affine_weight.shape):  # a wrench-only affine map
+            self.register_buffer(
+                "affine_weight", torch.zeros(np.shape(weight), dtype=self.affine_weight.dtype)
+            )
         self.affine_weight.copy_(torch.as_tensor(np.asarray(weight), dtype=self.affine_weight.dtype))
         self.affine_bias.copy_(torch.as_tensor(np.asarray(bias), dtype=self.affine_bias.dtype))
 
@@ -166,7 +165,7 @@ class SensorNet(nn.Module):
         return self.out_scale * self.mlp((x - self.in_offset) / self.in_scale)
 
     def forward(self, x: torch.Tensor) -> torch.Tensor:
-        affine = x[:, :AFFINE_INPUTS] @ self.affine_weight.T + self.affine_bias
+        affine = x[:, : self.affine_weight.shape[1]] @ self.affine_weight.T + self.affine_bias
         return x[:, :WRENCH] + affine + self.correction(x)
 
 
@@ -243,6 +242,9 @@ def load_model(path: str | Path) -> tuple[GroupNet, dict[str, Any]]:
         raise DataError(f"{config_file}: not a model config: {exc}") from None
     try:
         state = torch.load(weights_file, map_location="cpu", weights_only=True)
+        for s, net in enumerate(model.nets):  # the width of the affine map each network corrects (6 or 7)
+            shape = state.get(f"nets.{s}.affine_weight", net.affine_weight).shape
+            net.register_buffer("affine_weight", torch.zeros(tuple(shape), dtype=net.affine_weight.dtype))
         model.load_state_dict(state)
     except pickle.UnpicklingError:
         raise DataError(
@@ -252,74 +254,6 @@ def load_model(path: str | Path) -> tuple[GroupNet, dict[str, Any]]:
         first_line = str(exc).strip().splitlines()[0] if str(exc).strip() else type(exc).__name__
         raise DataError(f"{weights_file}: cannot load weights: {first_line}") from None
     return model.eval(), config
-
-
-# --- losses --------------------------------------------------------------------------------------
-
-
-def _switched_mse(error: torch.Tensor, switch: torch.Tensor) -> torch.Tensor:
-    """Per-sample mse over the last axis (6) where `switch` (bool) is set, 0 elsewhere.
-
-    Labels are NaN where their switch is 0: the error is masked with `torch.where` (NaN * 0 is NaN).
-    """
-    masked = torch.where(switch.unsqueeze(-1), error, torch.zeros((), dtype=error.dtype))
-    return masked.square().mean(dim=-1)
-
-
-def sum_in_sole(wrenches: torch.Tensor, transforms: torch.Tensor) -> torch.Tensor:
-    """sum_s X_s f_s of eqs. 5.9-5.10, in the sole frame: (B, 6).
-
-    wrenches (B, S, 6) in their sensor frames; transforms (S, 6, 6) ``sole_X_s``.
-    """
-    return torch.einsum("sij,bsj->bi", transforms.to(wrenches.dtype), wrenches)
-
-
-def switched_loss(
-    pred: torch.Tensor,
-    labels: torch.Tensor,
-    switches: torch.Tensor,
-    lambdas: torch.Tensor,
-    sum_label: torch.Tensor | None = None,
-    alpha_sum: torch.Tensor | None = None,
-    transforms: torch.Tensor | None = None,
-    lambda_sum: float = 1.0,
-    cuts: tuple[torch.Tensor, torch.Tensor, torch.Tensor] | None = None,
-    lambda_cut: float = 1.0,
-) -> tuple[torch.Tensor, dict[str, torch.Tensor]]:
-    """The thesis's switched loss, averaged over the batch (module docstring; eqs. 5.4-5.12).
-
-    Args:
-        pred: (B, S, 6) network outputs, N and Nm, each in its sensor frame.
-        labels: (B, S, 6) expected wrenches (NaN allowed where the switch is 0).
-        switches: (B, S) bool, alpha_s (eq. 5.5, 5.11).
-        lambdas: (S,) weights lambda_s.
-        sum_label: (B, 6) expected sum in the sole frame (NaN allowed where alpha_sum is 0), or None.
-        alpha_sum: (B,) bool, the sum switch of eq. 5.12 (already sw_pair * (1 - prod sw_s)), or None.
-        transforms: (S, 6, 6) ``sole_X_s``; required with sum_label.
-        lambda_sum: weight of the sum term.
-        cuts: (predicted sums (B, C, 6), labels (B, C, 6), switches (B, C) bool) of cut sets
-            (`pipeline.calib.cuts`), or None: one term per cut set, alpha lambda_cut mse, like the sum's.
-        lambda_cut: weight of each cut-set term.
-
-    Returns:
-        (total loss, {"s0": term, "s1": term, "sum": term}): each term is the batch mean of
-        alpha lambda mse, so that total = sum of the terms.
-    """
-    per_sensor = _switched_mse(pred - labels, switches) * lambdas  # (B, S)
-    terms = {f"s{s}": per_sensor[:, s].mean() for s in range(pred.shape[1])}
-    total = per_sensor.sum(dim=1)
-    if sum_label is not None:
-        if alpha_sum is None or transforms is None:
-            raise ValueError("sum_label needs alpha_sum and transforms")
-        sum_term = _switched_mse(sum_in_sole(pred, transforms) - sum_label, alpha_sum) * lambda_sum
-        terms["sum"] = sum_term.mean()
-        total = total + sum_term
-    if cuts is not None:
-        cut_pred, cut_label, cut_alpha = cuts
-        per_cut = _switched_mse(cut_pred - cut_label, cut_alpha) * lambda_cut  # (B, C)
-        terms.update({f"c{c}": per_cut[:, c].mean() for c in range(per_cut.shape[1])})
-        total = total + per_cut.sum(dim=1)
-    return total.mean(), terms
 
 
 # --- linear baselines ----------------------------------------------------------------------------
@@ -360,8 +294,9 @@ class LinearBaseline:
     weights: np.ndarray
 
     def features(self, x: np.ndarray, s: int) -> np.ndarray:
-        """(N, P) features of sensor s from its raw inputs x (N, >= 7)."""
-        return _monomials((x[:, :7] - self.offset[s]) / self.scale[s], self.powers)
+        """(N, P) features of sensor s from its raw inputs x (N, >= 7; >= 6 for a wrench-only model)."""
+        k = self.offset.shape[1]  # 7, or 6 without temperature
+        return _monomials((x[:, :k] - self.offset[s]) / self.scale[s], self.powers)
 
     def predict(self, x: np.ndarray) -> np.ndarray:
         """(N, S, 6) calibrated wrenches from raw inputs x (N, S, >= 7)."""
@@ -372,11 +307,12 @@ class LinearBaseline:
 
     def affine_map(self, s: int) -> tuple[np.ndarray, np.ndarray]:
         """Sensor s's model as ``f_raw + weight @ x[:7] + bias``: (weight (6, 7), bias (6,)); order 1 only."""
-        if len(self.powers) != AFFINE_INPUTS + 1 or self.powers.sum(axis=1).max() > 1:
+        k = self.offset.shape[1]
+        if len(self.powers) != k + 1 or self.powers.sum(axis=1).max() > 1:
             raise ValueError(f"{self.name}: not an affine model (monomials of order > 1)")
         w = self.weights[s]  # columns: constant, then z_v = (x_v - offset_v) / scale_v in input order
         order = np.argmax(self.powers[1:], axis=1)  # which input each linear column multiplies
-        weight = np.zeros((WRENCH, AFFINE_INPUTS))
+        weight = np.zeros((WRENCH, k))
         weight[:, order] = w[:, 1:] / self.scale[s][order]
         bias = w[:, 0] - weight @ self.offset[s]
         return weight, bias
@@ -384,7 +320,7 @@ class LinearBaseline:
     def to_dict(self) -> dict[str, Any]:
         return {
             "name": self.name,
-            "model": "f = f_raw + W phi((x[:7] - offset) / scale), phi = monomials with these powers",
+            "model": "f = f_raw + W phi((x[:k] - offset) / scale), k = len(offset), phi = monomials (powers)",
             "offset": self.offset.tolist(),
             "scale": self.scale.tolist(),
             "powers": self.powers.tolist(),
@@ -404,6 +340,7 @@ def fit_linear_baseline(
     alpha_sum: np.ndarray | None = None,
     transforms: np.ndarray | None = None,
     lambda_sum: float = 1.0,
+    n_inputs: int = AFFINE_INPUTS,
     push: PushPrior | None = None,
     seed: int = 0,
 ) -> LinearBaseline:
@@ -421,6 +358,7 @@ def fit_linear_baseline(
     Args:
         x: (N, S, >= 7) raw inputs; labels (N, S, 6); switches (N, S) bool; other arrays as in
             `switched_loss` (numpy). `ridge` is per sample, on standardised features.
+        n_inputs: the inputs the model reads, 7 (wrench and temperature) or 6 (the wrench alone).
 
     Raises:
         DataError: no sample has a switch set.
@@ -430,10 +368,10 @@ def fit_linear_baseline(
     use_sum = sum_label is not None and alpha_sum is not None and transforms is not None and alpha_sum.any()
     if not switches.any() and not use_sum:
         raise DataError(f"{name}: no training sample with an exact label")
-    inputs = x[:, :, :7]
+    inputs = x[:, :, :n_inputs]
     offset = inputs.mean(axis=0)
     scale = np.where(inputs.std(axis=0) > _TINY, inputs.std(axis=0), 1.0)
-    powers = monomial_powers(7, order)
+    powers = monomial_powers(n_inputs, order)
     model = LinearBaseline(name, offset, scale, powers, np.zeros((n_sensors, WRENCH, len(powers))))
     phis = [model.features(x[:, s], s) for s in range(n_sensors)]
     p = len(powers)

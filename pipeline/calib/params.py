@@ -14,7 +14,7 @@ from typing import Any
 from pipeline.calib.pushes import PushPrior
 from pipeline.core.errors import ConfigError
 
-INPUT_SIZES = (7, 13)  # raw wrench + temperature (+ accelerometer + gyroscope)
+INPUT_SIZES = (6, 7, 13)  # raw wrench (+ temperature (+ accelerometer + gyroscope))
 NORMALISATIONS = ("max", "standard")
 ACTIVATION_NAMES = ("relu", "leaky_relu", "tanh", "elu")
 RAW, AFFINE = "raw", "affine"
@@ -24,6 +24,12 @@ STORAGE_SCHEMES = ("postgresql", "sqlite", "mysql")  # SQLAlchemy dialects Optun
 def nn_name(n_inputs: int) -> str:
     """Model name of the network with `n_inputs` inputs per sensor: nn7, nn13."""
     return f"nn{n_inputs}"
+
+
+def baseline_inputs(inputs: Sequence[int]) -> int:
+    """Inputs of a group's affine and polynomial baselines: the wrench alone (6) where the group trains a
+    wrench-only network (a log without temperature), else wrench and temperature (7)."""
+    return 6 if 6 in inputs else 7
 
 
 def poly_name(order: int) -> str:
@@ -113,7 +119,7 @@ class GroupParams:
     sensor: str | None  # a single FT sensor ...
     pair: str | None  # ... or a foot pair of robot.foot_pairs ...
     sensors: tuple[str, ...] | None  # ... or several sensors coupled by the cut sets among them
-    inputs: tuple[int, ...]  # network sizes trained: 7 and/or 13
+    inputs: tuple[int, ...]  # network sizes trained: 6 (wrench), 7 (+ temperature), 13 (+ IMU)
     hidden: int  # neurons per hidden layer
     activations: tuple[str, ...]  # one per hidden layer
     normalisation: str  # max | standard

@@ -14,13 +14,13 @@ import torch
 from pipeline.calib.cuts import cut_sums
 from pipeline.calib.data import Group, GroupData, group_errors
 from pipeline.calib.excitation import noise_std
+from pipeline.calib.losses import switched_loss
 from pipeline.calib.models import (
     WRENCH,
     GroupNet,
     LinearBaseline,
     NetConfig,
     normalisation_constants,
-    switched_loss,
 )
 from pipeline.calib.params import GroupParams
 from pipeline.calib.pushes import PushPrior, output_weights, push_penalty

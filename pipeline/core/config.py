@@ -93,7 +93,8 @@ class RobotParams:
 
     urdf: str  # icub-models robot name or URDF path (relative paths: from the repo root)
     gravity: float  # m/s^2, magnitude; world z is up, so gravity is (0, 0, -gravity)
-    foot_pairs: tuple[FootPairParams, ...] = ()
+    # the foot pairs as params name them; None: the feet derived from the URDF (pipeline.physics.feet)
+    foot_pairs: tuple[FootPairParams, ...] | None = None
 
     def __post_init__(self) -> None:
         _check_name(self.urdf, "robot.urdf")
@@ -103,7 +104,7 @@ class RobotParams:
         object.__setattr__(self, "gravity", float(g))
         seen_names: set[str] = set()
         used_by: dict[str, str] = {}
-        for pair in self.foot_pairs:
+        for pair in self.foot_pairs or ():
             if not isinstance(pair, FootPairParams):
                 raise ConfigError(f"robot.foot_pairs must hold foot pairs, got {pair!r}")
             if pair.name in seen_names:
@@ -388,15 +389,20 @@ def _parse(data: Any) -> Params:
         if key not in data:
             raise ConfigError(f"missing key {key}")
     robot = _mapping(data["robot"], "robot")
-    # foot_pairs is required: a robot without feet says `foot_pairs: {}` explicitly.
-    _section(robot, "robot", {"urdf", "gravity", "foot_pairs"})
-    pairs = []
-    for name, pair in _mapping(robot["foot_pairs"], "robot.foot_pairs").items():
-        key = f"robot.foot_pairs.{name}"
-        pair = _mapping(pair, key)
-        _section(pair, key, {"front", "rear", "sole"})
-        pairs.append(FootPairParams(name=name, front=pair["front"], rear=pair["rear"], sole=pair["sole"]))
-    robot_params = RobotParams(urdf=robot["urdf"], gravity=robot["gravity"], foot_pairs=tuple(pairs))
+    # foot_pairs is optional: absent (or null), the feet are derived from the URDF; a robot without foot
+    # pairs may also say `foot_pairs: {}`.
+    _section({"foot_pairs": None, **robot}, "robot", {"urdf", "gravity", "foot_pairs"})
+    pairs = None
+    if robot.get("foot_pairs") is not None:
+        pairs = []
+        for name, pair in _mapping(robot["foot_pairs"], "robot.foot_pairs").items():
+            key = f"robot.foot_pairs.{name}"
+            pair = _mapping(pair, key)
+            _section(pair, key, {"front", "rear", "sole"})
+            pairs.append(FootPairParams(name=name, front=pair["front"], rear=pair["rear"], sole=pair["sole"]))
+    robot_params = RobotParams(
+        urdf=robot["urdf"], gravity=robot["gravity"], foot_pairs=None if pairs is None else tuple(pairs)
+    )
     if "topics" not in data:
         raise ConfigError("missing key topics")
     topics = _mapping(data["topics"], "topics")

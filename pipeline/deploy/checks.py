@@ -84,11 +84,12 @@ def standing_noise(log: DeployLog, model_dir: Path, cfg: EvaluateParams, deploye
 
 
 def _pair_sums(robot: RobotModel, params: Any, data: dict[str, np.ndarray]) -> dict[str, np.ndarray]:
+    from pipeline.physics.feet import robot_pairs
+
     out = {}
-    for p in params.robot.foot_pairs:
-        if p.front in data and p.rear in data:
-            pair = robot.foot_pair(p.name, p.front, p.rear, p.sole)
-            out[p.name] = data[p.front] @ pair.sole_X_front.T + data[p.rear] @ pair.sole_X_rear.T
+    for pair in robot_pairs(robot, params.robot.foot_pairs):
+        if pair.front in data and pair.rear in data:
+            out[pair.name] = data[pair.front] @ pair.sole_X_front.T + data[pair.rear] @ pair.sole_X_rear.T
     return out
 
 

@@ -149,10 +149,11 @@ def judge(entry: Mapping[str, Any], tolerance: float, rmse_target: float) -> dic
 
 def load_mask(time_s: np.ndarray, robot: Any, params: Any, dp: Any) -> np.ndarray:
     """(N,) the samples of the interaction log's carried loads (their schedule, as the simulator's)."""
+    from pipeline.physics.feet import robot_feet
     from pipeline.sim.push import LOAD, interaction_events
     from pipeline.sim.sites import interaction_sites
 
-    soles = {s: p.sole for p in params.robot.foot_pairs for s in (p.front, p.rear)}
+    soles = {s: foot.sole for foot in robot_feet(robot, params.robot.foot_pairs) for s in foot.sensors}
     events = interaction_events(interaction_sites(robot, soles, dp.interaction.sites), dp.interaction)
     out = np.zeros(len(time_s), dtype=bool)
     for e in events:

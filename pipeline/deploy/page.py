@@ -220,7 +220,7 @@ def render_page(
         f"<nav><a href='{REPORT_FILE}'>Evaluation report (its own page)</a><a href='#verdict'>Verdict</a>"
         f"{nav}</nav>",
         "<h2 id='verdict'>Verdict</h2>",
-        verdict_table(summary),
+        verdict_table(summary) if days else f"<div class='flags'>{esc(targets.get('nothing', ''))}</div>",
     ]
     parts += [day_section(d, r, figures.get(d, {}), targets) for d, r in days.items()]
     return document("ftcal deployment tests", parts)

@@ -72,7 +72,7 @@ def _drift(raw: Any, key: str) -> Drift:
     )
 
 
-def _logs(raw: Any, feet: tuple[str, ...]) -> tuple[LogSpec, ...]:
+def _logs(raw: Any, feet: tuple[str, ...] | None) -> tuple[LogSpec, ...]:
     if not isinstance(raw, list) or not raw:
         raise ConfigError("deploy.logs must be a non-empty list of logs")
     out = []
@@ -109,7 +109,8 @@ def deploy_params(params: Params) -> DeployParams:
         raise ConfigError(f"deploy.torque_limbs must map FT sensors to limb end links, got {limbs!r}")
     if not isinstance(raw["figure_joint"], str) or not raw["figure_joint"]:
         raise ConfigError(f"deploy.figure_joint must be a joint name suffix, got {raw['figure_joint']!r}")
-    feet = tuple(p.name for p in params.robot.foot_pairs)
+    pairs = params.robot.foot_pairs  # None: feet from the URDF, checked when it is loaded
+    feet = None if pairs is None else tuple(p.name for p in pairs)
     return DeployParams(
         seed=seed,
         real_logs=raw["real_logs"],

@@ -43,6 +43,7 @@ def prepare_logs(
     """Ingest, smooth and label every log of `logs` (under `source_dir`) into `work`/<step>/."""
     from pipeline.labels.table import Labeller, label_table
     from pipeline.physics.cuts import find_cut_sets
+    from pipeline.physics.feet import robot_feet
     from pipeline.stages.ingest import IngestParams, RobotLogSpec, ingest_one, output_name
 
     spec = RobotLogSpec(
@@ -54,10 +55,10 @@ def prepare_logs(
     )
     smooth_cfg = stage_section(params, "smooth", SmoothParams)
     label_cfg = stage_section(params, "label", LabelParams)
-    pairs = [robot.foot_pair(p.name, p.front, p.rear, p.sole) for p in params.robot.foot_pairs]
-    lab = Labeller(
-        robot, pairs, find_cut_sets(robot, pairs, label_cfg.cut_max_sensors), label_cfg, params.robot.gravity
-    )
+    feet = robot_feet(robot, params.robot.foot_pairs)
+    pairs = [f.pair for f in feet if f.pair is not None]
+    cuts = find_cut_sets(robot, pairs, label_cfg.cut_max_sensors)
+    lab = Labeller(robot, pairs, cuts, label_cfg, params.robot.gravity, feet)
     dirs = {k: work / k for k in ("ingested", "smoothed", "labelled")}
     for d in dirs.values():
         d.mkdir(parents=True, exist_ok=True)

@@ -25,6 +25,7 @@ from pipeline.evaluation.params import (
     REFERENCE_TITLES,
     REFERENCES,
     REPORT_FILE,
+    TRUTH,
 )
 from pipeline.evaluation.sections import availability_section, cv_section, phase_section
 from pipeline.evaluation.trust import excitation_html, fidelity_table, passed_over_html
@@ -179,6 +180,19 @@ def _flags_box(results: Sequence[GroupReport], cfg: EvaluateParams) -> str:
     return noise + faith + fallbacks
 
 
+def _no_truth_box(results: Sequence[GroupReport]) -> str:
+    """A plain warning where the test logs are recordings: no truth, no oracle, errors against labels."""
+    if any(TRUTH in r.tables[h] for r in results for h in _headlines(r)):
+        return ""
+    return (
+        "<div class='flags'><b>No truth:</b> the test logs are recordings of a robot, not simulations. "
+        "Every error on this page is against the <i>labels</i> (the expected wrench from the URDF and the "
+        "motion, exact only where one side of a sensor's cut touches nothing, and only as good as the URDF's "
+        "masses), on the labelled test samples; nothing here is measured against the true wrench, and there "
+        "is no oracle (noise floor).</div>"
+    )
+
+
 _SUMMARY_NOTE = (
     "<p class='note'>Accuracy targets: raw/NN7 &ge; {a:g} and NN7/oracle &le; {b:g}, "
     "against the labels and against the truth (green: met, red: not). The oracle inverts each simulated "
@@ -282,6 +296,7 @@ def render_html(
         "<nav><a href='#summary'>Summary and recommendation</a><a href='#noise'>Deployment noise check</a>"
         f"{labels_link}{nav}<a href='{DEPLOYMENT_PAGE}'>Deployment tests (its own page)</a></nav>",
         "<h2 id='summary'>Summary and recommendation</h2>",
+        _no_truth_box(results),
         _flags_box(results, cfg),
         summary_table(results, cfg),
         _SUMMARY_NOTE.format(a=cfg.target_raw_over_nn7, b=cfg.target_nn7_over_oracle),

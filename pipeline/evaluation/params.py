@@ -20,7 +20,7 @@ REFERENCE_TITLES = {
     TRUTH_LABELLED: "truth (labelled samples)",
     TRUTH: "truth (all samples)",
 }
-NN7, NN13 = nn_name(7), nn_name(13)
+NN6, NN7, NN13 = nn_name(6), nn_name(7), nn_name(13)  # wrench; + temperature; + IMU
 # Outputs, under the reports directory: evaluate@<group> writes GROUPS_DIR/<group>/ (GROUP_REPORT and
 # PLOTS_DIR), METRICS_DIR/<group>/<headline>.json (for `dvc metrics`) and PLOTS_DATA_DIR/*/<group>*.csv (for
 # `dvc plots`); the report stage writes REPORT_FILE and PLOTS_DIR (the overview figures).

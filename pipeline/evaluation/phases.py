@@ -54,7 +54,14 @@ class Foot:
 
 
 def feet_of(label_meta: Mapping[str, Any]) -> dict[str, Foot]:
-    """Foot pair -> `Foot` from a labelled table's ``ftcal.label`` metadata (module docstring)."""
+    """Foot -> `Foot` from a labelled table's ``ftcal.label`` metadata: its ``feet`` (every foot, one
+    or two sensors, with the links its sensors cut off), else its foot pairs (module docstring)."""
+    feet = label_meta.get("feet") or {}
+    if feet:
+        return {
+            str(name): Foot(str(f.get("sole") or ""), frozenset(str(x) for x in f.get("links") or ()), True)
+            for name, f in feet.items()
+        }
     pairs = label_meta.get("pairs") or {}
     cuts = {
         str(c.get("label")): c for c in (label_meta.get("cut_sets") or {}).values() if isinstance(c, dict)
@@ -95,9 +102,9 @@ def phases_of(contacts: np.ndarray, feet: Mapping[str, Foot]) -> np.ndarray:
 
 def phase_models(models: Sequence[str], ranking: Sequence[str], recommended: str | None) -> list[str]:
     """The models of the phase tables, in order: raw, affine, the polynomial ranked best on validation,
-    the two networks, the recommended model, the oracle (those the group has, each once)."""
+    the networks (6, 7, 13 inputs), the recommended model, the oracle (those the group has, each once)."""
     polys = [m for m in ranking if m.startswith("poly") and m in models]
-    wanted = ["raw", "affine", *polys[:1], "nn7", "nn13", recommended or "", "oracle"]
+    wanted = ["raw", "affine", *polys[:1], "nn6", "nn7", "nn13", recommended or "", "oracle"]
     return [m for m in dict.fromkeys(wanted) if m in models]
 
 

@@ -224,9 +224,10 @@ def _stack(
         x = b.op("Gather", [x, b.const("stack_columns", columns, np.int64)], axis=1)
     raw_columns = (np.arange(s_count)[:, None] * n_inputs + np.arange(WRENCH)).reshape(-1)
     raw = b.op("Gather", [x, b.const("raw_columns", raw_columns, np.int64)], "stack_raw", axis=1)
-    affine_w = np.zeros((s_count * n_inputs, s_count * WRENCH))  # block-diagonal, on each x[:, :7]
+    affine_w = np.zeros((s_count * n_inputs, s_count * WRENCH))  # block-diagonal, on each x[:, :k]
     for s, p in enumerate(parts):
-        affine_w[s * n_inputs : s * n_inputs + 7, s * WRENCH : (s + 1) * WRENCH] = p.affine_weight.T
+        k = p.affine_weight.shape[1]  # 7, or 6 without temperature
+        affine_w[s * n_inputs : s * n_inputs + k, s * WRENCH : (s + 1) * WRENCH] = p.affine_weight.T
     affine_b = np.concatenate([p.affine_bias for p in parts])
     affine = b.op("Gemm", [x, b.const("affine_w", affine_w), b.const("affine_b", affine_b)], "stack_affine")
     start = b.op("Add", [raw, affine], "stack_start")

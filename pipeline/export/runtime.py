@@ -38,9 +38,9 @@ class SensorPlan:
     sensor: str
     group: str
     slot: int  # the sensor's position in its group's graph
-    n_inputs: int  # 7 or 13
+    n_inputs: int  # 6, 7 or 13
     wrench_topic: str
-    temperature_topic: str
+    temperature_topic: str | None  # 7- and 13-input models only
     imu_topic: str | None  # 13-input models only
     out_topic: str
 
@@ -114,7 +114,7 @@ class Deployment:
                         slot,
                         n,
                         wrench,
-                        topics.sensor_topic("ft_temperature", sensor),
+                        topics.sensor_topic("ft_temperature", sensor) if n >= 7 else None,
                         topics.sensor_topic("ft_imu", sensor) if n == 13 else None,
                         wrench + "_calibrated",
                     )
@@ -184,11 +184,12 @@ class CausalCalibrator:
     def __init__(self, deployment: Deployment, plans: Sequence[SensorPlan]) -> None:
         self.deployment = deployment
         self.plans = {p.wrench_topic: p for p in plans}
-        self._temperature = {p.sensor: _Stream(1) for p in plans}
+        self._temperature = {p.sensor: _Stream(1) for p in plans if p.temperature_topic}
         self._imu = {p.sensor: _Stream(6) for p in plans if p.imu_topic}
         self._by_topic: dict[str, tuple[str, str]] = {}
         for p in plans:
-            self._by_topic[p.temperature_topic] = ("temperature", p.sensor)
+            if p.temperature_topic:
+                self._by_topic[p.temperature_topic] = ("temperature", p.sensor)
             if p.imu_topic:
                 self._by_topic[p.imu_topic] = ("imu", p.sensor)
         self._pending: list[Any] = []
@@ -232,8 +233,10 @@ class CausalCalibrator:
         todo: dict[str, list[tuple[Any, SensorPlan, np.ndarray, np.ndarray]]] = {}
         for b in batches:
             plan = self.plans[b.topic]
-            temperature, ok = self._temperature[plan.sensor].at(b.stamp_ns)
-            parts = [b.fields["wrench"], temperature]
+            parts, ok = [b.fields["wrench"]], np.ones(len(b), dtype=bool)
+            if plan.temperature_topic:
+                temperature, ok = self._temperature[plan.sensor].at(b.stamp_ns)
+                parts.append(temperature)
             if plan.imu_topic:
                 imu, ok_imu = self._imu[plan.sensor].at(b.stamp_ns)
                 parts.append(imu)

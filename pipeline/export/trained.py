@@ -47,24 +47,26 @@ class Dense:
 
 @dataclass(frozen=True)
 class NetworkPart:
-    """``f = x[:6] + affine_weight @ x[:7] + affine_bias + out_scale * mlp((x - in_offset) / in_scale)``;
-    x (n_inputs,), constants float64 (the affine map the network corrects, `pipeline.calib.models`)."""
+    """``f = x[:6] + affine_weight @ x[:k] + affine_bias + out_scale * mlp((x - in_offset) / in_scale)``;
+    x (n_inputs,), constants float64 (the affine map the network corrects, `pipeline.calib.models`; k = 7,
+    or 6 for a group without temperature)."""
 
     in_offset: np.ndarray  # (n_inputs,)
     in_scale: np.ndarray  # (n_inputs,)
     out_scale: np.ndarray  # (6,) N / Nm
     layers: tuple[Dense, ...]
-    affine_weight: np.ndarray  # (6, 7)
+    affine_weight: np.ndarray  # (6, k)
     affine_bias: np.ndarray  # (6,) N / Nm
 
 
 @dataclass(frozen=True)
 class LinearPart:
-    """``f = x[:6] + weights @ phi((x[:7] - offset) / scale)``, phi the monomials of `powers` (P, 7)."""
+    """``f = x[:6] + weights @ phi((x[:k] - offset) / scale)``, phi the monomials of `powers` (P, k);
+    k = 7 (wrench, temperature), or 6 (the wrench alone)."""
 
-    offset: np.ndarray  # (7,)
-    scale: np.ndarray  # (7,)
-    powers: np.ndarray  # (P, 7) int exponents, constant monomial first
+    offset: np.ndarray  # (k,)
+    scale: np.ndarray  # (k,)
+    powers: np.ndarray  # (P, k) int exponents, constant monomial first
     weights: np.ndarray  # (6, P)
 
 
@@ -88,7 +90,7 @@ class GroupModel:
     name: str  # nn7, nn13, affine, poly<n>, raw
     family: str  # one of FAMILIES
     sensors: tuple[str, ...]
-    n_inputs: int  # per sensor: 7 or 13
+    n_inputs: int  # per sensor: 6, 7 or 13
     parts: tuple[Part, ...]  # one per sensor
     input_columns: list[str]
     output_columns: list[str]
@@ -212,8 +214,12 @@ def _linear(model_dir: Path, name: str, group: str, sensors: tuple[str, ...]) ->
         raise DataError(f"{path}: no entry {exc} (models: {name} was not trained?)") from None
     except (OSError, ValueError, TypeError) as exc:
         raise DataError(f"{path}: not a baselines file: {exc}") from None
-    n_sensors = len(sensors)
-    if baseline.weights.shape[0] != n_sensors or baseline.offset.shape != (n_sensors, 7):
+    n_sensors, width = len(sensors), baseline.offset.shape[-1]  # width: 7, or 6 without temperature
+    if (
+        baseline.weights.shape[0] != n_sensors
+        or baseline.offset.shape != (n_sensors, width)
+        or width not in (6, 7)
+    ):
         raise DataError(f"{path}: {name} has {baseline.weights.shape[0]} sensors, metrics.json {n_sensors}")
     parts = tuple(
         LinearPart(baseline.offset[s], baseline.scale[s], baseline.powers, baseline.weights[s])
@@ -221,7 +227,7 @@ def _linear(model_dir: Path, name: str, group: str, sensors: tuple[str, ...]) ->
     )
 
     def reference(x: np.ndarray) -> np.ndarray:
-        x = np.asarray(x, dtype=np.float64).reshape(len(x), n_sensors, 7)
+        x = np.asarray(x, dtype=np.float64).reshape(len(x), n_sensors, width)
         return baseline.predict(x).reshape(len(x), n_sensors * WRENCH)
 
     order = int(baseline.powers.sum(axis=1).max(initial=0))
@@ -231,29 +237,30 @@ def _linear(model_dir: Path, name: str, group: str, sensors: tuple[str, ...]) ->
         name,
         family,
         sensors,
-        7,
+        width,
         parts,
-        [c for s in sensors for c in input_columns(s, 7)],
+        [c for s in sensors for c in input_columns(s, width)],
         [c for s in sensors for c in output_columns(s)],
         reference,
         {"order": order, "monomials": len(baseline.powers)},
     )
 
 
-def _raw(group: str, sensors: tuple[str, ...]) -> GroupModel:
+def _raw(group: str, sensors: tuple[str, ...], width: int = 7) -> GroupModel:
+    """The raw wrench, on the inputs of the group's baselines (`width`: 7, or 6 without temperature)."""
     n = len(sensors)
 
     def reference(x: np.ndarray) -> np.ndarray:
-        return np.asarray(x, dtype=np.float64).reshape(len(x), n, 7)[:, :, :WRENCH].reshape(len(x), -1)
+        return np.asarray(x, dtype=np.float64).reshape(len(x), n, width)[:, :, :WRENCH].reshape(len(x), -1)
 
     return GroupModel(
         group,
         RAW,
         "raw",
         sensors,
-        7,
+        width,
         tuple(IdentityPart() for _ in sensors),
-        [c for s in sensors for c in input_columns(s, 7)],
+        [c for s in sensors for c in input_columns(s, width)],
         [c for s in sensors for c in output_columns(s)],
         reference,
     )
@@ -270,7 +277,7 @@ def read_group(model_dir: str | Path, name: str, group: str | None = None) -> Gr
     group = group or str(metrics.get("group") or model_dir.name)
     sensors = tuple(str(s) for s in metrics["sensors"])
     if name == RAW:
-        model = _raw(group, sensors)
+        model = _raw(group, sensors, _baseline_width(model_dir))
     elif name.startswith("nn") and name[2:].isdigit():
         model = _network(model_dir, name, group, sensors)
     elif name == "affine" or (name.startswith("poly") and name[4:].isdigit()):
@@ -279,6 +286,15 @@ def read_group(model_dir: str | Path, name: str, group: str | None = None) -> Gr
         raise DataError(f"{model_dir}: unknown model {name!r} (nn<k>, affine, poly<n> or raw)")
     model.info.update(provenance(metrics, name))
     return model
+
+
+def _baseline_width(model_dir: Path) -> int:
+    """The inputs per sensor of a group's baselines: 7 (wrench, temperature), or 6 where it has none."""
+    try:
+        entry = json.loads((model_dir / BASELINES_FILE).read_text(encoding="utf-8")).get("affine") or {}
+        return int(np.shape(entry.get("offset", [[0] * 7]))[-1])
+    except (OSError, ValueError):
+        return 7
 
 
 def provenance(metrics: Mapping[str, Any], name: str) -> dict[str, Any]:

@@ -1,12 +1,12 @@
 """Contact sets of a log: declared by the experiment, or detected from the raw foot-sensor forces.
 
-Detection, per foot: the foot's normal force is the sum of its two sensors' raw readings mapped to the
-sole frame (minus sign: the floor pushes up). Raw readings carry offsets, so the force is measured from
-the foot's zero level, the median of its lowest readings (the foot in the air). A foot touches when that
-force rises above ``contact_on`` x robot weight and stops when it falls below ``contact_off`` x robot
-weight (hysteresis; robot weight = the URDF's total mass times gravity); a touching foot touches with
-both parts. Around every change of the contact set a guard band of +- ``guard_s`` holds every switch at
-0: the labels of either set are not trusted there.
+Detection, per foot: the foot's normal force is the sum of its sensors' raw readings (one, or front and
+rear) mapped to the sole frame (minus sign: the floor pushes up). Raw readings carry offsets, so the
+force is measured from the foot's zero level, the median of its lowest readings (the foot in the air).
+A foot touches when that force rises above ``contact_on`` x robot weight and stops when it falls below
+``contact_off`` x robot weight (hysteresis; robot weight = the URDF's total mass times gravity); a
+touching foot touches with all its parts. Around every change of the contact set a guard band of
++- ``guard_s`` holds every switch at 0: the labels of either set are not trusted there.
 """
 
 from __future__ import annotations
@@ -18,18 +18,15 @@ import numpy as np
 
 from pipeline.core.config import LabelParams
 from pipeline.core.errors import DataError
-from pipeline.physics.robot import FootPair, RobotModel
+from pipeline.physics.feet import Foot
+from pipeline.physics.robot import RobotModel
 
 
-def foot_normal_force(robot: RobotModel, pair: FootPair, raw: dict[str, np.ndarray]) -> np.ndarray:
+def foot_normal_force(foot: Foot, raw: dict[str, np.ndarray]) -> np.ndarray:
     """(N,) force the floor would need to push the foot up with, N, from the raw readings (N, 6) of its
-    two sensors: minus the z component (sole frame) of what the rest of the robot exerts on the foot.
+    sensors: minus the z component (sole frame) of what the rest of the robot exerts on the foot.
     Offsets and the foot's own weight remain in it (see `zero_level`)."""
-    total = np.zeros(len(next(iter(raw.values()))))
-    for sensor, sole_x in ((pair.front, pair.sole_X_front), (pair.rear, pair.sole_X_rear)):
-        sign = 1.0 if robot.sensors[sensor].direction == "parent_to_child" else -1.0  # -> rest on foot
-        total += sign * (raw[sensor] @ sole_x.T)[:, 2]
-    return -total
+    return -foot.rest_on_foot(raw)[:, 2]
 
 
 def zero_level(normal: np.ndarray, quantile: float) -> float:
@@ -72,14 +69,14 @@ def guard_band(time_s: np.ndarray, changed: np.ndarray, guard_s: float) -> np.nd
 class Contacts:
     """Contact sets of a log. sets: the distinct sets; index: (N,) per sample, -1 where no foot touches;
     fixed: (N,) the fixed link per sample ('' where none); guard: (N,) in a guard band; detected: whether
-    the contacts were detected (else declared); zero_levels: per foot pair, N."""
+    the contacts were detected (else declared); zero_levels: per foot, N."""
 
     sets: list[frozenset[str]]
     index: np.ndarray
     fixed: np.ndarray
     guard: np.ndarray
     detected: bool
-    zero_levels: dict[str, float] = field(default_factory=dict)
+    zero_levels: dict[str, float] = field(default_factory=dict)  # per foot, N
 
 
 def declared_contacts(robot: RobotModel, experiment: dict[str, str], n: int) -> Contacts | None:
@@ -105,19 +102,19 @@ def declared_contacts(robot: RobotModel, experiment: dict[str, str], n: int) -> 
 
 def detect_contacts(
     robot: RobotModel,
-    pairs: list[FootPair],
+    pairs: list[Foot],
     raw: dict[str, np.ndarray],
     time_s: np.ndarray,
     cfg: LabelParams,
     gravity: float,
     source: str,
 ) -> Contacts:
-    """Foot contacts from the raw foot-sensor normal forces (see the module docstring)."""
+    """Foot contacts from the raw foot-sensor normal forces of `pairs`, the feet (module docstring)."""
     weight = robot.total_mass() * gravity
     n = time_s.shape[0]
     touching, levels = {}, {}
     for pair in pairs:
-        normal = foot_normal_force(robot, pair, raw)
+        normal = foot_normal_force(pair, raw)
         level = zero_level(normal, cfg.zero_quantile)
         spread = np.nanquantile(normal, 0.95) - np.nanquantile(normal, 0.05) if np.isfinite(level) else 0.0
         if not spread > 2 * cfg.contact_on * weight:
@@ -128,8 +125,8 @@ def detect_contacts(
             )
         levels[pair.name] = level
         touching[pair.name] = hysteresis(normal - level, cfg.contact_on * weight, cfg.contact_off * weight)
-    links = {p.name: robot.sensors[p.front].child_link for p in pairs}
-    rear = {p.name: robot.sensors[p.rear].child_link for p in pairs}
+    links = {p.name: p.front_link for p in pairs}
+    rear = {p.name: p.rear_link for p in pairs}
     labels = np.array(
         [",".join(p.name for p in pairs if touching[p.name][k]) for k in range(n)], dtype=object
     )

@@ -26,6 +26,7 @@ from pipeline.labels.contacts import Contacts, declared_contacts, detect_contact
 from pipeline.logs import schema as S
 from pipeline.physics.cuts import CutSet, cut_poses, cut_sums
 from pipeline.physics.dynamics import ContactCase, expected_wrenches
+from pipeline.physics.feet import Foot, foot_of_pair
 from pipeline.physics.loads import loads_from_metadata, with_loads
 from pipeline.physics.robot import FootPair, RobotModel
 
@@ -39,6 +40,11 @@ class Labeller:
     cuts: list[CutSet]
     cfg: LabelParams
     gravity: float  # m/s^2, magnitude
+    feet: list[Foot] = field(default_factory=list)  # every foot (one or two sensors); [] = the pairs'
+
+    def __post_init__(self) -> None:
+        if not self.feet:
+            self.feet = [foot_of_pair(self.robot, p) for p in self.pairs]
 
     @property
     def cut_labels(self) -> list[CutSet]:
@@ -261,6 +267,10 @@ def _label_metadata(lab: Labeller) -> dict[str, Any]:
             }
             for p in lab.pairs
         },
+        "feet": {
+            f.name: {"sole": f.sole, "sensors": list(f.sensors), "links": sorted(f.foot_links)}
+            for f in lab.feet
+        },
         "cut_sets": {c.name: cut_set_metadata(c) for c in lab.cuts},
         "params": asdict(lab.cfg),
         "urdf": str(lab.robot.urdf_path),
@@ -282,8 +292,8 @@ def label_table(src: Path, dst: Path, lab: Labeller, truth_dir: Path | None = No
     try:  # the log's metadata may name links the URDF lacks: the error names the log
         contacts = declared_contacts(robot, experiment, n)
         if contacts is None:
-            raw = {s: table[S.wrench_cols(S.FT, s)].to_numpy() for p in lab.pairs for s in (p.front, p.rear)}
-            contacts = detect_contacts(robot, lab.pairs, raw, time_s, lab.cfg, lab.gravity, str(src))
+            raw = {s: table[S.wrench_cols(S.FT, s)].to_numpy() for f in lab.feet for s in f.sensors}
+            contacts = detect_contacts(robot, lab.feet, raw, time_s, lab.cfg, lab.gravity, str(src))
         gravity_fixed = _gravity_fixed(src, experiment, lab.gravity)
         columns = label_arrays(lab, contacts, q, dq, ddq, ok, gravity_fixed)
     except RobotModelError as exc:

@@ -13,6 +13,10 @@ How the messages of a stream become values at a time-base sample:
   or one message has exactly its stamp. Otherwise the values are NaN and ``ok.<stream>`` is False:
   too many lost messages, a stream that starts late or stops early; never a silent extrapolation.
 - Discrete signals (the simulated contact set) take the latest message at or before the sample.
+- Frozen streams: a board that stops updating keeps sending its last reading. For the streams that
+  check it (the FT wrenches), a run of consecutive messages with identical values spanning more than
+  ``ingest.max_frozen_s`` is frozen; a sample whose latest message at or before it belongs to such a run
+  is NaN and not ok, like a gap (`frozen_runs`).
 
 A `Stream` holds the messages of one topic between two writes of the table, so that memory stays bounded
 whatever the log's length.
@@ -102,6 +106,35 @@ def sort_unique(stamps_ns: np.ndarray, values: np.ndarray) -> tuple[np.ndarray, 
     return s[keep], v[keep], int((~keep).sum())
 
 
+def frozen_runs(
+    stamps_ns: np.ndarray, values: np.ndarray, first_run_start: int | None, max_frozen_ns: int
+) -> tuple[np.ndarray, np.ndarray]:
+    """Runs of identical readings: each message's run start and whether its run is frozen.
+
+    Args:
+        stamps_ns: (M,) int64 ns, strictly increasing.
+        values: (M, K) readings at those stamps.
+        first_run_start: ns, the run start of the first message when its run began before these
+            messages (a stream read in pieces), else None.
+        max_frozen_ns: a run whose stamps span more than this is frozen.
+
+    Returns:
+        ((M,) int64 run start of each message, (M,) bool frozen). The last run may still grow: its span
+        is the one known so far.
+    """
+    m = len(stamps_ns)
+    if m == 0:
+        return np.zeros(0, dtype=np.int64), np.zeros(0, dtype=bool)
+    starts = np.ones(m, dtype=bool)
+    starts[1:] = ~np.all(values[1:] == values[:-1], axis=1)
+    first = np.maximum.accumulate(np.where(starts, np.arange(m), 0))  # index of each run's first message
+    run_start = stamps_ns[first]
+    if first_run_start is not None:
+        run_start[first == 0] = first_run_start
+    last = np.minimum.accumulate(np.where(np.r_[starts[1:], True], np.arange(m), m - 1)[::-1])[::-1]
+    return run_start, stamps_ns[last] - run_start > max_frozen_ns
+
+
 def median_rate_hz(stamps_ns: np.ndarray) -> float:
     """1 / median stamp step, in Hz (NaN with fewer than 2 stamps)."""
     if len(stamps_ns) < 2:
@@ -135,6 +168,7 @@ class StreamStats:
     reordered: int = 0  # arrived after a message with a later stamp: re-sorted
     nonfinite: int = 0  # NaN/inf values: dropped
     late: int = 0  # arrived after the samples around its stamp were written (too late to be used)
+    frozen_samples: int = 0  # time-base samples inside a frozen run (not ok)
     zero_stamps: int = 0  # header stamp 0: a driver that does not stamp
     usable_samples: int = 0  # time-base samples at which the stream has a value (ok)
     rate_hz: float = float("nan")  # 1 / median stamp step
@@ -156,13 +190,25 @@ class Stream:
         max_reorder_ns: int,
         discrete: bool = False,
         time_base: bool = False,
-        finite_columns: int | None = None,
+        finite_columns: int | np.ndarray | None = None,
+        max_frozen_ns: int | None = None,
     ):
         self.name, self.topic, self.where = name, topic, where
         self.width, self.max_gap_ns, self.max_reorder_ns = width, max_gap_ns, max_reorder_ns
         self.discrete, self.time_base = discrete, time_base
-        # The first `finite_columns` values must be finite for a message to be kept (all by default).
-        self.finite_columns = width if finite_columns is None else finite_columns
+        # The first `finite_columns` values (or these column indices) must be finite for a message to be
+        # kept (all by default).
+        self._finite = (
+            np.arange(width)
+            if finite_columns is None
+            else np.arange(finite_columns)
+            if isinstance(finite_columns, int)
+            else np.asarray(finite_columns, dtype=np.intp)
+        )
+        self.max_frozen_ns = max_frozen_ns  # None: no frozen check
+        self._run_start: np.ndarray = np.empty(0, dtype=np.int64)  # per buffered message (frozen check)
+        self._frozen: np.ndarray = np.empty(0, dtype=bool)
+        self._carry: tuple[int, int] | None = None  # (stamp, run start) of the first message kept by trim
         self.stats = StreamStats(topic, msgtype)
         self.t = np.empty(0, dtype=np.int64)
         self.v: np.ndarray = np.empty(0, dtype=object) if discrete else np.empty((0, width))
@@ -191,7 +237,7 @@ class Stream:
             delay = int((log_time[perm] - stamps).max())
             self.max_delay = delay if self.max_delay is None else max(self.max_delay, delay)
         if not self.discrete:
-            finite = np.isfinite(values[:, : self.finite_columns]).all(axis=1)
+            finite = np.isfinite(values[:, self._finite]).all(axis=1)
             self.stats.nonfinite += int((~finite).sum())
             stamps, values = stamps[finite], values[finite]
         if self.written_upto is not None:
@@ -227,7 +273,19 @@ class Stream:
             self._new = []
             self.t, self.v, dropped = sort_unique(t, v)
             self.stats.duplicates += dropped
+            if self.max_frozen_ns is not None:
+                same_first = self._carry is not None and len(self.t) and self.t[0] == self._carry[0]
+                carry = self._carry[1] if same_first else None
+                self._run_start, self._frozen = frozen_runs(self.t, self.v, carry, self.max_frozen_ns)
         return self.t, self.v
+
+    def frozen_at(self, target_ns: np.ndarray) -> np.ndarray:
+        """(N,) bool: the latest message at or before each target stamp is in a frozen run (call `merged`
+        first). All False for a stream without the check."""
+        if self.max_frozen_ns is None or len(self.t) == 0:
+            return np.zeros(len(target_ns), dtype=bool)
+        idx = np.searchsorted(self.t, target_ns, side="right") - 1
+        return (idx >= 0) & self._frozen[np.maximum(idx, 0)]
 
     def trim(self, written_upto: int) -> None:
         """Forget what no later sample can need, once samples up to `written_upto` are written."""
@@ -251,6 +309,9 @@ class Stream:
                 else max(self.stats.last_stamp_ns, int(self.t[-1]))
             )
         self.t, self.v = self.t[keep], self.v[keep]
+        if self.max_frozen_ns is not None and len(self._run_start) == len(keep):
+            self._run_start, self._frozen = self._run_start[keep], self._frozen[keep]
+            self._carry = (int(self.t[0]), int(self._run_start[0])) if len(self.t) else self._carry
 
     def finish(self) -> StreamStats:
         if self._steps:

@@ -11,8 +11,9 @@ with the logger's own velocities and torques matched to them by stamp (NaN where
 A logger sample has no receive time apart from its stamp (the logger loop's clock at the start of the
 iteration), so log time = stamp, and the file order is the sample order.
 
-The experiment metadata (the MCAP ``experiment`` record: type, robot, role, contacts...) comes from a
-YAML sidecar beside the .mat (``<stem>.yaml``); without ``robot`` the file's ``yarp_robot_name`` is used.
+The experiment metadata (the MCAP ``experiment`` record: type, robot, role, contacts, window, segments...)
+comes from a YAML sidecar beside the .mat (``<stem>.yaml``, `pipeline.logs.sidecar`); without ``robot``
+the file's ``yarp_robot_name`` is used.
 """
 
 from __future__ import annotations
@@ -25,9 +26,9 @@ from typing import Any
 import numpy as np
 
 from pipeline.core.config import MatParams, TopicParams
-from pipeline.core.errors import DataError
 from pipeline.logs import rosmsg
 from pipeline.logs.matlog import Leaf, MatLog, iter_windows
+from pipeline.logs.sidecar import read_sidecar
 
 CHUNK_ROWS = 3_000  # joint-state samples per chunk handed out (30 s at 100 Hz): memory stays bounded
 
@@ -35,41 +36,6 @@ CHUNK_ROWS = 3_000  # joint-state samples per chunk handed out (30 s at 100 Hz):
 def sidecar_path(path: Path, suffix: str) -> Path:
     """The experiment metadata file of a .mat log: same stem, `suffix` (e.g. '.yaml')."""
     return path.with_suffix(suffix)
-
-
-def read_sidecar(path: Path, suffix: str) -> dict[str, str]:
-    """The experiment record of a .mat log from its YAML sidecar: a mapping of names to scalars (a list of
-    contact links is joined with ','), as strings like the MCAP record. DataError if missing or bad."""
-    import yaml
-
-    side = sidecar_path(path, suffix)
-    if not side.is_file():
-        raise DataError(
-            f"{path}: missing experiment sidecar {side.name} beside it (YAML with at least `type`, "
-            "and `role`, `robot`, `contacts` where known; see README)"
-        )
-    try:
-        data = yaml.safe_load(side.read_text(encoding="utf-8"))
-    except (OSError, UnicodeDecodeError, yaml.YAMLError) as exc:
-        raise DataError(f"{side}: cannot read the experiment sidecar: {' '.join(str(exc).split())}") from None
-    if not isinstance(data, Mapping):
-        raise DataError(f"{side}: the experiment sidecar must be a YAML mapping, got {type(data).__name__}")
-    out: dict[str, str] = {}
-    for key, value in data.items():
-        if isinstance(value, list | tuple) and all(isinstance(v, str) for v in value):
-            value = ",".join(value)
-        if isinstance(value, bool):
-            value = "true" if value else "false"
-        if value is None:
-            value = ""
-        if not isinstance(value, str | int | float):
-            raise DataError(f"{side}: experiment key {key!r} must be a scalar, got {value!r}")
-        out[str(key)] = str(value)
-    if not out.get("type", "").strip():
-        raise DataError(
-            f"{side}: the experiment sidecar lacks `type` (pole, balancing, half_foot, walking...)"
-        )
-    return out
 
 
 def joint_name_differences(file_joints: Sequence[str], urdf_joints: Sequence[str]) -> str | None:
@@ -120,7 +86,8 @@ class MatLogReader:
         self.path = Path(path)
         self.chunk_rows = int(chunk_rows)
         self.warnings: list[str] = []
-        experiment = read_sidecar(self.path, cfg.sidecar_suffix)  # before opening: cheap check first
+        # before opening: cheap check first
+        experiment = read_sidecar(sidecar_path(self.path, cfg.sidecar_suffix), self.path)
         self._log = MatLog(self.path)
         try:
             self.size_bytes = self._log.size_bytes

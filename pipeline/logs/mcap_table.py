@@ -19,10 +19,13 @@ from typing import TYPE_CHECKING, Any
 import numpy as np
 
 from pipeline.core.config import TopicParams
-from pipeline.core.errors import ConfigError, DataError
+from pipeline.core.errors import DataError
 from pipeline.logs import rosmsg
 from pipeline.logs import schema as S
 from pipeline.logs.align import Stream, StreamStats, align_continuous, align_latest, joint_permutation
+from pipeline.logs.readers import open_log
+from pipeline.logs.segments import SplitTables
+from pipeline.logs.sidecar import declared_absent, describe_absent
 from pipeline.logs.tables import AtomicParquet, LogReport
 
 if TYPE_CHECKING:
@@ -84,8 +87,10 @@ class _LogIngest:
         joints: Sequence[str],
         sensors: Sequence[str],
         robot_names: Iterable[str],
+        min_gap_samples: int = 0,
     ):
         self.path, self.out_dir, self.name, self.cfg = path, out_dir, name, cfg
+        self.min_gap_samples = min_gap_samples  # smoothing window: the least gap between segments
         self.joints, self.sensors = list(joints), list(sensors)
         self.topics = topics
         self.robot_names = set(robot_names)
@@ -102,6 +107,8 @@ class _LogIngest:
     def run(self, progress: Callable[[int], None] | None = None) -> LogReport:
         t0 = time.perf_counter()
         with self._open_reader() as reader:
+            for warning in getattr(reader, "warnings", []):
+                self.warn(warning)
             self._check_experiment(reader.metadata)
             wants = self._resolve(reader)
             self._make_streams(wants)
@@ -113,6 +120,8 @@ class _LogIngest:
                         self._emit(table, truth, final=False)
                 self._emit(table, truth, final=True)
                 self._check_counts()
+                rate = self.streams[S.JOINTS_STREAM].finish().rate_hz
+                table.check(1.0 / rate if rate > 0 else 0.0, self.min_gap_samples)
                 meta = self._final_metadata()
                 table.commit({S.META_INGEST: meta})
                 if truth is not None:
@@ -122,22 +131,18 @@ class _LogIngest:
                 if truth is not None:
                     truth.abort()
                 raise
-        self.report.output = str(table.path)
-        self.report.truth_output = str(truth.path) if truth is not None else None
+        self.report.output = str(table.tables[0].path)
+        self.report.outputs = [str(t.path) for t in table.tables]
+        self.report.kept = sum(table.rows)
+        self.report.truth_output = str(truth.tables[0].path) if truth is not None else None
         self.report.seconds = time.perf_counter() - t0
         return self.report
 
     # -- setup --
 
     def _open_reader(self) -> Any:
-        """The log's reader: MCAP, or a logger .mat file seen as the same topics (pipeline.logs.matreader)."""
-        if self.path.suffix.lower() != ".mat":
-            return rosmsg.LogReader(self.path)
-        from pipeline.logs.matreader import MatLogReader
-
-        if self.cfg.mat is None:
-            raise ConfigError(f"{self.where}: a .mat log needs the name map ingest.mat in params")
-        return MatLogReader(self.path, self.topics, self.sensors, self.cfg.mat, self.joints)
+        """The log's reader (pipeline.logs.readers: MCAP, logger .mat, dataDumper run)."""
+        return open_log(self.path, self.cfg, self.topics, self.sensors, self.joints)
 
     def _check_experiment(self, metadata: Mapping[str, Mapping[str, str]]) -> None:
         self.experiment = dict(metadata.get("experiment", {}))
@@ -150,14 +155,18 @@ class _LogIngest:
 
     def _resolve(self, reader: rosmsg.LogReader) -> list[_Want]:
         found = reader.topics
+        declared = declared_absent(reader.metadata)
+        self.absent_joints = [j for j in declared["joints"] if j in self.joints]
+        self.report.absent += declared["streams"]
         wants, missing = [], []
+        lacking: dict[str, list[str]] = {}  # stream kind -> sensors without it
         for want in wanted_topics(self.topics, self.sensors):
             info = found.get(want.topic)
             if info is None or info.message_count == 0:
-                if want.required:
+                if want.required and want.topic not in declared["topics"]:
                     missing.append(want.topic)
-                elif want.stream in (S.IMU_STREAM, S.TEMPERATURE_STREAM):
-                    self.warn(f"no {want.topic}: its columns are NaN and flagged")
+                elif want.stream in (S.IMU_STREAM, S.TEMPERATURE_STREAM, S.WRENCH_STREAM):
+                    lacking.setdefault(want.stream, []).append(str(want.sensor))
                 continue
             if info.msgtype != want.msgtype:
                 raise DataError(
@@ -167,6 +176,9 @@ class _LogIngest:
         if missing:
             more = f" (and {len(missing) - 3} more)" if len(missing) > 3 else ""
             raise DataError(f"{self.where}: missing required topic(s) {', '.join(missing[:3])}{more}")
+        for entry, warning in describe_absent(lacking, self.sensors, self.topics):
+            self.report.absent.append(entry)
+            self.warn(warning)
         self.found_topics = {t: {"type": i.msgtype, "messages": i.message_count} for t, i in found.items()}
         self.report.messages = sum(found[w.topic].message_count for w in wants)
         self.has_truth = any(w.stream in _TRUTH_STREAMS for w in wants)
@@ -189,6 +201,8 @@ class _LogIngest:
         }
         self.streams: dict[str, Stream] = {}
         self.by_topic: dict[str, Stream] = {}
+        present = [k for k, j in enumerate(self.joints) if j not in set(self.absent_joints)]
+        frozen = round(cfg.max_frozen_s * 1e9)
         for w in wants:
             key = w.stream if w.sensor is None else f"{w.stream}.{w.sensor}"
             max_gap = round(cfg.max_gap_temperature_s * 1e9) if w.stream == S.TEMPERATURE_STREAM else gap
@@ -203,35 +217,42 @@ class _LogIngest:
                 reorder,
                 discrete=(w.stream == S.CONTACTS),
                 time_base=time_base,
-                finite_columns=len(self.joints) if time_base else None,
+                finite_columns=np.array(present) if time_base else None,
+                max_frozen_ns=frozen if w.stream == S.WRENCH_STREAM else None,
             )
             self.streams[key] = stream
             self.by_topic[w.topic] = stream
-        self.max_gap_ns = max(s.max_gap_ns for s in self.streams.values())
+        # a sample is written once every stream is this far past it: the widest gap bridged, and the span
+        # after which a run of identical readings is known to be frozen
+        self.max_gap_ns = max(s.max_gap_ns + (s.max_frozen_ns or 0) for s in self.streams.values())
 
     def _open_outputs(
         self, reader: rosmsg.LogReader, wants: Sequence[_Want]
-    ) -> tuple[AtomicParquet, AtomicParquet | None]:
-        base_meta = {
-            S.META_EXPERIMENT: self.experiment,
-            b"ftcal.source": {
-                "file": str(self.path),
-                "name": self.path.name,
-                "bytes": reader.size_bytes,
-                "topics": self.found_topics,
-                "metadata": reader.metadata,
-            },
+    ) -> tuple[SplitTables, SplitTables | None]:
+        """The table (and truth) writers: the whole log, or one table per segment of the experiment."""
+        source = {
+            "file": str(self.path),
+            "name": self.path.name,
+            "bytes": reader.size_bytes,
+            "topics": self.found_topics,
+            "metadata": reader.metadata,
         }
-        table = AtomicParquet(
-            self.out_dir / f"{self.name}{S.PARQUET_SUFFIX}",
-            S.arrow_schema(S.ingested_columns(self.joints, self.sensors), S.KIND_INGESTED, base_meta),
-        )
+
+        def opener(kind: str, columns: list[str], suffix: str) -> Callable[[str, dict], AtomicParquet]:
+            def open_table(name: str, experiment: dict) -> AtomicParquet:
+                meta = {S.META_EXPERIMENT: experiment, b"ftcal.source": source}
+                path = self.out_dir / f"{name}{suffix}{S.PARQUET_SUFFIX}"
+                return AtomicParquet(path, S.arrow_schema(columns, kind, meta))
+
+            return open_table
+
+        columns = S.ingested_columns(self.joints, self.sensors)
+        where = str(self.path)
+        table = SplitTables(self.name, self.experiment, opener(S.KIND_INGESTED, columns, ""), where)
         truth = None
         if self.has_truth:
-            truth = AtomicParquet(
-                self.out_dir / f"{self.name}{S.TRUTH_SUFFIX}{S.PARQUET_SUFFIX}",
-                S.arrow_schema(S.truth_columns(self.sensors), S.KIND_TRUTH, base_meta),
-            )
+            truth_open = opener(S.KIND_TRUTH, S.truth_columns(self.sensors), S.TRUTH_SUFFIX)
+            truth = SplitTables(self.name, self.experiment, truth_open, where)
         self._first_stamp: int | None = None
         self.log_time_now = -(2**62)  # latest log time read so far, ns
         return table, truth
@@ -290,6 +311,7 @@ class _LogIngest:
         perm = self._perm_cache.get(names)
         if perm is None:
             perm, unknown, missing = joint_permutation(names, self.joints)
+            missing = [j for j in missing if j not in set(self.absent_joints)]
             if unknown:
                 raise DataError(
                     f"{self.where}: {batch.topic} has joints not in the URDF: {', '.join(unknown[:5])}"
@@ -312,10 +334,11 @@ class _LogIngest:
                     f"{self.where}: {batch.topic}: malformed JointState ({n} names, "
                     f"{arr.shape[1]} {key} values)"
                 )
-            out[:, slot * len(self.joints) : (slot + 1) * len(self.joints)] = arr[:, perm]
+            block = np.where(perm >= 0, arr[:, perm] if n else np.nan, np.nan)  # absent joints: NaN
+            out[:, slot * len(self.joints) : (slot + 1) * len(self.joints)] = block
         return out
 
-    def _emit(self, table: AtomicParquet, truth: AtomicParquet | None, final: bool) -> None:
+    def _emit(self, table: SplitTables, truth: SplitTables | None, final: bool) -> None:
         joints = self.streams[S.JOINTS_STREAM]
         js_t, js_v = joints.merged()
         if final:
@@ -355,6 +378,10 @@ class _LogIngest:
             ):
                 values, ok = self._aligned(f"{stream_kind}.{s}", target, len(names))
                 if (stream := self.streams.get(f"{stream_kind}.{s}")) is not None:
+                    frozen = stream.frozen_at(target) & ok
+                    ok &= ~frozen
+                    values[frozen] = np.nan
+                    stream.stats.frozen_samples += int(frozen.sum())
                     stream.stats.usable_samples += int(ok.sum())
                 cols.update({c: values[:, k] for k, c in enumerate(names)})
                 cols[S.ok_col(stream_kind, s)] = ok
@@ -393,7 +420,16 @@ class _LogIngest:
         limit = self.cfg.max_nonfinite_fraction
         for stream in self.streams.values():
             st = stream.stats
-            if stream.name.startswith(S.WRENCH_STREAM + ".") and st.usable_samples == 0:
+            if st.frozen_samples:
+                sensor = stream.name.split(".", 1)[1]
+                self.report.frozen[sensor] = st.frozen_samples
+                share = st.frozen_samples / self.report.samples
+                self.warn(
+                    f"{st.topic}: frozen (identical readings for over ingest.max_frozen_s = "
+                    f"{self.cfg.max_frozen_s:g} s) on {st.frozen_samples} samples ({share:.1%}): flagged"
+                )
+            wrench = stream.name.startswith(S.WRENCH_STREAM + ".")
+            if wrench and st.usable_samples == 0 and not st.frozen_samples:
                 raise DataError(f"{self.where}: {st.topic}: no usable sample ({self._why_unusable(st)})")
             if st.nonfinite and st.nonfinite > limit * st.messages:
                 raise DataError(
@@ -435,6 +471,9 @@ class _LogIngest:
             "max_gap_temperature_s": self.cfg.max_gap_temperature_s,
             "max_reorder_s": self.cfg.max_reorder_s,
             "warnings": self.report.warnings,
+            "absent": self.report.absent,
+            "frozen_samples": self.report.frozen,
+            "max_frozen_s": self.cfg.max_frozen_s,
         }
 
 
@@ -448,10 +487,14 @@ def ingest_log(
     sensors: Sequence[str],
     robot_names: Iterable[str] = (),
     progress: Callable[[int], None] | None = None,
+    min_gap_samples: int = 0,
 ) -> LogReport:
-    """Ingest one MCAP log into ``<out_dir>/<name>.parquet`` (+ ``<name>.truth.parquet`` if simulated).
+    """Ingest one log (MCAP, logger .mat, dataDumper run) into ``<out_dir>/<name>.parquet`` (+
+    ``<name>.truth.parquet`` if simulated), or one table per segment of its experiment metadata
+    (`pipeline.logs.segments`, at least `min_gap_samples` joint-state steps apart).
 
     Raises DataError (naming the file and the problem) for a log that cannot be used; then no output
     file of this log is left behind.
     """
-    return _LogIngest(path, out_dir, name, cfg, topics, joints, sensors, robot_names).run(progress)
+    log = _LogIngest(path, out_dir, name, cfg, topics, joints, sensors, robot_names, min_gap_samples)
+    return log.run(progress)

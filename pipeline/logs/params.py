@@ -1,8 +1,9 @@
-"""Section `ingest` of params.yaml: tolerances of the alignment, bad-log policy, the .mat name map."""
+"""Section `ingest` of params.yaml: alignment tolerances, bad-log policy, the .mat and dataDumper maps."""
 
 from __future__ import annotations
 
 import math
+from collections.abc import Mapping
 from dataclasses import dataclass
 from typing import Any
 
@@ -20,12 +21,14 @@ class IngestParams:
     max_nonfinite_fraction: float  # fraction of a topic's messages that may hold NaN/inf (dropped)
     skip_bad_logs: bool  # true: a bad log is a warning and is skipped; false: an error
     unstamped_fallback: bool = False  # true: all-zero header stamps -> log time minus the measured delay
+    max_frozen_s: float = 0.1  # s: identical FT readings spanning longer than this are a frozen board
     mat: Any = None  # MatParams (section ingest.mat): where .mat logger files keep each quantity
+    dumper: Any = None  # DumperParams (section ingest.dumper): the ports and joints of dataDumper runs
 
     def __post_init__(self) -> None:
         if not isinstance(self.source, str) or not self.source.strip():
             raise ConfigError(f"ingest.source must be a non-empty path, got {self.source!r}")
-        for key in ("max_gap_s", "max_gap_temperature_s", "max_reorder_s"):
+        for key in ("max_gap_s", "max_gap_temperature_s", "max_reorder_s", "max_frozen_s"):
             value = getattr(self, key)
             if (
                 isinstance(value, bool)
@@ -49,3 +52,93 @@ class IngestParams:
             from pipeline.core.config import MatParams
 
             object.__setattr__(self, "mat", MatParams.from_mapping(self.mat))
+        if self.dumper is not None:
+            object.__setattr__(self, "dumper", DumperParams.from_mapping(self.dumper))
+
+
+def _name(value: Any, key: str) -> str:
+    if not isinstance(value, str) or not value.strip():
+        raise ConfigError(f"{key} must be a non-empty string, got {value!r}")
+    return value
+
+
+@dataclass(frozen=True)
+class DumperParams:
+    """Section `ingest.dumper`: how a YARP dataDumper run's ports map to the contract's streams.
+
+    A run is ``<run>/<robot>/<part>/<port>/data.log`` (`pipeline.logs.dumper`). `ft_ports` maps an FT
+    part to its URDF sensor (its `ft_port` carries the wrench); `joints` maps a control-board part to the
+    URDF joints of its axes in the board's order (null: an axis the URDF does not have; axes past the
+    list are ignored), read from its `joint_port`. The first part of `time_base` present in a run is the
+    time base. `ignore`: parts or ``part/port`` folders skipped on purpose (any other folder is an error).
+    """
+
+    ft_port: str  # port folder of an FT part's wrench, e.g. "analog:o"
+    joint_port: str  # port folder of a control board's state, e.g. "stateExt:o"
+    ft_ports: Mapping[str, str]  # part -> URDF FT sensor
+    joints: Mapping[str, tuple[str | None, ...]]  # part -> URDF joint per axis (None: not in the URDF)
+    time_base: tuple[str, ...]  # parts of `joints`, in order of preference as the run's time base
+    ignore: tuple[str, ...] = ()  # "part" or "part/port" folders not read
+    sidecar_suffix: str = ".yaml"  # experiment metadata: <run><suffix> beside the run folder
+
+    def __post_init__(self) -> None:
+        key = "ingest.dumper"
+        _name(self.ft_port, f"{key}.ft_port")
+        _name(self.joint_port, f"{key}.joint_port")
+        if not isinstance(self.ft_ports, Mapping) or not self.ft_ports:
+            raise ConfigError(f"{key}.ft_ports must be a mapping part -> FT sensor, got {self.ft_ports!r}")
+        for part, sensor in self.ft_ports.items():
+            _name(part, f"{key}.ft_ports key")
+            _name(sensor, f"{key}.ft_ports.{part}")
+        if len(set(self.ft_ports.values())) != len(self.ft_ports):
+            raise ConfigError(f"{key}.ft_ports maps two parts to the same sensor")
+        if not isinstance(self.joints, Mapping) or not self.joints:
+            raise ConfigError(f"{key}.joints must be a mapping part -> [joint per axis], got {self.joints!r}")
+        seen: dict[str, str] = {}
+        joints = {}
+        for part, axes in self.joints.items():
+            _name(part, f"{key}.joints key")
+            if not isinstance(axes, list | tuple) or not axes:
+                raise ConfigError(
+                    f"{key}.joints.{part} must be a non-empty list of joint names, got {axes!r}"
+                )
+            for k, joint in enumerate(axes):
+                if joint is None:
+                    continue
+                _name(joint, f"{key}.joints.{part}[{k}]")
+                if joint in seen:
+                    raise ConfigError(
+                        f"{key}.joints.{part}[{k}]: {joint!r} is also in {key}.joints.{seen[joint]}"
+                    )
+                seen[joint] = part
+            joints[part] = tuple(axes)
+        object.__setattr__(self, "joints", joints)
+        base = self.time_base
+        if not isinstance(base, list | tuple) or not base or any(b not in joints for b in base):
+            raise ConfigError(
+                f"{key}.time_base must be a non-empty list of parts of {key}.joints, got {base!r}"
+            )
+        object.__setattr__(self, "time_base", tuple(base))
+        object.__setattr__(self, "ft_ports", dict(self.ft_ports))
+        ignore = self.ignore if self.ignore is not None else ()
+        if not isinstance(ignore, list | tuple):
+            raise ConfigError(
+                f"{key}.ignore must be a list of part or part/port folder names, got {ignore!r}"
+            )
+        for k, item in enumerate(ignore):
+            _name(item, f"{key}.ignore[{k}]")
+        object.__setattr__(self, "ignore", tuple(ignore))
+        suffix = self.sidecar_suffix
+        if not isinstance(suffix, str) or not suffix.startswith(".") or len(suffix) < 2:
+            raise ConfigError(f"{key}.sidecar_suffix must be a file suffix like '.yaml', got {suffix!r}")
+
+    @classmethod
+    def from_mapping(cls, data: Any) -> DumperParams:
+        """Build from the parsed `ingest.dumper` mapping (exactly the dataclass's keys)."""
+        from pipeline.core.config import _mapping, _section
+
+        if isinstance(data, cls):
+            return data
+        data = _mapping(data, "ingest.dumper")
+        _section(data, "ingest.dumper", set(cls.__dataclass_fields__))
+        return cls(**data)

@@ -32,6 +32,10 @@ class LogReport:
     warnings: list[str] = field(default_factory=list)
     streams: dict[str, StreamStats] = field(default_factory=dict)
     error: str | None = None
+    absent: list[str] = field(default_factory=list)  # streams the log does not have (topics, ports)
+    frozen: dict[str, int] = field(default_factory=dict)  # sensor -> samples flagged as frozen
+    outputs: list[str] = field(default_factory=list)  # every table written (one per segment)
+    kept: int | None = None  # samples written to the tables (the window's, the segments'); None: all
 
 
 class AtomicParquet:

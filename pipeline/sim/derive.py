@@ -7,7 +7,8 @@ at 0, clipped into its range), measured with the same kinematics the motions use
 - leg length L: height of root_link above the soles with straight legs (mean over the feet);
 - hip half width W: half the lateral distance between the soles (smallest over the feet);
 - foot length F: distance from the rear to the front contact part of a foot along the sole's x axis (the
-  origins of the links below the foot's two FT sensors: the support polygon along the walking direction).
+  origins of the links below the foot's two FT sensors: the support polygon along the walking direction;
+  for a foot of one sensor, the centres of its two halves, `pipeline.physics.feet`).
 
 The rules (lengths rounded to 1 cm, small ones to 1 mm, angles to 0.01 rad, as one would write them in
 params.yaml; for iCub 3 they give the values its motions were tuned with):
@@ -58,11 +59,7 @@ def measure_geometry(
     """Measure `robot` at its home posture (every joint at 0 clipped to its range, minus the margin)."""
     home = np.clip(np.zeros(len(robot.joint_names)), kin.lower, kin.upper)
     soles = np.array([kin.frame_pose(home, f.sole).translation for f in feet])
-    lengths = [
-        robot.rigid_transform(f.sole, f.front_link).translation[0]
-        - robot.rigid_transform(f.sole, f.rear_link).translation[0]
-        for f in feet
-    ]
+    lengths = [f.centers(robot)[0][0] - f.centers(robot)[1][0] for f in feet]
     total = robot.total_mass()
     still = tuple(
         name

@@ -47,7 +47,7 @@ class LogResult:
 
 def sites(world: World) -> list[Site]:
     """Every FT sensor's site (`pipeline.sim.sites`), with the interaction params' overrides."""
-    soles = {s: pair.sole for pair in world.pairs for s in (pair.front, pair.rear)}
+    soles = {s: foot.sole for foot in world.foot_models for s in foot.sensors}
     given = world.sim.interaction.sites if world.sim.interaction is not None else None
     return interaction_sites(world.robot, soles, given)
 
@@ -97,9 +97,9 @@ def make_motion(world: World, spec: LogSpec, rng: np.random.Generator) -> Motion
 
 
 def push_links(world: World) -> list[str]:
-    """The links pushed in pole logs: per foot pair, the link that carries its two sensors (the ankle),
-    below every leg joint and above the foot sensors."""
-    return [world.robot.sensors[pair.front].parent_link for pair in world.pairs]
+    """The links pushed in pole logs: per foot, the link that carries its sensors (the ankle), below every
+    leg joint and above the foot sensors."""
+    return [world.robot.sensors[foot.front].parent_link for foot in world.foot_models]
 
 
 def sensor_readings(
@@ -193,7 +193,7 @@ def simulate_log(world: World, index: int, spec: LogSpec, out_dir: Path, plot: b
     motion = make_motion(world, spec, stream_rng(seed, 10, index))
     loads = resolve_loads(world, spec)
     truth_robot = with_loads(world.truth_robot, loads, name)  # a known mass is known exactly
-    truth = TruthComputer(truth_robot, world.pairs, world.params.robot.gravity).compute(motion)
+    truth = TruthComputer(truth_robot, world.foot_models, world.params.robot.gravity).compute(motion)
     rng = stream_rng(seed, 11, index)
     ft_stamps = stamps(rng, motion.t, sim.timing.ft_offset_s, sim.timing.jitter_s)
     data = sensor_readings(world, motion, truth, (ft_stamps - EPOCH_NS) * 1e-9, rng)

@@ -20,16 +20,26 @@ from pipeline.physics.robot import RobotModel
 
 @dataclass(frozen=True)
 class Foot:
-    """A foot of the robot: its pair name, sole link, and the links touching the floor (front, rear)."""
+    """A foot of the robot: its name, sole link, and the links touching the floor (front, rear; the same
+    link for a foot of one part), with the centres of its front and rear contact parts in the sole frame
+    (m; None: the links' origins, as for a foot whose two parts are links of their own)."""
 
     name: str
     sole: str
     front_link: str
     rear_link: str
+    front_center: tuple[float, float, float] | None = None
+    rear_center: tuple[float, float, float] | None = None
 
     @property
     def links(self) -> frozenset[str]:
         return frozenset((self.front_link, self.rear_link))
+
+    def centers(self, robot: RobotModel) -> tuple[np.ndarray, np.ndarray]:
+        """(front, rear) contact centres, (3,) each, in the sole frame, m."""
+        front = self.front_center or robot.rigid_transform(self.sole, self.front_link).translation
+        rear = self.rear_center or robot.rigid_transform(self.sole, self.rear_link).translation
+        return np.asarray(front, dtype=float), np.asarray(rear, dtype=float)
 
 
 def smoothstep(s: np.ndarray) -> np.ndarray:

@@ -105,14 +105,30 @@ class MotionGenerator:
         self.upper_body = np.array([j for j in self.moving if j not in legs], np.intp)
         self.home = np.clip(np.zeros(n_joints), self.kin.lower, self.kin.upper)
         self.standing_height = -self.kin.frame_pose(self.home, feet[0].sole).translation[2]
+        # The world's axes are the soles' (x forward, z up); the root's orientation in them at home is the
+        # soles' in the root frame, transposed: the identity for iCub 3 and ergoCub, a half turn about z for
+        # iCub 2.x (whose root_link x axis points backwards). Snapped to exact +-1 / 0 where it is one.
+        turn = self.kin.frame_pose(self.home, feet[0].sole).rotation.T
+        self.turn = pin.SE3(
+            np.round(turn) if np.allclose(turn, np.round(turn), atol=1e-6) else turn, np.zeros(3)
+        )
         # start every leg solve from slightly bent knees: a straight knee is a singular posture
         for chain in self.leg.values():
             end = self.robot.joints[self.robot.joint_names[chain[-1]]].child
-            target = self.kin.frame_pose(self.home, end) * pose([0, 0, 0.05])
-            bent = self.kin.ik(self.home, end, target, chain, position_only=True)
+            target = pose([0, 0, 0.05]) * self.kin.frame_pose(self.home, end)  # 5 cm up in the root frame
+            try:
+                bent = self.kin.ik(self.home, end, target, chain, position_only=True)
+            except RobotModelError:  # a leg straight at zero (iCub 2.x) is singular: start a tenth of the
+                start = self.home.copy()  # way to the middle of every leg joint's range
+                start[chain] += 0.1 * (0.5 * (self.kin.lower + self.kin.upper) - self.home)[chain]
+                bent = self.kin.ik(start, end, target, chain, position_only=True)
             self.home[chain] = bent[chain]
 
     # ------------------------------------------------------------------ helpers
+    def _home_y(self, frame: str) -> float:
+        """m: lateral position of `frame` at the home posture, along the world's y axis (to the left)."""
+        return float((self.turn.rotation @ self.kin.frame_pose(self.home, frame).translation)[1])
+
     def _time(self, duration: float, rate: float) -> np.ndarray:
         return np.arange(int(round(duration * rate))) / rate
 
@@ -158,8 +174,10 @@ class MotionGenerator:
         """Solve every leg whose sole pose in the world is given, for a given root pose. Feet named in
         `free` are in the air: they keep the orientation of the pelvis (always within ankle range)."""
         for name, world_T_sole in feet_world.items():
-            if name in free:
-                world_T_sole = pin.SE3(world_T_root.rotation, world_T_sole.translation)
+            if name in free:  # the pelvis's orientation (the root's without the turn to the world's axes)
+                world_T_sole = pin.SE3(
+                    (world_T_root * self.turn.inverse()).rotation, world_T_sole.translation
+                )
             target = world_T_root.actInv(world_T_sole)
             q = self.kin.ik(q, self.feet[name].sole, target, self.leg[name])
         return q
@@ -176,7 +194,7 @@ class MotionGenerator:
         """Move the root horizontally until the CoM is over `com_target` (x, y), legs re-solved."""
         xy = root_xy.copy()
         for _ in range(iterations):
-            world_T_root = pose([xy[0], xy[1], self.p.root_height_m], root_rpy)
+            world_T_root = pose([xy[0], xy[1], self.p.root_height_m], root_rpy) * self.turn
             q = self._stance_posture(q, world_T_root, feet_world)
             com = world_T_root.act(self.kin.com(q))
             xy = xy + (com_target - com[:2])
@@ -214,7 +232,7 @@ class MotionGenerator:
         for k in range(n):
             q_prev = q_prev.copy()
             q_prev[self.upper_body] = q[k, self.upper_body]
-            world_T_root = pose([root_xy[k, 0], root_xy[k, 1], self.p.root_height_m], sway[k])
+            world_T_root = pose([root_xy[k, 0], root_xy[k, 1], self.p.root_height_m], sway[k]) * self.turn
             q_prev = self._stance_posture(q_prev, world_T_root, feet(k), free)
             q[k] = q_prev
             root_pose[k] = world_T_root.homogeneous
@@ -237,8 +255,7 @@ class MotionGenerator:
     def _support(self, foot: Foot, part: str | None) -> tuple[frozenset[str], np.ndarray]:
         """Contact links and CoM target (x, y in the sole frame, m) of balancing on `foot` (or its part):
         the middle of the foot's two parts, or `com_margin_m` inside the outer edge of one part."""
-        front = self.robot.rigid_transform(foot.sole, foot.front_link).translation
-        rear = self.robot.rigid_transform(foot.sole, foot.rear_link).translation
+        front, rear = foot.centers(self.robot)
         if part is None:
             return foot.links, np.round(0.5 * (front + rear)[:2], 3)
         if part not in ("front", "rear"):
@@ -266,7 +283,7 @@ class MotionGenerator:
         )
         wander = p.swing_motion_m * multisine(rng, t, 3 * len(others), p.f_min_hz, p.f_max_hz)
         sway = 0.03 * multisine(rng, t, 3, p.f_min_hz, p.f_max_hz)
-        side = np.sign(self.kin.frame_pose(self.home, foot.sole).translation[1])
+        side = np.sign(self._home_y(foot.sole))
         sway[:, 0] -= p.stance_lean_rad * side
 
         home_feet = {f.name: self.kin.frame_pose(self.home, f.sole) for f in self.feet.values()}
@@ -302,7 +319,7 @@ class MotionGenerator:
         n = t.shape[0]
         names = list(self.feet)
         # footholds in the world: feet side by side at the start, world origin between them
-        y = {f: self.kin.frame_pose(self.home, self.feet[f].sole).translation[1] for f in names}
+        y = {f: self._home_y(self.feet[f].sole) for f in names}
         phases = plan_steps(duration, names, y, step_length, single_s, double_s, p.steps_per_direction)
         gait = sample_gait(t, phases, self.feet, p.step_lift_m, rng.uniform(0.6, 1.6, len(phases)))
         com_target = walking_com(t, phases, y, p.root_height_m)
@@ -326,7 +343,7 @@ class MotionGenerator:
         names = list(self.feet)
         t = self._time(duration, rate)
         n = t.shape[0]
-        y = {f: self.kin.frame_pose(self.home, self.feet[f].sole).translation[1] for f in names}
+        y = {f: self._home_y(self.feet[f].sole) for f in names}
         feet = {f: pose([0.0, y[f], 0.0]) for f in names}
         q = np.tile(self.home, (n, 1))
         sway = 0.002 * multisine(rng, t, 3, self.p.f_min_hz, self.p.f_max_hz)

@@ -300,12 +300,14 @@ class LogSpec:
     type: str  # pole | balancing | half_foot | walking | standing | known_load | interaction
     duration_s: float  # robot time, s
     role: str  # train | test (written into the log's metadata)
-    foot: str = ""  # balancing / half_foot: the supporting foot (a robot.foot_pairs name)
+    foot: str = ""  # balancing / half_foot: the supporting foot (l_foot...: pipeline.physics.feet)
     part: str = ""  # half_foot: 'front' or 'rear'
     # known_load: the masses attached for the whole log (on the pole); the labels include them
     loads: tuple[LoadSpec, ...] = ()
 
-    def check(self, key: str, feet: tuple[str, ...]) -> None:
+    def check(self, key: str, feet: tuple[str, ...] | None) -> None:
+        """Raise ConfigError naming `key` for a bad entry; `feet`: the robot's foot names (None: unknown
+        until the URDF is loaded, `pipeline.sim.world.check_feet`)."""
         if self.type not in EXPERIMENT_TYPES:
             raise ConfigError(f"{key}.type must be one of {', '.join(EXPERIMENT_TYPES)}, got {self.type!r}")
         loads = self.loads
@@ -328,7 +330,7 @@ class LogSpec:
             raise ConfigError(f"{key}.duration_s must be in [1, 7200] s, got {self.duration_s!r}")
         if self.role not in ("train", "test"):
             raise ConfigError(f"{key}.role must be train or test, got {self.role!r}")
-        if self.type in ("balancing", "half_foot") and self.foot not in feet:
+        if self.type in ("balancing", "half_foot") and feet is not None and self.foot not in feet:
             raise ConfigError(f"{key}.foot must be one of {', '.join(feet)}, got {self.foot!r}")
         if self.type == "half_foot" and self.part not in ("front", "rear"):
             raise ConfigError(f"{key}.part must be front or rear, got {self.part!r}")
@@ -472,7 +474,8 @@ def simulate_params(params: Params) -> SimulateParams:
                 raw[key] = _sub(cls, raw[key], f"simulate.{key}")
         if not isinstance(raw.get("logs"), list):
             raise ConfigError("simulate.logs must be a list of logs")
-        feet = tuple(p.name for p in params.robot.foot_pairs)
+        # the feet: params' foot pairs; derived from the URDF (None), they are checked when it is loaded
+        feet = None if params.robot.foot_pairs is None else tuple(p.name for p in params.robot.foot_pairs)
         logs = []
         for i, entry in enumerate(raw["logs"]):
             spec = _sub(LogSpec, entry, f"simulate.logs[{i}]")

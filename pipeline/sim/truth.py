@@ -24,6 +24,7 @@ import numpy as np
 import pinocchio as pin
 
 from pipeline.physics.dynamics import ContactCase, choose_root, far_side_wrenches, rooted_readings
+from pipeline.physics.feet import Foot, foot_of_pair
 from pipeline.physics.robot import FootPair, RobotModel, sensor_frame_name, wrench_transform
 from pipeline.sim.motion import Motion
 
@@ -116,8 +117,11 @@ def split_front_rear(wrench: np.ndarray, x_front: float, x_rear: float) -> tuple
 class TruthComputer:
     """Computes :class:`Truth` for motions of one (true) robot."""
 
-    def __init__(self, robot: RobotModel, pairs: Sequence[FootPair], gravity: float) -> None:
-        self.robot, self.pairs, self.g = robot, list(pairs), np.array([0.0, 0.0, -gravity])
+    def __init__(self, robot: RobotModel, feet: Sequence[Foot | FootPair], gravity: float) -> None:
+        """`feet`: every foot with its sensors (`pipeline.physics.feet`; a FootPair stands for its foot)."""
+        self.g = np.array([0.0, 0.0, -gravity])
+        self.robot = robot
+        self.pairs = [foot_of_pair(robot, f) if isinstance(f, FootPair) else f for f in feet]
         self.pair_of_link = {}
         for pair in self.pairs:
             for link in pair.foot_links:
@@ -280,9 +284,7 @@ class TruthComputer:
         robot = self.robot
         # total ground wrench, in the fixed sole frame: the root foot is static, so
         # ground = -(rest of the robot on the foot, i.e. the as-if pair sum) - (the foot's own weight)
-        pair_sum = (
-            asif[root_pair.front] @ root_pair.sole_X_front.T + asif[root_pair.rear] @ root_pair.sole_X_rear.T
-        )
+        pair_sum = root_pair.rest_on_foot(asif)
         total = -pair_sum - weight_wrench(robot, root_pair.foot_links, root_pair.sole, self.g)
         fixed_X_sole = wrench_transform(robot.rigid_transform(case.fixed_link, root_pair.sole))
         total = total @ fixed_X_sole.T

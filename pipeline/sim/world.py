@@ -6,11 +6,14 @@ labeller and the calibration only ever see the nominal URDF and the raw readings
 
 from __future__ import annotations
 
-from dataclasses import dataclass, replace
+from dataclasses import dataclass, field, replace
 
 import numpy as np
 
 from pipeline.core.config import Params, repo_root, resolve_urdf
+from pipeline.core.errors import ConfigError
+from pipeline.physics.feet import Foot as RobotFoot
+from pipeline.physics.feet import robot_feet
 from pipeline.physics.robot import FootPair, LinkInertial, RobotModel, load_robot
 from pipeline.sim.distortion import SensorDistortion, draw_distortion
 from pipeline.sim.kinematics import Foot
@@ -53,15 +56,19 @@ class World:
     base_params: Params | None = (
         None  # deployment worlds: the params the world was built from (training seed)
     )
+    # every foot with its sensors (one or two), for the true ground loads (pipeline.physics.feet)
+    foot_models: list[RobotFoot] = field(default_factory=list)
 
 
 def build_world(params: Params, sim: SimulateParams) -> World:
     """Load the robot, draw its model errors and every sensor's distortion, derive the motion params."""
     robot = load_robot(resolve_urdf(params.robot.urdf, repo_root()))
-    pairs = [robot.foot_pair(p.name, p.front, p.rear, p.sole) for p in params.robot.foot_pairs]
+    models = robot_feet(robot, params.robot.foot_pairs)
+    check_feet(sim, [f.name for f in models])
+    pairs = [f.pair for f in models if f.pair is not None]
     feet = [
-        Foot(p.name, p.sole, robot.sensors[p.front].child_link, robot.sensors[p.rear].child_link)
-        for p in pairs
+        Foot(f.name, f.sole, f.front_link, f.rear_link, tuple(f.centers[0]), tuple(f.centers[1]))
+        for f in models
     ]
     truth_robot, errors = true_robot(robot, sim, stream_rng(params.seed, 1))
     distortions = {
@@ -81,8 +88,20 @@ def build_world(params: Params, sim: SimulateParams) -> World:
             distortions, sim.shift.seed, sim.shift.offset_force, sim.shift.offset_torque
         )
         shifted = replace(params, seed=sim.shift.seed)
-        return World(shifted, sim, robot, truth_robot, feet, pairs, distortions, errors, motions, params)
-    return World(params, sim, robot, truth_robot, feet, pairs, distortions, errors, motions)
+        return World(
+            shifted, sim, robot, truth_robot, feet, pairs, distortions, errors, motions, params, models
+        )
+    return World(params, sim, robot, truth_robot, feet, pairs, distortions, errors, motions, None, models)
+
+
+def check_feet(sim: SimulateParams, feet: list[str]) -> None:
+    """Every log's supporting foot is a foot of the robot (checked here when the feet come from the URDF)."""
+    key = "deploy.logs" if sim.shift is not None else "simulate.logs"
+    for i, spec in enumerate(sim.logs):
+        if spec.type in ("balancing", "half_foot") and spec.foot not in feet:
+            raise ConfigError(
+                f"{key}[{i}].foot must be one of {', '.join(feet)} (the robot's feet), got {spec.foot!r}"
+            )
 
 
 def shifted_offsets(

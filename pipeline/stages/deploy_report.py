@@ -72,15 +72,31 @@ def run(params: Any, groups_dir: str | Path, reports: str | Path) -> dict[str, A
         for day in days
     }
     summary = {day: summarize(d, dp, target_b, dp.figure_joint) for day, d in details.items()}
+    if not summary:
+        targets["nothing"] = nothing_to_test(
+            [g for g, r in results.items() if r.get("recorded")], dp.real_logs
+        )
     with stage_run(STAGE, {"groups": list(results)}):
         for day, s in summary.items():
             mlflow.log_metrics({f"{day}.{k}": float(v) for k, v in s.items() if isinstance(v, int | float)})
-        write_json(reports / METRICS, {day: headline(s) for day, s in summary.items()})
+        headlines = {day: headline(s) for day, s in summary.items()}
+        write_json(reports / METRICS, headlines or {"nothing_to_test": True})
         write_json(reports / DETAILS, {"summary": summary, "details": details})
         write_page(reports / PAGE, details, summary, figures, targets)
         for name in (PAGE, METRICS, DETAILS):
             mlflow.log_artifact(str(reports / name), "deployment" if name == DETAILS else None)
-    return {"summary": summary, "details": details}
+    return {"summary": summary, "details": details, "nothing": targets.get("nothing")}
+
+
+def nothing_to_test(recorded: list[str], real: str) -> str:
+    """The page's sentence when no day has logs to test."""
+    why = (
+        f"the models ({', '.join(recorded)}) were trained on recorded logs, so the simulated deployment days "
+        "would test them on another robot's logs"
+        if recorded
+        else "there are no deployment days"
+    )
+    return f"Nothing to test: {why}, and deploy.real_logs ({real}) holds no recorded deployment log."
 
 
 def _cmd(args: argparse.Namespace) -> int:
@@ -90,7 +106,7 @@ def _cmd(args: argparse.Namespace) -> int:
     for day, s in out["summary"].items():
         print(f"{day}: {'fit to deploy' if s['fit_to_deploy'] else 'recalibrate'}")
     if not out["summary"]:
-        print("no deployment logs: nothing tested")
+        print(out["nothing"])
     return 0
 
 

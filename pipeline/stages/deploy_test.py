@@ -7,8 +7,10 @@ model has seen.
 (output noise of every model in MODELS vs raw), B on the walking log (error tables vs labels and truth), C
 on the pushed pole log (leg joint torques from raw vs calibrated leg sensors against the true torques). The
 calibration is the group's export (EXPORTED, an export directory) run causally on each log's raw messages,
-as on the robot. Writes OUT/result.json (per day the results and figures) and OUT/<day>_*.png; logs one
-MLflow run. `deploy_report` gathers every group's into the deployment page and verdict.
+as on the robot. A group trained on recorded logs (train's ``data``) is tested on ``deploy.real_logs``
+only, never on the simulated days (another robot). Writes OUT/result.json (per day the results and
+figures) and OUT/<day>_*.png; logs one MLflow run. `deploy_report` gathers every group's into the
+deployment page and verdict.
 """
 
 from __future__ import annotations
@@ -60,8 +62,12 @@ def run(
     if group not in deployed:
         raise DataError(f"{exported}: the export has no graph of {group} ({', '.join(deployed)})")
     days = days_of(Path(tables))
+    recorded = trained_on_recordings(models)
+    if recorded:  # a real robot's calibration is not tested on the simulated robot's logs
+        days = [d for d in days if d.name not in DAY_ORDER]
     sensors, robot = group_models(models)[0], load_nominal_robot(params)
     result: dict[str, Any] = {"group": group, "deployed": deployed[group], "days": {}, "figures": {}}
+    result["recorded"] = recorded
     with stage_run(f"{STAGE}@{group}", {"group": group, "deployed": deployed[group]}), atomic_dir(out) as tmp:
         for day in days:
             ctx = GroupDay(
@@ -71,6 +77,19 @@ def run(
         write_json(tmp / RESULT_FILE, result)
         mlflow.log_artifacts(str(tmp), f"deployment/{group}")
     return result
+
+
+def trained_on_recordings(models: Path) -> bool:
+    """Whether the group of `models` (models/<group>) was trained on recorded logs (train's metrics.json
+    ``data``: not simulated)."""
+    import json
+
+    path = Path(models) / "metrics.json"
+    try:
+        data = json.loads(path.read_text(encoding="utf-8")).get("data", "simulated")
+    except (OSError, ValueError) as exc:
+        raise DataError(f"{path}: not a train output: {exc}") from None
+    return data != "simulated"
 
 
 def _cmd(args: argparse.Namespace) -> int:

@@ -116,7 +116,7 @@ def _fmt(v: float | None, digits: int = 3) -> str:
 def _cmd(args: argparse.Namespace) -> int:
     from pipeline.calib.params import RAW
     from pipeline.core.config import load_params
-    from pipeline.evaluation.params import LABELS, NN7, TRUTH
+    from pipeline.evaluation.params import LABELS, NN6, NN7, TRUTH
 
     params = load_params(args.params)
     r = run(params, args.group, args.models, args.labelled, args.out, args.truth)
@@ -125,9 +125,12 @@ def _cmd(args: argparse.Namespace) -> int:
     for name in r.headlines or [r.headline]:
         parts = []
         for ref in (LABELS, TRUTH):
-            values = [(m, r.headline_rmse(ref, m, name=name)) for m in (RAW, NN7, r.recommended)]
-            if all(v is not None for _, v in values):
+            shown = dict.fromkeys((RAW, NN6, NN7, r.recommended))  # the networks the group trained
+            values = [(m, v) for m in shown if (v := r.headline_rmse(ref, m, name=name)) is not None]
+            if values:
                 parts.append(f"vs {ref}: " + ", ".join(f"{m} {_fmt(v)}" for m, v in values))
+            elif ref == TRUTH:
+                parts.append("no truth (recorded logs)")
         print(f"{r.group}: RMSE of {name} {'; '.join(parts)}; {deploy}")
     return 0
 

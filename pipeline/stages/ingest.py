@@ -36,6 +36,14 @@ _STAGING = ".{name}.{pid}.ingest-tmp"  # staging directory beside the output, pe
 # --- params --------------------------------------------------------------------------------------
 
 
+def smoothing_window(params: Params) -> int:
+    """`smooth.window` (samples), the least gap between a log's segments; 0 without a smooth section."""
+    from pipeline.core.config import stage_section
+    from pipeline.logs.smoothing import SmoothParams
+
+    return stage_section(params, "smooth", SmoothParams).window if "smooth" in params.raw else 0
+
+
 # --- one log -------------------------------------------------------------------------------------
 
 
@@ -48,17 +56,28 @@ class RobotLogSpec:
     joints: Sequence[str]  # URDF joint order
     sensors: Sequence[str]  # URDF FT sensor names
     robot_names: Sequence[str]  # names the logs' `experiment.robot` may use for this robot
+    min_gap_samples: int = 0  # least gap between a log's segments, joint-state steps (smooth.window)
 
 
 def find_logs(source_dir: Path) -> list[Path]:
-    """Every log file (`LOG_SUFFIXES`) under `source_dir` (recursively), sorted."""
-    return sorted(p for p in source_dir.rglob("*") if p.suffix in LOG_SUFFIXES and p.is_file())
+    """Every log under `source_dir` (recursively), sorted: files (`LOG_SUFFIXES`) and dataDumper run
+    directories (`pipeline.logs.dumper.is_run`)."""
+    from pipeline.logs.dumper import is_run
+
+    return sorted(p for p in source_dir.rglob("*") if (p.suffix in LOG_SUFFIXES and p.is_file()) or is_run(p))
 
 
 def output_name(log: Path, source_dir: Path) -> str:
     """Table name of a log: its path under the source directory, without suffix, '/' -> '__'."""
-    rel = log.relative_to(source_dir).with_suffix("")
-    return "__".join(rel.parts)
+    rel = log.relative_to(source_dir)
+    return "__".join((rel if log.is_dir() else rel.with_suffix("")).parts)
+
+
+def log_size(log: Path) -> int:
+    """Bytes of a log file, or of the files of a run directory."""
+    if log.is_dir():
+        return sum(p.stat().st_size for p in log.rglob("*") if p.is_file())
+    return log.stat().st_size
 
 
 def ingest_one(
@@ -71,7 +90,16 @@ def ingest_one(
     from pipeline.logs.mcap_table import ingest_log
 
     return ingest_log(
-        log, out_dir, name, spec.cfg, spec.topics, spec.joints, spec.sensors, spec.robot_names, progress
+        log,
+        out_dir,
+        name,
+        spec.cfg,
+        spec.topics,
+        spec.joints,
+        spec.sensors,
+        spec.robot_names,
+        progress,
+        spec.min_gap_samples,
     )
 
 
@@ -169,6 +197,7 @@ def run(
         robot.joint_names,
         list(robot.sensors),
         [params.robot.urdf, robot.name, Path(urdf).stem],
+        smoothing_window(params),
     )
     run_params = {
         "ingest": asdict(cfg),
@@ -211,7 +240,7 @@ def _ingest_all(
     mlflow.set_tags({"logs": str(len(logs))})
     with progress_bar(progress, bytes_=True) as bar:
         for log, name in zip(logs, names, strict=True):
-            task = bar.add_task(log.name, total=log.stat().st_size)
+            task = bar.add_task(log.name, total=log_size(log))
             try:
                 reports.append(ingest_one(log, staging, name, spec, lambda n, t=task: bar.advance(t, n)))
             except DataError as exc:
@@ -247,6 +276,7 @@ def _log_mlflow(active: Any, summary: IngestSummary) -> None:
             for key in flags:
                 flags[key] += getattr(st, key)
     metrics.update({f"messages_{k}": v for k, v in flags.items()})
+    metrics["samples_frozen"] = sum(n for r in summary.reports for n in r.frozen.values())
     mlflow.log_metrics({k: float(v) for k, v in metrics.items()})
     mlflow.log_text("\n".join(summary.warnings) + ("\n" if summary.warnings else ""), "warnings.txt")
     mlflow.log_dict(
@@ -260,6 +290,9 @@ def _log_mlflow(active: Any, summary: IngestSummary) -> None:
                     "messages": r.messages,
                     "seconds": r.seconds,
                     "streams": {k: asdict(v) for k, v in r.streams.items()},
+                    "absent": r.absent,
+                    "frozen_samples": r.frozen,
+                    "tables": r.outputs,
                 }
                 for r in summary.reports
             ],
@@ -277,13 +310,43 @@ def _cmd(args: argparse.Namespace) -> int:
 
     params = load_params(args.params)
     summary = run(params, args.source, args.out)
-    rows = sum(r.samples for r in summary.reports)
-    print(
-        f"ingested {len(summary.reports)} log(s), {rows} samples, into {args.out}"
-        + (f"; skipped {len(summary.skipped)} bad log(s)" if summary.skipped else "")
-        + f" ({summary.seconds:.1f} s)"
-    )
+    print(summary_line(summary, args.out))
     return 0
+
+
+def summary_line(summary: IngestSummary, out: str | Path) -> str:
+    """One line: logs, samples, where; what the logs lack (absent streams) and what was frozen."""
+    from pipeline.logs import schema as S
+
+    rows = sum(r.samples for r in summary.reports)
+    kept = sum(r.samples if r.kept is None else r.kept for r in summary.reports)
+    tables = sum(max(len(r.outputs), 1) for r in summary.reports)
+    parts = [f"ingested {len(summary.reports)} log(s), {kept} samples, into {out}"]
+    if kept != rows:
+        parts[0] += f" ({rows} read, kept in the experiments' windows and segments)"
+    if tables != len(summary.reports):
+        parts[0] += f" as {tables} tables (segments)"
+    by_lack: dict[tuple[str, ...], list[str]] = {}  # logs lacking the same streams, named once
+    for r in summary.reports:
+        if r.absent:
+            by_lack.setdefault(tuple(r.absent), []).append(Path(r.source).name)
+    absent = [
+        f"{', '.join(logs) if len(logs) <= 3 else f'{len(logs)} logs'}: {', '.join(lack)}"
+        for lack, logs in by_lack.items()
+    ]
+    if absent:
+        parts.append("absent: " + "; ".join(absent))
+    frozen = []
+    for r in summary.reports:
+        rate = r.streams[S.JOINTS_STREAM].rate_hz if S.JOINTS_STREAM in r.streams else float("nan")
+        for sensor, n in r.frozen.items():
+            seconds = f"{n / rate:.1f} s, " if rate > 0 else ""
+            frozen.append(f"{Path(r.source).name}: {sensor} {seconds}{n / max(r.samples, 1):.1%} of samples")
+    if frozen:
+        parts.append("frozen: " + "; ".join(frozen))
+    if summary.skipped:
+        parts.append(f"skipped {len(summary.skipped)} bad log(s)")
+    return "; ".join(parts) + f" ({summary.seconds:.1f} s)"
 
 
 def add_cli(subparsers: Any) -> None:

@@ -51,6 +51,7 @@ def run(
     from pipeline.labels.table import Labeller, label_table
     from pipeline.logs.smoothing import find_tables
     from pipeline.physics.cuts import find_cut_sets
+    from pipeline.physics.feet import robot_feet
     from pipeline.physics.robot import load_robot
 
     cfg = stage_section(params, STAGE, LabelParams)
@@ -61,8 +62,10 @@ def run(
     if not tables:
         raise DataError(f"{src}: no smoothed *.parquet tables")
     robot = load_robot(resolve_urdf(params.robot.urdf, repo_root()))
-    pairs = [robot.foot_pair(p.name, p.front, p.rear, p.sole) for p in params.robot.foot_pairs]
-    lab = Labeller(robot, pairs, find_cut_sets(robot, pairs, cfg.cut_max_sensors), cfg, params.robot.gravity)
+    feet = robot_feet(robot, params.robot.foot_pairs)
+    pairs = [f.pair for f in feet if f.pair is not None]
+    cuts = find_cut_sets(robot, pairs, cfg.cut_max_sensors)
+    lab = Labeller(robot, pairs, cuts, cfg, params.robot.gravity, feet)
     summaries: list[LogSummary] = []
     start = time.perf_counter()
     with stage_run(STAGE, {"label": asdict(cfg), "robot": asdict(params.robot)}):

@@ -36,12 +36,14 @@ def convert(mat: Path, out: Path, params: Any) -> dict[str, int]:
         with rosmsg.LogWriter(out, meta) as writer:
             for batches in reader.iter_chunks():
                 for b in batches:
-                    _write(writer, b)
+                    write_batch(writer, b)
                     counts[b.topic] = counts.get(b.topic, 0) + len(b)
     return counts
 
 
-def _write(writer: Any, b: Any) -> None:
+def write_batch(writer: Any, b: Any) -> None:
+    """Write a contract `rosmsg.Batch` (joint states, wrenches, IMU, temperatures) with `writer`, each
+    message's log time = its stamp."""
     from pipeline.logs import rosmsg
 
     f, t = b.fields, b.stamp_ns
@@ -49,15 +51,15 @@ def _write(writer: Any, b: Any) -> None:
         effort = f["effort"] if f["effort"].shape[1] else None
         writer.joint_states(b.topic, t, list(b.names), f["position"], f["velocity"], effort, log_times_ns=t)
     elif b.msgtype == rosmsg.WRENCH_STAMPED:
-        writer.wrenches(b.topic, t, _frame(b.topic), f["wrench"], log_times_ns=t)
+        writer.wrenches(b.topic, t, frame_of(b.topic), f["wrench"], log_times_ns=t)
     elif b.msgtype == rosmsg.IMU:
         imu = (f["linear_acceleration"], f["angular_velocity"])
-        writer.imus(b.topic, t, _frame(b.topic), *imu, log_times_ns=t)
+        writer.imus(b.topic, t, frame_of(b.topic), *imu, log_times_ns=t)
     elif b.msgtype == rosmsg.TEMPERATURE:
-        writer.temperatures(b.topic, t, _frame(b.topic), f["temperature"], log_times_ns=t)
+        writer.temperatures(b.topic, t, frame_of(b.topic), f["temperature"], log_times_ns=t)
 
 
-def _frame(topic: str) -> str:
+def frame_of(topic: str) -> str:
     """frame_id of a per-sensor message: the sensor name (the topic's second-to-last level)."""
     parts = [p for p in topic.split("/") if p]
     return parts[-2] if len(parts) >= 2 else ""

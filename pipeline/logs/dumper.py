@@ -1,0 +1,292 @@
+"""A YARP dataDumper run read as the topics of the MCAP contract (format: the reference and README).
+
+A run is a directory ``<run>/<robot>/<part>/<port>/{info.log,data.log}`` (one robot prefix folder, e.g.
+``icub``). `DumperRunReader` offers what ingest uses of `rosmsg.LogReader` (``path``, ``size_bytes``,
+``metadata``, ``topics``, ``iter_chunks``), through the maps of ``ingest.dumper`` (`DumperParams`):
+
+- each FT part's ``analog:o`` port -> the wrench topic of its URDF sensor (stamped by the sender);
+- the control boards' ``stateExt:o`` ports -> one joint-state topic. The first part of
+  ``ingest.dumper.time_base`` present in the run is the time base: each of its messages is one
+  joint-state message, and every other board's positions (velocities, torques) are interpolated at its
+  stamp within ``ingest.max_gap_s`` (`pipeline.logs.align.align_continuous`, after dropping their
+  duplicate stamps). A time-base message with no position of another board within that gap is dropped
+  and counted (the time base then has a gap, as for a lost message). Degrees become radians.
+
+Arrival order: the reception time where the dumper wrote one (two-time form), else the file order, so
+stamps stepping back in a file are re-sorted or are a clock jump, exactly as for an MCAP log.
+
+A port folder without ``data.log``, or a URDF FT sensor with no port in the run, is an absent stream: the
+``recording`` metadata record (`pipeline.logs.sidecar`) names it, ingest leaves its columns NaN and
+flagged and names it in its summary. Joints of absent boards are NaN. A folder that no map names (and
+``ingest.dumper.ignore`` does not skip) is an error, as are bad lines (`pipeline.logs.dumper_text`).
+The experiment metadata comes from the sidecar ``<run>.yaml`` beside the run folder.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable, Iterable, Iterator, Sequence
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from pipeline.core.config import TopicParams
+from pipeline.core.errors import ConfigError, DataError
+from pipeline.logs import rosmsg
+from pipeline.logs.align import align_continuous, sort_unique
+from pipeline.logs.dumper_text import PortData, read_analog, read_info, read_state
+from pipeline.logs.matlog import iter_windows
+from pipeline.logs.params import DumperParams
+from pipeline.logs.sidecar import RECORDING, absent_record, read_sidecar
+
+DATA, INFO = "data.log", "info.log"
+CHUNK_ROWS = 3_000  # time-base messages per chunk handed out
+
+
+def is_run(path: Path) -> bool:
+    """Whether `path` is a dataDumper run: a directory holding ``<robot>/<part>/<port>/{data,info}.log``."""
+    if not path.is_dir():
+        return False
+    return any(path.glob(f"*/*/*/{DATA}")) or any(path.glob(f"*/*/*/{INFO}"))
+
+
+def sidecar_of(run: Path, suffix: str) -> Path:
+    """The experiment sidecar of a run: ``<run><suffix>`` beside the run folder."""
+    return run.with_name(run.name + suffix)
+
+
+@dataclass
+class _Port:
+    part: str
+    port: str
+    folder: Path
+
+    @property
+    def name(self) -> str:
+        return f"{self.part}/{self.port}"
+
+    @property
+    def data(self) -> Path | None:
+        path = self.folder / DATA
+        return path if path.is_file() else None
+
+
+class DumperRunReader:
+    """A dataDumper run seen as contract topics (see the module docstring). DataError on bad input.
+
+    `sensors` / `joints`: the URDF's FT sensors and joints.
+    """
+
+    def __init__(
+        self,
+        path: str | Path,
+        topics: TopicParams,
+        sensors: Sequence[str],
+        cfg: DumperParams,
+        joints: Sequence[str],
+        chunk_rows: int = CHUNK_ROWS,
+        max_gap_s: float = 0.025,
+    ):
+        self.path = Path(path)
+        self.cfg, self.topic_names, self.chunk_rows = cfg, topics, int(chunk_rows)
+        self.max_gap_ns = round(max_gap_s * 1e9)
+        self.warnings: list[str] = []
+        experiment = read_sidecar(sidecar_of(self.path, cfg.sidecar_suffix), self.path)
+        self.robot_dir = self._robot_dir()
+        ports = self._ports()
+        self.size_bytes = sum(p.data.stat().st_size for p in ports if p.data is not None)
+        absent_streams = [p.name for p in ports if p.data is None]
+        self.wrenches, absent_topics = self._wrenches(ports, sensors, absent_streams)
+        state_ports = self._joint_map(ports, joints)
+        if not self.wrenches:
+            raise DataError(f"{self.path}: no FT port ({cfg.ft_port}) with a {DATA} (the run has no wrench)")
+        if not state_ports:
+            raise DataError(f"{self.path}: no control-board port ({cfg.joint_port}) with a {DATA}")
+        rank = {part: k for k, part in enumerate(cfg.time_base)}
+        state_ports.sort(key=lambda p: rank.get(p[0].part, len(rank)))
+        if state_ports[0][0].part not in rank:
+            have = ", ".join(p[0].part for p in state_ports)
+            raise DataError(
+                f"{self.path}: none of the boards of ingest.dumper.time_base ({', '.join(cfg.time_base)}) "
+                f"has a {DATA} (boards with one: {have})"
+            )
+        self.time_base = f"{state_ports[0][0].part}/{cfg.joint_port}"
+        self.joint_names = [name for _, _, names in state_ports for name in names]  # the columns' order
+        self.dropped_rows = 0  # time-base messages without another board's positions
+        self.joint_rows = self._joint_states(state_ports)
+        absent_joints = [j for j in joints if j not in set(self.joint_names)]
+        self.metadata = {
+            "experiment": experiment,
+            RECORDING: absent_record(absent_topics, absent_joints, absent_streams),
+            "dumper": {
+                "robot": self.robot_dir.name,
+                "time_base": self.time_base,
+                "time_base_dropped": self.dropped_rows,
+                "ports": {p.name: self._port_info(p) for p in ports},
+            },
+        }
+        self.sources = [(topics.joint_states, rosmsg.JOINT_STATE, self.joint_rows)] + [
+            (topics.sensor_topic("ft_wrench", s), rosmsg.WRENCH_STAMPED, d) for s, d in self.wrenches.items()
+        ]
+        self.topics = {t: rosmsg.TopicInfo(t, m, len(d.stamp_ns)) for t, m, d in self.sources}
+
+    # -- layout --
+
+    def _robot_dir(self) -> Path:
+        robots = sorted(d for d in self.path.iterdir() if d.is_dir())
+        if len(robots) != 1:
+            names = ", ".join(d.name for d in robots) or "none"
+            raise DataError(f"{self.path}: a dataDumper run holds one robot prefix folder, found: {names}")
+        return robots[0]
+
+    def _ports(self) -> list[_Port]:
+        """Every port folder the maps name; an unknown part or port is an error (unless ignored)."""
+        cfg, out = self.cfg, []
+        for part_dir in sorted(d for d in self.robot_dir.iterdir() if d.is_dir()):
+            part = part_dir.name
+            if part in cfg.ignore:
+                continue
+            known = part in cfg.ft_ports or part in cfg.joints
+            if not known:
+                raise DataError(
+                    f"{part_dir}: unknown part {part!r} (not in ingest.dumper.ft_ports, ingest.dumper.joints "
+                    "or ingest.dumper.ignore)"
+                )
+            for port_dir in sorted(d for d in part_dir.iterdir() if d.is_dir()):
+                port = port_dir.name
+                if f"{part}/{port}" in cfg.ignore:
+                    continue
+                wanted = (port == cfg.ft_port and part in cfg.ft_ports) or (
+                    port == cfg.joint_port and part in cfg.joints
+                )
+                if not wanted:
+                    raise DataError(
+                        f"{port_dir}: unknown port {port!r} of part {part!r} (ingest.dumper reads "
+                        f"{cfg.ft_port} of ft_ports parts and {cfg.joint_port} of joints parts; "
+                        "ingest.dumper.ignore skips others)"
+                    )
+                out.append(_Port(part, port, port_dir))
+        return out
+
+    def _wrenches(
+        self, ports: Sequence[_Port], sensors: Sequence[str], absent: list[str]
+    ) -> tuple[dict[str, PortData], list[str]]:
+        cfg, out = self.cfg, {}
+        found = {p.part: p for p in ports if p.port == cfg.ft_port}
+        for part, port in found.items():
+            sensor = cfg.ft_ports[part]
+            if sensor not in sensors:
+                raise ConfigError(
+                    f"{port.folder}: ingest.dumper.ft_ports.{part}: {sensor!r} is not an FT sensor of the "
+                    f"URDF (have: {', '.join(sensors)})"
+                )
+            if port.data is not None:
+                data = read_analog(port.data)
+                self.warnings += data.warnings
+                if len(data):
+                    out[sensor] = data
+        part_of = {s: p for p, s in cfg.ft_ports.items()}
+        absent_topics = []
+        for sensor in sensors:
+            if sensor not in out:
+                absent_topics.append(self.topic_names.sensor_topic("ft_wrench", sensor))
+                if part_of.get(sensor) not in found:
+                    absent.append(f"{sensor} (no {part_of.get(sensor, '?')}/{cfg.ft_port})")
+        return out, absent_topics
+
+    def _joint_map(self, ports: Sequence[_Port], joints: Sequence[str]) -> list:
+        """[(port, axis indices, URDF joint names)] of the boards with data, in the map's order."""
+        cfg = self.cfg
+        found = {p.part: p for p in ports if p.port == cfg.joint_port and p.data is not None}
+        out = []
+        for part, axes in cfg.joints.items():
+            if part not in found:
+                continue
+            for k, joint in enumerate(axes):
+                if joint is not None and joint not in set(joints):
+                    raise ConfigError(
+                        f"{found[part].folder}: ingest.dumper.joints.{part}[{k}]: {joint!r} is not a joint "
+                        "of the URDF"
+                    )
+            idx = [k for k, j in enumerate(axes) if j is not None]
+            out.append((found[part], idx, [axes[k] for k in idx]))
+        return out
+
+    def _joint_states(self, state_ports: list) -> PortData:
+        """The time base's messages with every board's joints (see the module docstring)."""
+        port, idx, _ = state_ports[0]
+        base = read_state(port.data, len(self.cfg.joints[port.part]))
+        self.warnings += base.warnings
+        values = {k: [v[:, idx]] for k, v in base.values.items()}
+        keep = np.ones(len(base), dtype=bool)
+        for other, other_idx, _ in state_ports[1:]:
+            data = read_state(other.data, len(self.cfg.joints[other.part]))
+            self.warnings += data.warnings
+            order = np.lexsort((np.arange(len(data)), data.recv_ns))  # arrival order, then first kept
+            stamps, rows, dropped = sort_unique(data.stamp_ns[order], np.arange(len(data))[order])
+            if dropped:
+                self.warnings.append(f"{other.data}: {dropped} messages with an already seen stamp dropped")
+            for key, v in data.values.items():
+                aligned, ok = align_continuous(base.stamp_ns, stamps, v[rows][:, other_idx], self.max_gap_ns)
+                if key == "position":
+                    keep &= ok
+                values[key].append(aligned)
+            if not keep.any():
+                raise DataError(
+                    f"{other.data}: no message within ingest.max_gap_s of a {self.time_base} stamp "
+                    "(its stamps are on another clock?)"
+                )
+        self.dropped_rows = int((~keep).sum())
+        if self.dropped_rows:
+            self.warnings.append(
+                f"{port.data}: {self.dropped_rows} of {len(keep)} time-base messages dropped: another board "
+                "had no joint positions within ingest.max_gap_s of them"
+            )
+        merged = {k: np.concatenate(v, axis=1)[keep] for k, v in values.items()}
+        return PortData(port.data, base.stamp_ns[keep], base.recv_ns[keep], merged, base.two_times)
+
+    def _port_info(self, port: _Port) -> dict[str, Any]:
+        info = read_info(port.folder / INFO)
+        return {"type": info["type"], "port": info["port"], "data": port.data is not None}
+
+    # -- reading --
+
+    def iter_chunks(
+        self, topics: Iterable[str] | None = None, *, progress: Callable[[int], None] | None = None, **_: Any
+    ) -> Iterator[list[rosmsg.Batch]]:
+        """The wanted topics' batches, every stream cut at the same stamps (one cut every `chunk_rows`
+        time-base messages)."""
+        wanted = set(self.topics) if topics is None else set(topics)
+        edges = np.sort(self.joint_rows.stamp_ns)[self.chunk_rows :: self.chunk_rows]
+        sources = [s for s in self.sources if s[0] in wanted]
+        # cut in file order where stamps step back a little (re-sorted by ingest), by stamp otherwise
+        windows = [iter_windows(np.maximum.accumulate(d.stamp_ns), edges) for _, _, d in sources]
+        done = 0
+        for k in range(len(edges) + 1):
+            batches = []
+            for (topic, msgtype, data), win in zip(sources, windows, strict=True):
+                a, b = next(win)
+                if b > a:
+                    batches.append(self._batch(topic, msgtype, data, a, b))
+            yield batches
+            if progress is not None:
+                now = self.size_bytes * (k + 1) // (len(edges) + 1)
+                progress(now - done)
+                done = now
+
+    def _batch(self, topic: str, msgtype: str, data: PortData, a: int, b: int) -> rosmsg.Batch:
+        stamps, recv = data.stamp_ns[a:b], data.recv_ns[a:b]
+        order = np.arange(a, b, dtype=np.int64)
+        fields = {k: v[a:b] for k, v in data.values.items()}
+        names = tuple(self.joint_names) if msgtype == rosmsg.JOINT_STATE else None
+        return rosmsg.Batch(topic, msgtype, recv, recv, stamps, order, fields, names)
+
+    def close(self) -> None:
+        pass
+
+    def __enter__(self) -> DumperRunReader:
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()
