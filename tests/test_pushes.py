@@ -77,6 +77,20 @@ def test_affine_push_gram_is_exact() -> None:
     np.testing.assert_allclose(gram, np.diag(expected), rtol=1e-12)
 
 
+def test_wrench_only_affine_push_gram_is_exact_and_keeps_the_factory_gain() -> None:
+    """A log without temperature: the 6-input affine map gets the same prior, checked against sampling."""
+    x, labels = on_relation(6000)
+    x[:, :, 6:] = np.nan  # no temperature, no IMU
+    model = fit_linear_baseline(
+        "affine", x, labels, np.ones((6000, 1), bool), 1, 0.0, (1.0,), n_inputs=6, push=PUSH
+    )
+    np.testing.assert_allclose(1.0 + np.diag(model.affine_map(0)[0][:, :6]), 1.0, atol=0.06)
+    features = partial(model.features, s=0)
+    exact = linear_push_gram(features, model.powers, model.scale[0], x[:, 0], PUSH, np.random.default_rng(0))
+    sampled = push_gram(features, x[:, 0], PUSH, np.random.default_rng(3), rows=200_000)
+    np.testing.assert_allclose(exact, sampled, rtol=0.02, atol=5e-3 * exact.max())
+
+
 def test_sampled_push_gram_matches_the_exact_one_on_linear_features() -> None:
     x = np.random.default_rng(1).normal(size=(300, 13))
     powers = monomial_powers(7, 1)

@@ -90,7 +90,8 @@ def test_a_log_without_temperature_is_calibrated_by_a_wrench_only_export(
 ) -> None:
     """The export's manifest and plans of a 6-input model need no temperature topic; `ftcal calibrate`'s
     machinery adds the calibrated wrench of every raw message, equal to the model on that message."""
-    from pipeline.export.manifest import build_graphs, training, write_export
+    from pipeline.core.io import write_json
+    from pipeline.export import manifest
     from pipeline.export.trained import read_group
     from pipeline.logs.rosmsg import LogReader
     from pipeline.tools.calibrate import run
@@ -99,9 +100,12 @@ def test_a_log_without_temperature_is_calibrated_by_a_wrench_only_export(
     model_dir, _ = trained
     model = read_group(model_dir, "nn6")
     (tmp_path / "exported").mkdir()
-    built = build_graphs([model], TOPICS, "", {LEG: training(model, "0" * 64, None)})
-    manifest = write_export(tmp_path / "exported", "", built)
-    assert [c["field"] for c in manifest["graphs"][LEG]["inputs"]] == [
+    trainings = {LEG: manifest.training(model, "0" * 64, None)}
+    entry, graphs = manifest.build_graph(LEG, [model], TOPICS, "", trainings)
+    entry = manifest.write_graphs(tmp_path / "exported", LEG, entry, graphs)
+    doc = manifest.document("", {LEG: entry}, fused=None)
+    write_json(tmp_path / "exported" / manifest.MANIFEST_FILE, doc)
+    assert [c["field"] for c in entry["inputs"]] == [
         f"wrench.{a}.{x}" for a in ("force", "torque") for x in "xyz"
     ]
     log = write_log(

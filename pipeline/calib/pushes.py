@@ -95,12 +95,15 @@ def linear_push_gram(
     prior: PushPrior,
     rng: np.random.Generator,
 ) -> np.ndarray:
-    """`push_gram` of a linear-in-parameters model with monomial `powers` (P, 7) of the inputs over `scale`
-    (7,): exact for the affine model (d is the push over the scales on the wrench features, the same at
-    every sample), sampled for higher orders."""
+    """`push_gram` of a linear-in-parameters model with monomial `powers` (P, I) of the inputs over `scale`
+    (I,), I = 7 (wrench, temperature) or 6 (wrench alone): exact for the affine model (d is the push over
+    the scales on the wrench features, the same at every sample), sampled for higher orders."""
     if powers.sum(axis=1).max() > 1:
         return push_gram(features, x, prior, rng)
-    variances = np.r_[prior.variances(), 0.0] / np.asarray(scale) ** 2  # wrench, then temperature
+    scale = np.asarray(scale)
+    pushed = np.zeros(len(scale))  # no temperature change
+    pushed[:WRENCH] = prior.variances()
+    variances = pushed / scale**2
     linear = np.argmax(powers[1:], axis=1)  # the input of each linear feature (constant first)
     return np.diag(np.r_[0.0, variances[linear]]) * len(x)
 
