@@ -437,6 +437,34 @@ def test_end_to_end_resumes_registers_and_repeats(
     np.testing.assert_allclose(exported(x).detach().numpy(), model(x).detach().numpy(), rtol=1e-5, atol=1e-4)
 
 
+def test_networks_searched_side_by_side_equal_those_searched_one_after_the_other(
+    tmp_path: Path, labelled: Path, mlflow_uri: str, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """The stage searches nn7 and nn13 in forked processes: the same networks, bit for bit, and the same
+    trials logged in MLflow, as on one core."""
+    from mlflow import MlflowClient
+
+    import pipeline.core.parallel as parallel
+
+    params = load_params(write_params(tmp_path, n_trials=2, epochs=2))
+    forked = train_group(params, LEG, labelled, tmp_path / "a", tmp_path / "studies_a", progress=False)
+    monkeypatch.setattr(parallel.os, "cpu_count", lambda: 1)
+    alone = train_group(params, LEG, labelled, tmp_path / "b", tmp_path / "studies_b", progress=False)
+    assert _comparable(forked.metrics) == _comparable(alone.metrics)
+    for name in ("nn7", "nn13"):
+        a, b = (torch.load(d / f"{name}.pt", weights_only=True) for d in (tmp_path / "a", tmp_path / "b"))
+        assert all(torch.equal(a[k], b[k]) for k in a), name
+    client = MlflowClient(mlflow_uri)
+    for result in (forked, alone):
+        children = client.search_runs(
+            [client.get_experiment_by_name("ftcal").experiment_id],
+            filter_string=f"tags.`mlflow.parentRunId` = '{result.mlflow_run}'",
+        )
+        assert sorted(r.info.run_name for r in children) == sorted(
+            f"{LEG} nn{n} trial {i}" for n in (7, 13) for i in (1, 2)
+        )
+
+
 def test_cli_single_sensor_group(
     tmp_path: Path, labelled: Path, mlflow_uri: str, capsys: pytest.CaptureFixture[str]
 ) -> None:

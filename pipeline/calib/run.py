@@ -25,6 +25,7 @@ from pipeline.calib.studies import open_storage, storage_url
 from pipeline.calib.training import flat_inputs, predict, predict_inputs
 from pipeline.core.config import Params
 from pipeline.core.io import write_json
+from pipeline.core.parallel import forked_map
 from pipeline.core.progress import ProgressLog
 
 
@@ -67,26 +68,29 @@ def fit_models(params: Params, prep: Prepared, studies: Path, ui: ProgressLog) -
     fitted.timings["baselines"] = seconds = time.perf_counter() - t
     ui.line(f"{group.name}: baselines fitted on {len(prep.train)} samples in {seconds:.1f} s")
     identity = study_identity(params, prep)
-    storage = open_storage(storage_url(prep.cfg.storage), studies, prep.cfg.heartbeat)
-    for n_inputs in gp.inputs:
+    url = storage_url(prep.cfg.storage)
+    # the networks' searches are independent: one forked process per core (`forked_map`, the same bits as
+    # one after the other), each with its own connection to the studies; their trials are logged here
+    quiet = ui if len(gp.inputs) < 2 else ProgressLog(ui.enabled)  # lines, no bars, from a forked search
+
+    def search(n_inputs: int) -> NetResult:
+        storage = open_storage(url, studies, prep.cfg.heartbeat)
+        start = fitted.baselines[AFFINE]
+        return search_network(
+            gp, group, prep.train, prep.val, n_inputs, params.seed, storage, identity, quiet, None, start
+        )
+
+    searches = forked_map([lambda n=n: search(n) for n in gp.inputs])
+    for n_inputs, result in zip(gp.inputs, searches, strict=True):
         name = nn_name(n_inputs)
         t = time.perf_counter()
-        fitted.nets[name] = search_network(
-            gp,
-            group,
-            prep.train,
-            prep.val,
-            n_inputs,
-            params.seed,
-            storage,
-            identity,
-            ui,
-            log_trial_run(group.name, name),
-            fitted.baselines[AFFINE],
-        )
+        log = log_trial_run(group.name, name)
+        for record in result.trials:
+            log(*record)
+        fitted.nets[name] = result
         for k, d in data.items():
-            fitted.preds[k][name] = predict(fitted.nets[name].model, d)
-        fitted.timings[name] = time.perf_counter() - t
+            fitted.preds[k][name] = predict(result.model, d)
+        fitted.timings[name] = result.seconds + time.perf_counter() - t
     t = time.perf_counter()
     fitted.cv = cross_validate(prep, fitted.preds["val"], fitted.nets, prep.cfg.selection_margin, ui)
     fitted.timings["cross_validation"] = time.perf_counter() - t

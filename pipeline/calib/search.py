@@ -19,7 +19,7 @@ import json
 import time
 import warnings
 from collections.abc import Callable, Mapping
-from dataclasses import dataclass, fields
+from dataclasses import dataclass, field, fields
 from pathlib import Path
 from typing import Any
 
@@ -62,6 +62,10 @@ class NetResult:
     trials_reused: int
     trials_pruned: int
     history: list[dict[str, float]]  # the best trial's epochs: {epoch, loss, val_rmse}
+    # every considered trial once, by slot: the arguments of a `TrialLog` call (logged by the caller's
+    # process: the search may run in a forked one)
+    trials: list[tuple[int, dict[str, Any], list[dict[str, float]], str, float]] = field(default_factory=list)
+    seconds: float = 0.0  # wall time of the search
 
 
 def code_digest() -> str:
@@ -220,13 +224,18 @@ class _Search:
         ui.remove(bar)
         return run, reused
 
-    def log_trials(self, log_trial: TrialLog) -> None:
-        """Log each of the first n_trials finished trials once, by slot, wherever it ran: a worker's trial
-        is in the study (`record_trial`) when the search ends, whatever the worker's view of MLflow."""
+    def trial_records(self) -> list[tuple[int, dict[str, Any], list[dict[str, float]], str, float]]:
+        """The `TrialLog` arguments of each of the first n_trials finished trials once, by slot, wherever it
+        ran: a worker's trial is in the study (`record_trial`) when the search ends, whatever the worker's
+        view of MLflow."""
         considered = self.finished()[: self.gp.n_trials]
+        records = []
         for t in sorted(considered, key=lambda t: (trial_index(t), t.number)):
             record = trial_record(t)
-            log_trial(trial_index(t), record["values"], record["history"], t.state.name, record["seconds"])
+            records.append(
+                (trial_index(t), record["values"], record["history"], t.state.name, record["seconds"])
+            )
+        return records
 
     def best(self, run: int, reused: int) -> NetResult:
         """The lowest-validation-error complete trial among the first n_trials, with its model."""
@@ -267,11 +276,14 @@ def search_network(
 
     `start`: the affine baseline the networks correct (see `pipeline.calib.training.train_network`).
     """
+    t = time.perf_counter()
     search = _Search(gp, group, (train, val), start, n_inputs, seed, storage, identity, progress)
     search.open()
     result = search.best(*search.run())
-    if log_trial is not None:
-        search.log_trials(log_trial)
+    result.trials = search.trial_records()
+    result.seconds = time.perf_counter() - t
+    for record in result.trials if log_trial is not None else ():
+        log_trial(*record)
     return result
 
 
