@@ -60,6 +60,12 @@ def _check_name(value: object, key: str) -> None:
         raise ConfigError(f"{key} must be a non-empty string, got {value!r}")
 
 
+def check_suffix(value: object, key: str) -> None:
+    """A file suffix such as '.yaml' (a sidecar's), else ConfigError naming `key`."""
+    if not isinstance(value, str) or not value.startswith(".") or len(value) < 2:
+        raise ConfigError(f"{key} must be a file suffix like '.yaml', got {value!r}")
+
+
 @dataclass(frozen=True)
 class FootPairParams:
     """The front and rear FT sensors of one foot, whose sum is compared in the sole frame.
@@ -211,9 +217,7 @@ class MatParams:
             _check_name(urdf_name, "ingest.mat.sensor_names key")
             _check_name(logger_name, f"ingest.mat.sensor_names.{urdf_name}")
         object.__setattr__(self, "sensor_names", dict(names))
-        suffix = self.sidecar_suffix
-        if not isinstance(suffix, str) or not suffix.startswith(".") or len(suffix) < 2:
-            raise ConfigError(f"ingest.mat.sidecar_suffix must be a file suffix like '.yaml', got {suffix!r}")
+        check_suffix(self.sidecar_suffix, "ingest.mat.sidecar_suffix")
 
     @classmethod
     def from_mapping(cls, data: Any) -> MatParams:

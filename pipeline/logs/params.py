@@ -82,6 +82,8 @@ class DumperParams:
     sidecar_suffix: str = ".yaml"  # experiment metadata: <run><suffix> beside the run folder
 
     def __post_init__(self) -> None:
+        from pipeline.core.config import check_suffix
+
         key = "ingest.dumper"
         _name(self.ft_port, f"{key}.ft_port")
         _name(self.joint_port, f"{key}.joint_port")
@@ -128,9 +130,7 @@ class DumperParams:
         for k, item in enumerate(ignore):
             _name(item, f"{key}.ignore[{k}]")
         object.__setattr__(self, "ignore", tuple(ignore))
-        suffix = self.sidecar_suffix
-        if not isinstance(suffix, str) or not suffix.startswith(".") or len(suffix) < 2:
-            raise ConfigError(f"{key}.sidecar_suffix must be a file suffix like '.yaml', got {suffix!r}")
+        check_suffix(self.sidecar_suffix, f"{key}.sidecar_suffix")
 
     @classmethod
     def from_mapping(cls, data: Any) -> DumperParams:
