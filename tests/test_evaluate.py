@@ -321,6 +321,13 @@ def evaluated(tmp_path_factory: pytest.TempPathFactory) -> dict[str, Any]:
     """evaluate@<group> of both groups, then the report, on the synthetic fixture, in a real MLflow store."""
     root = tmp_path_factory.mktemp("evaluate")
     dirs = build_fixture(root)
+    results, out = evaluate_both(root, dirs)
+    return {"results": results, "out": out, "dirs": dirs, "root": root}
+
+
+def evaluate_both(root: Path, dirs: dict[str, Path]) -> tuple[dict[str, Any], Path]:
+    """evaluate@<group> of both fixture groups and the report into root/reports, in a real MLflow store
+    under `root`; (results by group, the reports directory)."""
     mp = pytest.MonkeyPatch()
     mp.setenv("MLFLOW_TRACKING_URI", f"sqlite:///{root / 'mlflow.db'}")
     try:
@@ -333,7 +340,7 @@ def evaluated(tmp_path_factory: pytest.TempPathFactory) -> dict[str, Any]:
         REPORT.run(params, out, dirs["labelled"])
     finally:
         mp.undo()
-    return {"results": results, "out": out, "dirs": dirs, "root": root}
+    return results, out
 
 
 def _report(evaluated: dict[str, Any], group: str) -> dict[str, Any]:

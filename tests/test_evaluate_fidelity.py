@@ -16,11 +16,8 @@ import numpy as np
 import pytest
 
 from pipeline.calib.excitation import excitation
-from pipeline.core.config import load_params
 from pipeline.evaluation.fidelity import unfaithful
-from pipeline.stages import evaluate as E
-from pipeline.stages import report as REPORT
-from tests.test_evaluate import FRONT, LEG, PAIR, REAR, build_fixture, write_params
+from tests.test_evaluate import FRONT, PAIR, REAR, build_fixture, evaluate_both
 
 FAITHFUL = [1.02, 0.98, 1.0, 1.01, 0.99, 1.0]
 
@@ -51,18 +48,7 @@ def evaluated(tmp_path_factory: pytest.TempPathFactory) -> dict[str, Any]:
     on_relation = np.c_[force, np.cross([0.0, 0.0, 0.1], force)]  # a free limb's labels
     metrics["excitation"] = {FRONT: excitation(FRONT, on_relation, np.r_[[0.6] * 3, [0.03] * 3]).to_dict()}
     path.write_text(json.dumps(metrics))
-    mp = pytest.MonkeyPatch()
-    mp.setenv("MLFLOW_TRACKING_URI", f"sqlite:///{root / 'mlflow.db'}")
-    try:
-        params = load_params(write_params(root))
-        out = root / "reports"
-        results = {
-            g: E.run(params, g, dirs["models"] / g, dirs["labelled"], out, dirs["ingested"], progress=False)
-            for g in (LEG, PAIR)
-        }
-        REPORT.run(params, out, dirs["labelled"])
-    finally:
-        mp.undo()
+    results, out = evaluate_both(root, dirs)
     return {"result": results[PAIR], "page": (out / "index.html").read_text(), "out": out}
 
 
