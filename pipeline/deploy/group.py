@@ -9,7 +9,7 @@ one more entry; the deployment page and verdict (`pipeline.deploy.verdict`) gath
 
 from __future__ import annotations
 
-from collections.abc import Callable
+from collections.abc import Callable, Mapping
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -36,6 +36,7 @@ class GroupDay:
     robot: Any  # the nominal RobotModel
     day: str
     figures: Path
+    excitation: Mapping[str, Any] | None = None  # train's metrics.json ``excitation`` (None: not recorded)
     _calibrated: dict[str, dict[str, np.ndarray]] = field(default_factory=dict, repr=False)
 
     def calibrated(self, log: DeployLog, table: Any) -> dict[str, np.ndarray]:
@@ -114,7 +115,7 @@ def d_interaction(ctx: GroupDay, log: DeployLog) -> TestResult:
     result = interaction_test(table, truth, calibrated, loads, ctx.dp)
     if not result:
         return {}, {}
-    outside_during(result, ctx.models, truth, calibrated)
+    outside_during(result, ctx.excitation, truth, calibrated)
     drawn = plot_interaction(table, truth, calibrated, ctx.figure("interaction"))
     return result, {"interaction": ctx.figure("interaction").name} if drawn else {}
 

@@ -25,9 +25,7 @@ the truth's as the oracle's within ``deploy.slope_tolerance``, the change's erro
 
 from __future__ import annotations
 
-import json
 from collections.abc import Mapping
-from pathlib import Path
 from typing import Any
 
 import numpy as np
@@ -191,17 +189,16 @@ def interaction_test(
 
 
 def outside_during(
-    result: dict[str, Any], models: Path, truth: Any, calibrated: Mapping[str, np.ndarray]
+    result: dict[str, Any],
+    excitation: Mapping[str, Any] | None,
+    truth: Any,
+    calibrated: Mapping[str, np.ndarray],
 ) -> None:
     """Add to each sensor's entry of `result` how far the deployed output lies outside its training
-    excitation (`pipeline.calib.excitation`, from models/<group>/metrics.json), during the pushes and
+    `excitation` (`pipeline.calib.excitation`, as in models/<group>/metrics.json), during the pushes and
     loads and on the rest of the log; nothing where train recorded no excitation."""
     from pipeline.evaluation.fidelity import outside_stats
 
-    try:
-        excitation = json.loads((Path(models) / "metrics.json").read_text(encoding="utf-8")).get("excitation")
-    except (OSError, ValueError):
-        excitation = None
     for sensor, entry in result.items():
         if not excitation or sensor not in excitation or sensor not in calibrated:
             continue

@@ -53,6 +53,7 @@ def run(
     from pipeline.deploy.prepare import load_nominal_robot, read_day
     from pipeline.deploy.verdict import RESULT_FILE
     from pipeline.evaluation.params import EvaluateParams
+    from pipeline.export.trained import read_metrics
 
     dp, cfg = deploy_params(params), stage_section(params, "evaluate", EvaluateParams)
     models, exported, out = Path(models), Path(exported), Path(out)
@@ -62,7 +63,9 @@ def run(
     if group not in deployed:
         raise DataError(f"{exported}: the export has no graph of {group} ({', '.join(deployed)})")
     days = days_of(Path(tables))
-    recorded = trained_on_recordings(models)
+    metrics = read_metrics(models)
+    # trained on recorded logs (train's ``data``: not simulated)
+    recorded = metrics.get("data", "simulated") != "simulated"
     if recorded:  # a real robot's calibration is not tested on the simulated robot's logs
         days = [d for d in days if d.name not in DAY_ORDER]
     sensors, robot = group_models(models)[0], load_nominal_robot(params)
@@ -70,26 +73,12 @@ def run(
     result["recorded"] = recorded
     with stage_run(f"{STAGE}@{group}", {"group": group, "deployed": deployed[group]}), atomic_dir(out) as tmp:
         for day in days:
-            ctx = GroupDay(
-                group, sensors, models, exported, deployed[group], params, dp, cfg, robot, day.name, tmp
-            )
+            args = (group, sensors, models, exported, deployed[group], params, dp, cfg, robot, day.name, tmp)
+            ctx = GroupDay(*args, excitation=metrics.get("excitation"))
             result["days"][day.name], result["figures"][day.name] = run_day(ctx, read_day(day))
         write_json(tmp / RESULT_FILE, result)
         mlflow.log_artifacts(str(tmp), f"deployment/{group}")
     return result
-
-
-def trained_on_recordings(models: Path) -> bool:
-    """Whether the group of `models` (models/<group>) was trained on recorded logs (train's metrics.json
-    ``data``: not simulated)."""
-    import json
-
-    path = Path(models) / "metrics.json"
-    try:
-        data = json.loads(path.read_text(encoding="utf-8")).get("data", "simulated")
-    except (OSError, ValueError) as exc:
-        raise DataError(f"{path}: not a train output: {exc}") from None
-    return data != "simulated"
 
 
 def _cmd(args: argparse.Namespace) -> int:
