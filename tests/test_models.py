@@ -13,6 +13,7 @@ from pipeline.calib.losses import sum_in_sole, switched_loss
 from pipeline.calib.models import (
     GroupNet,
     NetConfig,
+    _monomials,
     fit_linear_baseline,
     load_model,
     monomial_powers,
@@ -211,6 +212,25 @@ def test_baseline_without_labels_is_a_data_error() -> None:
 def test_monomial_count() -> None:
     # C(7 + n, n) monomials of degree <= n in 7 variables
     assert [len(monomial_powers(7, n)) for n in (1, 2, 3, 4)] == [8, 36, 120, 330]
+
+
+@pytest.mark.parametrize("chunk", [3, 2048])
+def test_monomials_are_the_products_factor_by_factor_in_variable_order(chunk: int) -> None:
+    # the features of the polynomial baselines (and of their exported graphs): every product computed as
+    # 1 * z_0 ... * z_1 ..., one factor at a time in ascending variable order, bit for bit, also for
+    # powers whose prefixes are not monomials of the list, and across chunks of samples
+    z = np.random.default_rng(3).standard_normal((10, 7)) * 3.0
+    powers = np.vstack([monomial_powers(7, 4), [[0, 2, 0, 0, 1, 0, 3]], [[5, 0, 0, 0, 0, 0, 0]]])
+    expected = np.empty((len(z), len(powers)))
+    for j, p in enumerate(powers):
+        value = np.ones(len(z))
+        for v, k in enumerate(p):
+            for _ in range(k):
+                value = value * z[:, v]
+        expected[:, j] = value
+    got = _monomials(z, powers, chunk=chunk)
+    assert got.flags["C_CONTIGUOUS"]
+    assert np.array_equal(got, expected)
 
 
 # --- networks and files --------------------------------------------------------------------------

@@ -270,13 +270,55 @@ def monomial_powers(n_vars: int, order: int) -> np.ndarray:
     return np.array(rows)
 
 
-def _monomials(z: np.ndarray, powers: np.ndarray) -> np.ndarray:
-    """(N, P) products z^powers for z (N, V) and powers (P, V), by repeated multiplication (exact)."""
-    out = np.ones((len(z), len(powers)))
-    for v in range(z.shape[1]):
-        for k in range(1, int(powers[:, v].max(initial=0)) + 1):
-            out[:, powers[:, v] >= k] *= z[:, v : v + 1]
+def _monomials(z: np.ndarray, powers: np.ndarray, chunk: int = 2048) -> np.ndarray:
+    """(N, P) products z^powers for z (N, V) and powers (P, V), by repeated multiplication (exact).
+
+    Each product is ``1 * z_0 ... z_0 * z_1 ...`` in ascending variable order, one factor at a time;
+    a monomial is computed as the one of its powers less the last factor times that factor (the same
+    products, each computed once instead of once per monomial containing it), `chunk` samples at a time.
+    """
+    z = np.asarray(z, dtype=np.float64)
+    plan = _monomial_plan(powers)
+    out = np.empty((len(z), len(powers)))
+    rows = np.empty((len(plan), min(chunk, len(z))))  # one monomial per row: contiguous products
+    for first in range(0, len(z), chunk):
+        part = z[first : first + chunk].T
+        m = part.shape[1]
+        for j, base, v in plan:
+            if v < 0:
+                rows[j, :m] = 1.0
+            else:
+                np.multiply(rows[base, :m] if base >= 0 else 1.0, part[v], out=rows[j, :m])
+        out[first : first + m] = rows[: len(powers), :m].T
     return out
+
+
+def _monomial_plan(powers: np.ndarray) -> list[tuple[int, int, int]]:
+    """How `_monomials` builds each product: (row, row of the powers less the last factor or -1 for the
+    constant 1, that factor's variable or -1 for the constant itself), in an order where every base comes
+    first; prefixes that are not among `powers` get rows after them."""
+    index = {tuple(int(k) for k in p): j for j, p in enumerate(powers)}
+    plan: list[tuple[int, int, int]] = []
+    done: set[tuple[int, ...]] = set()
+
+    def build(p: tuple[int, ...]) -> int:
+        if p not in index:
+            index[p] = len(index)
+        if p not in done:
+            nonzero = [v for v, k in enumerate(p) if k]
+            if not nonzero:
+                plan.append((index[p], -1, -1))
+            else:
+                last = nonzero[-1]
+                less = p[:last] + (p[last] - 1,) + p[last + 1 :]
+                base = -1 if not any(less) else build(less)
+                plan.append((index[p], base, last))
+            done.add(p)
+        return index[p]
+
+    for p in powers:
+        build(tuple(int(k) for k in p))
+    return plan
 
 
 @dataclass
@@ -413,11 +455,12 @@ def _add_sum_term(
     """Add the sum term of `fit_linear_baseline` (samples `rows`) to its normal equations, in place."""
     k = len(rhs) // len(phis)
     r = sum_label[rows] - np.einsum("sij,nsj->ni", transforms, x[rows, :, :WRENCH])
+    phis = [phi[rows] for phi in phis]
     for s, phi_s in enumerate(phis):
         # X_s W_s phi = (X_s kron phi^T) vec(W_s)
-        rhs[s * k : (s + 1) * k] += lambda_sum * (transforms[s].T @ r.T @ phi_s[rows]).reshape(-1)
+        rhs[s * k : (s + 1) * k] += lambda_sum * (transforms[s].T @ r.T @ phi_s).reshape(-1)
         for t, phi_t in enumerate(phis):
-            block = np.kron(transforms[s].T @ transforms[t], phi_s[rows].T @ phi_t[rows])
+            block = np.kron(transforms[s].T @ transforms[t], phi_s.T @ phi_t)
             normal[s * k : (s + 1) * k, t * k : (t + 1) * k] += lambda_sum * block
 
 
