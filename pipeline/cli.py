@@ -18,6 +18,7 @@ from pipeline.core.errors import FtcalError
 EXIT_OK = 0
 EXIT_USAGE = 2  # as argparse: bad arguments or bad input the user can fix
 EXIT_INTERRUPTED = 130  # 128 + SIGINT, as shells report Ctrl-C
+THEN = "+"  # between two commands run one after the other in one process (`main`)
 
 # Commands, in pipeline order: name -> (module, one-line help). A command's module defines
 # ``add_cli(subparsers)``, which adds its subcommand (same name as its DVC stage, if it is one) with
@@ -135,9 +136,19 @@ def _command(argv: Sequence[str]) -> str | None:
     return next((a for a in argv if a in COMMANDS), None)
 
 
-def main(argv: Sequence[str] | None = None) -> int:
-    """Run `ftcal` with `argv` (default: the command line); return the exit status."""
-    argv = list(sys.argv[1:] if argv is None else argv)
+def _split(argv: list[str]) -> list[list[str]]:
+    """The commands of a command line, cut at every standalone `THEN`."""
+    parts: list[list[str]] = [[]]
+    for arg in argv:
+        if arg == THEN:
+            parts.append([])
+        else:
+            parts[-1].append(arg)
+    return parts
+
+
+def _run(argv: list[str]) -> int:
+    """Run one command; return its exit status."""
     command = _command(argv)
     parser = build_parser(command if command is not None else "")
     try:
@@ -155,6 +166,23 @@ def main(argv: Sequence[str] | None = None) -> int:
     except KeyboardInterrupt:
         print("ftcal: interrupted", file=sys.stderr)
         return EXIT_INTERRUPTED
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    """Run `ftcal` with `argv` (default: the command line); return the exit status.
+
+    Commands joined by a standalone ``+`` run one after the other in this process (a DVC stage of several
+    steps pays the start-up, Python and its libraries, once); the first that fails stops the others.
+    """
+    parts = _split(list(sys.argv[1:] if argv is None else argv))
+    if len(parts) > 1 and not all(parts):
+        print(f"ftcal: error: an empty command before or after {THEN!r}", file=sys.stderr)
+        return EXIT_USAGE
+    for part in parts:
+        status = _run(part)
+        if status != EXIT_OK:
+            return status
+    return EXIT_OK
 
 
 if __name__ == "__main__":

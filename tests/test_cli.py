@@ -81,3 +81,19 @@ def test_robot_bad_urdf_is_a_one_line_error(tmp_path: Path, capsys: pytest.Captu
     assert main(["robot", "--urdf", str(missing)]) == 2
     err = capsys.readouterr().err
     assert err.count("\n") == 1 and err.startswith("ftcal: error: ")
+
+
+def test_commands_joined_by_plus_run_in_order_and_the_first_failure_stops_them(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    # a DVC stage of several steps runs them in one process: `ftcal A ... + B ...`
+    pytest.importorskip("pipeline.physics.robot")
+    assert main(["robot", "+", "robot", "--urdf", "iCubGenova09"]) == 0
+    assert capsys.readouterr().out.count("l_foot (front)") == 2
+    missing = tmp_path / "nope.urdf"
+    assert main(["robot", "--urdf", str(missing), "+", "robot"]) == 2
+    captured = capsys.readouterr()
+    assert "l_foot (front)" not in captured.out and str(missing) in captured.err
+    for argv in (["robot", "+"], ["+", "robot"], ["robot", "+", "+", "robot"]):
+        assert main(argv) == 2
+        assert capsys.readouterr().err.startswith("ftcal: error: an empty command")
