@@ -48,12 +48,20 @@ def _map(poses: torch.Tensor, wrench: torch.Tensor) -> torch.Tensor:
     return torch.cat([force, moment], dim=1)
 
 
+def _fixed(cut: CutTerm, dtype: torch.dtype) -> torch.Tensor:
+    """`cut.fixed` as a tensor of `dtype`, converted once per cut set (a training step calls this per set)."""
+    tensors = cut.__dict__.setdefault("_tensors", {})  # beside the frozen fields: not compared, not hashed
+    if dtype not in tensors:
+        tensors[dtype] = torch.as_tensor(cut.fixed, dtype=dtype)
+    return tensors[dtype]
+
+
 def cut_sums(cuts: tuple[CutTerm, ...], pred: torch.Tensor, poses: torch.Tensor | None) -> torch.Tensor:
     """(B, C, 6) signed sums of every cut set of predicted wrenches `pred` (B, S, 6), in each cut set's
     common frame; `poses` (B, P, 12): the moving members' poses, cut sets in order, members in order."""
     out, p = [], 0
     for cut in cuts:
-        fixed = torch.as_tensor(cut.fixed, dtype=pred.dtype)
+        fixed = _fixed(cut, pred.dtype)
         total = torch.einsum("kij,bkj->bi", fixed, pred[:, list(cut.members)])
         for k, sign in cut.moving:
             total = total + sign * _map(poses[:, p], pred[:, cut.members[k]])
