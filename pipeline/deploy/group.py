@@ -120,25 +120,49 @@ def d_interaction(ctx: GroupDay, log: DeployLog) -> TestResult:
     return result, {"interaction": ctx.figure("interaction").name} if drawn else {}
 
 
-# test name -> (the experiment type of the log it runs on, the test)
+# test name -> (the experiment type of the log it runs on, the test), in the order of a day's result
 DAY_TESTS: dict[str, tuple[str, Callable[[GroupDay, DeployLog], TestResult]]] = {
     "test_a": ("standing", a_noise),
     "test_b": ("walking", b_walking),
     "test_c": ("pole", c_torques),
     "test_d": ("interaction", d_interaction),
 }
+# the tests by decreasing cost (Test C: a rigid-body pass per sample and per wrench), so that forked workers
+# end together
+_LONGEST_FIRST = ("test_c", "test_a", "test_d", "test_b")
+
+
+def run_days(days: list[tuple[GroupDay, list[DeployLog]]]) -> list[TestResult]:
+    """`run_day` of each (day, its logs), every test of every day in its own forked job (the tests are
+    independent: each reads its own log); the same results, in the order of `days`."""
+    from pipeline.core.parallel import forked_map
+
+    jobs: list[tuple[int, str, GroupDay, DeployLog]] = []
+    for d, (ctx, logs) in enumerate(days):
+        for name in _LONGEST_FIRST:
+            kind, _ = DAY_TESTS[name]
+            log = next((g for g in logs if g.experiment.get("type", "") == kind), None)
+            if log is not None:
+                jobs.append((d, name, ctx, log))
+    if len(jobs) > 1:
+        from pipeline.evaluation.figures import pyplot
+
+        pyplot()  # matplotlib imported once, before the workers fork
+    calls = [lambda t=DAY_TESTS[name][1], c=ctx, g=log: t(c, g) for _, name, ctx, log in jobs]
+    done = {(d, name): out for (d, name, _, _), out in zip(jobs, forked_map(calls), strict=True)}
+    results: list[TestResult] = []
+    for d, (_, logs) in enumerate(days):
+        result: dict[str, Any] = {"logs": [log.name for log in logs]}
+        figures: dict[str, str] = {}
+        for name in DAY_TESTS:
+            out, drawn = done.get((d, name), ({}, {}))
+            if out:
+                result[name] = out
+                figures.update(drawn)
+        results.append((result, figures))
+    return results
 
 
 def run_day(ctx: GroupDay, logs: list[DeployLog]) -> TestResult:
     """Every test of `DAY_TESTS` on the first log of its type (a day without one skips the test)."""
-    result: dict[str, Any] = {"logs": [log.name for log in logs]}
-    figures: dict[str, str] = {}
-    for name, (kind, test) in DAY_TESTS.items():
-        log = next((g for g in logs if g.experiment.get("type", "") == kind), None)
-        if log is None:
-            continue
-        out, drawn = test(ctx, log)
-        if out:
-            result[name] = out
-            figures.update(drawn)
-    return result, figures
+    return run_days([(ctx, logs)])[0]

@@ -440,17 +440,22 @@ def write_group_figures(
     for old in (out / rel).glob("*.png"):
         old.unlink()
     figures: dict[str, Any] = {"loss": f"{rel}/loss.png", "noise": f"{rel}/noise.png", "names": {}}
-    jobs: list[tuple[str, Any]] = [
-        (figures["loss"], lambda p: plot_losses(r, p)),
-        (figures["noise"], lambda p: plot_noise_example(r, cfg, p)),
-    ]
+    draw = {
+        "rmse": lambda p, n: plot_rmse_axes(r, n, p),
+        "timeseries": lambda p, n: plot_timeseries(r, n, p),
+        "zoom": lambda p, n: plot_zoom(r, n, cfg.zoom_s, p),
+        "residuals": lambda p, n: plot_residuals(r, n, p),
+    }
     for name in r.names:
-        figs = {kind: f"{rel}/{name}_{kind}.png" for kind in ("rmse", "timeseries", "zoom", "residuals")}
-        figures["names"][name] = figs
-        jobs.append((figs["rmse"], lambda p, n=name: plot_rmse_axes(r, n, p)))
-        jobs.append((figs["timeseries"], lambda p, n=name: plot_timeseries(r, n, p)))
-        jobs.append((figs["zoom"], lambda p, n=name: plot_zoom(r, n, cfg.zoom_s, p)))
-        jobs.append((figs["residuals"], lambda p, n=name: plot_residuals(r, n, p)))
+        figures["names"][name] = {kind: f"{rel}/{name}_{kind}.png" for kind in draw}
+    # the costliest kinds first (zoom: an axes per axis and experiment type), so that the workers end together
+    jobs: list[tuple[str, Any]] = [
+        (figures["names"][name][kind], lambda p, n=name, kind=kind: draw[kind](p, n))
+        for kind in ("zoom", "residuals", "rmse", "timeseries")
+        for name in r.names
+    ]
+    jobs.append((figures["loss"], lambda p: plot_losses(r, p)))
+    jobs.append((figures["noise"], lambda p: plot_noise_example(r, cfg, p)))
     task = progress.add_task(f"evaluate {r.group}: plots", total=len(jobs)) if progress is not None else None
     from pipeline.core.parallel import forked_map
 

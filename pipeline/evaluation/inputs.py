@@ -198,8 +198,8 @@ def _read_predictions(group: str, gdir: Path) -> tuple[dict[str, Any], pd.DataFr
     if not sensors or train.get("group", group) != group:
         raise DataError(f"{gdir / TRAIN_METRICS}: not the training metrics of group {group}")
     try:
-        frame = pd.read_parquet(pred_path)
-        meta = json.loads((pq.read_schema(pred_path).metadata or {}).get(b"ftcal.train", b"{}"))
+        schema = pq.read_schema(pred_path)
+        meta = json.loads((schema.metadata or {}).get(b"ftcal.train", b"{}"))
     except (OSError, pa.ArrowException, ValueError) as exc:
         raise DataError(f"{pred_path}: cannot read the predictions: {exc}") from None
     names = [pair, *sensors] if pair else list(sensors)
@@ -211,19 +211,21 @@ def _read_predictions(group: str, gdir: Path) -> tuple[dict[str, Any], pd.DataFr
         prefix = f"{PRED}."
         suffix = f".{names[0]}.{S.WRENCH_AXES[0]}"
         models = [
-            c[len(prefix) : -len(suffix)]
-            for c in frame.columns
-            if c.startswith(prefix) and c.endswith(suffix)
+            c[len(prefix) : -len(suffix)] for c in schema.names if c.startswith(prefix) and c.endswith(suffix)
         ]
     needed = [LOG, S.STAMP, S.TIME]
     for name in names:
         needed += S.wrench_cols(S.EXPECTED, name) + [S.switch_col(name)]
         for model in models:
             needed += prediction_cols(model, name)
-    missing = [c for c in needed if c not in frame.columns]
+    missing = [c for c in needed if c not in schema.names]
     if RAW not in models or missing:
         detail = f"missing column {missing[0]}" if missing else f"no {RAW} predictions"
         raise DataError(f"{pred_path}: not the predictions of group {group}: {detail}")
+    try:  # only the columns of the group's names: train also writes labels of other sensor sets
+        frame = pd.read_parquet(pred_path, columns=needed)
+    except (OSError, pa.ArrowException, ValueError) as exc:
+        raise DataError(f"{pred_path}: cannot read the predictions: {exc}") from None
     if frame.empty:
         raise DataError(f"{pred_path}: no test samples")
     frame = frame.sort_values([LOG, S.STAMP], kind="stable").reset_index(drop=True)

@@ -172,27 +172,56 @@ def _masks(g: GroupInputs, name: str) -> dict[str, np.ndarray]:
     return out
 
 
-def error_tables(g: GroupInputs) -> tuple[dict, dict]:
-    """(tables, by_experiment) of a group: see GroupResult. The oracle is scored where it exists."""
+def _global_rmse(pred: np.ndarray, ref: np.ndarray) -> float:
+    """The ``rmse`` of `wrench_errors` (6 components pooled) of predictions and references (N, 6), alone:
+    the same operations, so the same bits; NaN if N = 0."""
+    err = pred - ref
+    return math.sqrt(float(np.mean(err**2))) if err.size else math.nan
+
+
+def name_errors(g: GroupInputs, name: str) -> tuple[dict, dict]:
+    """(tables, by_experiment) of one sensor or sum `name` of a group (see `GroupResult`).
+
+    Each model's predictions and finite rows are read once for every reference and experiment type; the
+    samples kept are those of `score` (both sides finite, on the reference's mask), so the numbers are
+    `score`'s."""
     f = g.frame
-    tables: dict[str, dict[str, dict[str, dict[str, float]]]] = {}
-    by_exp: dict[str, dict[str, dict[str, dict[str, float]]]] = {}
+    refs = {LABELS: wrench_of(f, S.EXPECTED, name)}
+    if g.has_truth:
+        refs[TRUTH_LABELLED] = refs[TRUTH] = wrench_of(f, S.TRUE, name)
+    masks = _masks(g, name)
     experiments = f[EXPERIMENT].to_numpy()
-    for name in g.names:
-        refs = {LABELS: wrench_of(f, S.EXPECTED, name)}
-        if g.has_truth:
-            refs[TRUTH_LABELLED] = refs[TRUTH] = wrench_of(f, S.TRUE, name)
-        masks = _masks(g, name)
-        tables[name], by_exp[name] = {}, {}
-        for ref, target in refs.items():
-            tables[name][ref], by_exp[name][ref] = {}, {}
-            preds = {m: wrench_of(f, f"{PRED}.{m}", name) for m in g.models}
+    in_kind = {kind: experiments == kind for kind in g.experiments}
+    preds = {m: wrench_of(f, f"{PRED}.{m}", name) for m in g.models}
+    finite = {m: np.isfinite(p).all(axis=1) for m, p in preds.items()}
+    tables: dict[str, dict[str, dict[str, float]]] = {}
+    by_exp: dict[str, dict[str, dict[str, float]]] = {}
+    for ref, target in refs.items():
+        on_ref = masks[ref] & np.isfinite(target).all(axis=1)
+        tables[ref] = {}
+        for model, pred in preds.items():
+            keep = on_ref & finite[model]
+            tables[ref][model] = wrench_errors(pred[keep], target[keep])
+        by_exp[ref] = {}
+        for kind in g.experiments:
+            in_ref = on_ref & in_kind[kind]
+            row = by_exp[ref][kind] = {}
             for model, pred in preds.items():
-                tables[name][ref][model] = score(pred, target, masks[ref])
-            for kind in g.experiments:
-                in_kind = masks[ref] & (experiments == kind)
-                by_exp[name][ref][kind] = {m: score(p, target, in_kind)["rmse"] for m, p in preds.items()}
+                keep = in_ref & finite[model]
+                row[model] = _global_rmse(pred[keep], target[keep])
     return tables, by_exp
+
+
+def scored(g: GroupInputs, cfg: EvaluateParams) -> tuple[dict, dict, NoiseResult]:
+    """(tables, by_experiment, noise) of a group (see GroupResult; the oracle is scored where it exists):
+    the noise check and each name's errors (`name_errors`) side by side in forked processes."""
+    from pipeline.core.parallel import forked_map
+
+    jobs = [lambda: noise_check(g, cfg), *(lambda name=name: name_errors(g, name) for name in g.names)]
+    noise, *per_name = forked_map(jobs)
+    tables = {name: t for name, (t, _) in zip(g.names, per_name, strict=True)}
+    by_exp = {name: b for name, (_, b) in zip(g.names, per_name, strict=True)}
+    return tables, by_exp, noise
 
 
 def phase_errors(g: GroupInputs, models: Sequence[str]) -> dict[str, Any]:
@@ -275,8 +304,7 @@ def recommend(ranking: Sequence[str], flagged: Iterable[str], available: Iterabl
 
 def evaluate_group(g: GroupInputs, cfg: EvaluateParams) -> GroupResult:
     """Tables, per-experiment RMSE, noise check and recommendation of one group (pure: no I/O)."""
-    tables, by_exp = error_tables(g)
-    noise = noise_check(g, cfg)
+    tables, by_exp, noise = scored(g, cfg)
     ranking = [str(m) for m in (g.train.get("validation_ranking") or [])]
     best = g.train.get("best_on_validation")
     if best is not None and best not in ranking:

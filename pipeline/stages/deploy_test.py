@@ -47,7 +47,7 @@ def run(
     from pipeline.core.config import stage_section
     from pipeline.core.io import atomic_dir, write_json
     from pipeline.core.tracking import stage_run
-    from pipeline.deploy.group import GroupDay, run_day
+    from pipeline.deploy.group import GroupDay, run_days
     from pipeline.deploy.models import deployed_models, group_models
     from pipeline.deploy.params import deploy_params
     from pipeline.deploy.prepare import load_nominal_robot, read_day
@@ -72,10 +72,12 @@ def run(
     result: dict[str, Any] = {"group": group, "deployed": deployed[group], "days": {}, "figures": {}}
     result["recorded"] = recorded
     with stage_run(f"{STAGE}@{group}", {"group": group, "deployed": deployed[group]}), atomic_dir(out) as tmp:
+        planned = []
         for day in days:
             args = (group, sensors, models, exported, deployed[group], params, dp, cfg, robot, day.name, tmp)
-            ctx = GroupDay(*args, excitation=metrics.get("excitation"))
-            result["days"][day.name], result["figures"][day.name] = run_day(ctx, read_day(day))
+            planned.append((GroupDay(*args, excitation=metrics.get("excitation")), read_day(day)))
+        for day, (tested, drawn) in zip(days, run_days(planned), strict=True):  # in parallel
+            result["days"][day.name], result["figures"][day.name] = tested, drawn
         write_json(tmp / RESULT_FILE, result)
         mlflow.log_artifacts(str(tmp), f"deployment/{group}")
     return result
