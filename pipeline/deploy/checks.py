@@ -163,10 +163,9 @@ def push_torques(
         true = read_true_torques(log, params.topics.sim_joint_torques, table[S.STAMP].to_numpy(), joints)
         if true is None:
             continue
-        est = {
-            kind: sensor_joint_torques(robot, sensor, joints, q, dq, ddq, w, fixed, gravity)
-            for kind, w in (("raw", _wrench(table, S.FT, sensor)), ("calibrated", calibrated[sensor]))
-        }
+        readings = np.stack([_wrench(table, S.FT, sensor), calibrated[sensor]])
+        both = sensor_joint_torques(robot, sensor, joints, q, dq, ddq, readings, fixed, gravity)
+        est = {"raw": both[0], "calibrated": both[1]}
         ok = (
             pushed
             & np.isfinite(true).all(1)

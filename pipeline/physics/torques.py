@@ -62,11 +62,13 @@ def sensor_joint_torques(
     fixed_link: str,
     gravity: Sequence[float],
 ) -> np.ndarray:
-    """(N, len(joints)) torques of `joints`, Nm, from the reading of `sensor` (module docstring).
+    """(N, len(joints)) torques of `joints`, Nm, from the reading of `sensor` (module docstring); with
+    several readings (K, N, 6), (K, N, len(joints)): the kinematics of each sample computed once for all.
 
     q, dq, ddq: (N, n_joints) rad, rad/s, rad/s^2 in ``robot.joint_names`` order. wrench: (N, 6) the
-    sensor's reading in its frame and measure direction, N / Nm. fixed_link: the link fixed in the world;
-    gravity: (3,) m/s^2 in its frame. Raises RobotModelError for a joint not on a path through the sensor.
+    sensor's reading in its frame and measure direction, N / Nm (or (K, N, 6): K readings, e.g. raw and
+    calibrated). fixed_link: the link fixed in the world; gravity: (3,) m/s^2 in its frame. Raises
+    RobotModelError for a joint not on a path through the sensor.
     """
     ft = robot.check_sensor(sensor)
     rooted = robot.rooted(fixed_link)
@@ -100,7 +102,10 @@ def sensor_joint_torques(
     vs, accs = np.zeros((n, model.nv)), np.zeros((n, model.nv))
     vs[:, rooted.v_index], accs[:, rooted.v_index] = dq * rooted.sign, ddq * rooted.sign
     bodies = sorted({b for _, between, _, _ in plans for b in between})
-    out = np.zeros((n, len(joints)))
+    wrenches = np.asarray(wrench, dtype=float)
+    many = wrenches.ndim == 3
+    wrenches = wrenches if many else wrenches[None]
+    out = np.zeros((len(wrenches), n, len(joints)))
     for i in range(n):
         pin.forwardKinematics(model, data, qs[i], vs[i], accs[i])
         pin.computeJointJacobians(model, data, qs[i])
@@ -109,12 +114,15 @@ def sensor_joint_torques(
             g_local = pin.Motion(data.oMi[b].rotation.T @ model.gravity.linear, np.zeros(3))
             inertia, v = model.inertias[b], data.v[b]
             own[b] = inertia * (data.a[b] - g_local) + v.cross(inertia * v)
-        w_far = s_frame.placement.act(pin.Force(sign * wrench[i]))  # in the sensor joint frame
+        w_far = [s_frame.placement.act(pin.Force(sign * w)) for w in wrenches[:, i]]  # sensor joint frame
         for c, (jid, between, sub, urdf_sign) in enumerate(plans):
             j_inv = data.oMi[jid].inverse()
-            total = (j_inv * data.oMi[s_jid]).act(w_far)
-            for b in between:
-                total = total + (j_inv * data.oMi[b]).act(own[b]) * sub
+            to_joint = j_inv * data.oMi[s_jid]
+            links = [(j_inv * data.oMi[b]).act(own[b]) * sub for b in between]
             axis = pin.getJointJacobian(model, data, jid, pin.LOCAL)[:, model.idx_vs[jid]]
-            out[i, c] = urdf_sign * float(axis @ total.vector)
-    return out
+            for k, w in enumerate(w_far):
+                total = to_joint.act(w)
+                for link in links:
+                    total = total + link
+                out[k, i, c] = urdf_sign * float(axis @ total.vector)
+    return out if many else out[0]
