@@ -63,7 +63,8 @@ def prepare_logs(
     feet = robot_feet(robot, params.robot.foot_pairs)
     pairs = [f.pair for f in feet if f.pair is not None]
     cuts = find_cut_sets(robot, pairs, label_cfg.cut_max_sensors)
-    lab = Labeller(robot, pairs, cuts, label_cfg, params.robot.gravity, feet)
+    # one RNEA thread: the logs are labelled in forked processes, one per core
+    lab = Labeller(robot, pairs, cuts, label_cfg, params.robot.gravity, feet, threads=1)
     dirs = {k: work / k for k in ("ingested", "smoothed", "labelled")}
     for d in dirs.values():
         d.mkdir(parents=True, exist_ok=True)

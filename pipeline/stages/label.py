@@ -66,7 +66,8 @@ def run(
     feet = robot_feet(robot, params.robot.foot_pairs)
     pairs = [f.pair for f in feet if f.pair is not None]
     cuts = find_cut_sets(robot, pairs, cfg.cut_max_sensors)
-    lab = Labeller(robot, pairs, cuts, cfg, params.robot.gravity, feet)
+    # one RNEA thread: the tables are labelled in forked processes, one per core
+    lab = Labeller(robot, pairs, cuts, cfg, params.robot.gravity, feet, threads=1)
     summaries: list[LogSummary] = []
     start = time.perf_counter()
     with stage_run(STAGE, {"label": asdict(cfg), "robot": asdict(params.robot)}):
