@@ -5,6 +5,7 @@ from __future__ import annotations
 import os
 
 import numpy as np
+import pytest
 
 from pipeline.core.parallel import forked_map
 
@@ -18,3 +19,18 @@ def test_forked_jobs_return_what_they_compute_alone_in_order() -> None:
     assert [r[2] for r in results] == alone  # bit for bit
     assert all(r[1] != os.getpid() for r in results)  # run in other processes
     assert [r[0] for r in forked_map(jobs, workers=1)] == list(range(7))  # one worker: here, in order
+
+
+def test_costliest_jobs_first_still_yield_in_order() -> None:
+    jobs = [lambda k=k: (k, os.getpid()) for k in range(5)]
+    results = list(forked_map(jobs, workers=2, costs=[1.0, 5.0, 2.0, 5.0, 0.5]))
+    assert [r[0] for r in results] == list(range(5))
+    assert [r[0] for r in forked_map(jobs, workers=1, costs=[3.0, 1.0, 2.0, 0.0, 4.0])] == list(range(5))
+
+
+def test_a_failing_job_raises_in_the_caller() -> None:
+    def fail() -> None:
+        raise ValueError("job 1")
+
+    with pytest.raises(ValueError, match="job 1"):
+        list(forked_map([lambda: 0, fail, lambda: 2], workers=2))

@@ -21,18 +21,36 @@ def _run(index: int) -> Any:
     return _JOBS[index]()
 
 
-def forked_map(jobs: Sequence[Callable[[], Any]], workers: int | None = None) -> Iterator[Any]:
+def forked_map(
+    jobs: Sequence[Callable[[], Any]], workers: int | None = None, costs: Sequence[float] | None = None
+) -> Iterator[Any]:
     """The results of `jobs`, in order, computed in up to `workers` (default: one per core) forked
-    processes; yields each as soon as it and the ones before it are done."""
+    processes; yields each as soon as it and the ones before it are done.
+
+    With `costs` (one per job, e.g. input bytes), the workers take the costliest jobs first, which
+    balances the workers when the jobs' sizes differ; the results still come in the order of `jobs`.
+    If a job raises, the jobs not started yet are dropped and its exception is raised here.
+    """
     global _JOBS
     n = min(workers or os.cpu_count() or 1, len(jobs))
     if n < 2 or "fork" not in multiprocessing.get_all_start_methods():
         for job in jobs:
             yield job()
         return
-    _JOBS = list(jobs)
+    order = list(range(len(jobs)))
+    if costs is not None:
+        ranked = list(costs)
+        order.sort(key=lambda i: -ranked[i])  # stable: equal costs keep the jobs' order
+    _JOBS = [jobs[i] for i in order]
+    pool = ProcessPoolExecutor(n, mp_context=multiprocessing.get_context("fork"))
     try:
-        with ProcessPoolExecutor(n, mp_context=multiprocessing.get_context("fork")) as pool:
-            yield from pool.map(_run, range(len(jobs)))
+        done: dict[int, Any] = {}
+        following = 0  # the next job (index into `jobs`) to yield
+        for i, result in zip(order, pool.map(_run, range(len(jobs))), strict=True):
+            done[i] = result
+            while following in done:
+                yield done.pop(following)
+                following += 1
     finally:
+        pool.shutdown(wait=True, cancel_futures=True)
         _JOBS = []

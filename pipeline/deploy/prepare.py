@@ -11,13 +11,17 @@ from __future__ import annotations
 import json
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 from pipeline.core.config import LabelParams, Params, repo_root, resolve_urdf, stage_section
 from pipeline.core.errors import DataError
 from pipeline.logs import schema as S
 from pipeline.logs.smoothing import SmoothParams, smooth_table
 from pipeline.physics.robot import RobotModel, load_robot
+
+if TYPE_CHECKING:
+    from pipeline.labels.table import Labeller
+    from pipeline.stages.ingest import RobotLogSpec
 
 
 @dataclass(frozen=True)
@@ -41,10 +45,11 @@ def prepare_logs(
     params: Params, robot: RobotModel, logs: list[Path], source_dir: Path, work: Path
 ) -> list[DeployLog]:
     """Ingest, smooth and label every log of `logs` (under `source_dir`) into `work`/<step>/."""
-    from pipeline.labels.table import Labeller, label_table
+    from pipeline.core.parallel import forked_map
+    from pipeline.labels.table import Labeller
     from pipeline.physics.cuts import find_cut_sets
     from pipeline.physics.feet import robot_feet
-    from pipeline.stages.ingest import IngestParams, RobotLogSpec, ingest_one, output_name
+    from pipeline.stages.ingest import IngestParams, RobotLogSpec, log_size, output_name
 
     spec = RobotLogSpec(
         stage_section(params, "ingest", IngestParams),
@@ -58,36 +63,47 @@ def prepare_logs(
     feet = robot_feet(robot, params.robot.foot_pairs)
     pairs = [f.pair for f in feet if f.pair is not None]
     cuts = find_cut_sets(robot, pairs, label_cfg.cut_max_sensors)
-    lab = Labeller(robot, pairs, cuts, label_cfg, params.robot.gravity, feet)
+    # one RNEA thread: the logs are labelled in forked processes, one per core
+    lab = Labeller(robot, pairs, cuts, label_cfg, params.robot.gravity, feet, threads=1)
     dirs = {k: work / k for k in ("ingested", "smoothed", "labelled")}
     for d in dirs.values():
         d.mkdir(parents=True, exist_ok=True)
-    out = []
-    for log in logs:
-        name = output_name(log, source_dir)
-        ingest_one(log, dirs["ingested"], name, spec, None)
-        table = S.PARQUET_SUFFIX
-        smooth_table(dirs["ingested"] / f"{name}{table}", dirs["smoothed"] / f"{name}{table}", smooth_cfg)
-        truth = dirs["ingested"] / f"{name}{S.TRUTH_SUFFIX}{table}"
-        has_truth = truth.is_file()
-        label_table(
-            dirs["smoothed"] / f"{name}{table}",
-            dirs["labelled"] / f"{name}{table}",
-            lab,
-            dirs["ingested"] if has_truth else None,
-        )
-        experiment = _experiment(dirs["ingested"] / f"{name}{table}")
-        out.append(
-            DeployLog(
-                name,
-                log,
-                dirs["smoothed"] / f"{name}{table}",
-                dirs["labelled"] / f"{name}{table}",
-                truth if has_truth else None,
-                experiment,
-            )
-        )
-    return out
+    import scipy.signal  # noqa: F401  (smooth_table's filter: imported once, inherited by the workers)
+
+    # the logs are independent: one forked process per core, the largest first
+    jobs = [
+        lambda log=log: _prepare_one(log, output_name(log, source_dir), dirs, spec, smooth_cfg, lab)
+        for log in logs
+    ]
+    return list(forked_map(jobs, costs=[log_size(log) for log in logs]))
+
+
+def _prepare_one(
+    log: Path, name: str, dirs: dict[str, Path], spec: RobotLogSpec, smooth_cfg: SmoothParams, lab: Labeller
+) -> DeployLog:
+    """Ingest, smooth and label one log as `name` into `dirs` (``ingested``, ``smoothed``, ``labelled``)."""
+    from pipeline.labels.table import label_table
+    from pipeline.stages.ingest import ingest_one
+
+    ingest_one(log, dirs["ingested"], name, spec, None)
+    table = S.PARQUET_SUFFIX
+    smooth_table(dirs["ingested"] / f"{name}{table}", dirs["smoothed"] / f"{name}{table}", smooth_cfg)
+    truth = dirs["ingested"] / f"{name}{S.TRUTH_SUFFIX}{table}"
+    has_truth = truth.is_file()
+    label_table(
+        dirs["smoothed"] / f"{name}{table}",
+        dirs["labelled"] / f"{name}{table}",
+        lab,
+        dirs["ingested"] if has_truth else None,
+    )
+    return DeployLog(
+        name,
+        log,
+        dirs["smoothed"] / f"{name}{table}",
+        dirs["labelled"] / f"{name}{table}",
+        truth if has_truth else None,
+        _experiment(dirs["ingested"] / f"{name}{table}"),
+    )
 
 
 def _experiment(table: Path) -> dict[str, str]:

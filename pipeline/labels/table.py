@@ -41,6 +41,9 @@ class Labeller:
     cfg: LabelParams
     gravity: float  # m/s^2, magnitude
     feet: list[Foot] = field(default_factory=list)  # every foot (one or two sensors); [] = the pairs'
+    # RNEA threads per table (pinocchio's OpenMP; None: one per core). 1 where tables are labelled in
+    # forked processes: one thread per process, and a child forked after an OpenMP team ran hangs in its own
+    threads: int | None = None
 
     def __post_init__(self) -> None:
         if not self.feet:
@@ -82,7 +85,7 @@ def label_arrays(
     for set_id, fixed in keys:
         rows = np.flatnonzero(usable & (contacts.index == set_id) & (contacts.fixed == fixed))
         case = ContactCase.make(contacts.sets[set_id], fixed, gravity_fixed)
-        out = expected_wrenches(robot, q[rows], dq[rows], ddq[rows], case, lab.pairs)
+        out = expected_wrenches(robot, q[rows], dq[rows], ddq[rows], case, lab.pairs, lab.threads)
         for s in robot.sensors:
             exp[s][rows], sw[s][rows], reading[s][rows] = out.wrench[s], out.switch[s], out.reading[s]
         for p in lab.pairs:

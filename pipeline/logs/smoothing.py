@@ -183,7 +183,7 @@ def smooth_table(src: Path, dst: Path, cfg: SmoothParams) -> SmoothReport:
     res = smooth_kinematics(stamps, q, cfg.window, cfg.polyorder, cfg.max_gap_s)
     res.ok &= np.isfinite(q).all(axis=1)
     extra = S.smoothed_extra_columns(joints)
-    meta = read_table_metadata(src)
+    meta = read_table_metadata(pf)
     smooth_meta = {
         **asdict(cfg),
         "segments": res.segments,

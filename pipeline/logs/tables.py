@@ -102,13 +102,18 @@ class AtomicParquet:
                 self._atomic.__exit__(RuntimeError, err, None)
 
 
-def read_table_metadata(path: str | Path) -> dict[str, Any]:
-    """The ``ftcal.*`` key-value metadata of a Parquet table, JSON-decoded (schema and file footer)."""
+def read_table_metadata(path: str | Path | Any) -> dict[str, Any]:
+    """The ``ftcal.*`` key-value metadata of a Parquet table, JSON-decoded (schema and file footer).
+
+    `path` may also be a table already open as a ``pyarrow.parquet.ParquetFile`` (its footer is not read
+    again).
+    """
     import pyarrow.parquet as pq
 
     out: dict[str, Any] = {}
-    meta = pq.ParquetFile(path).metadata.metadata or {}
-    schema_meta = pq.read_schema(path).metadata or {}
+    pf = path if isinstance(path, pq.ParquetFile) else pq.ParquetFile(path)
+    meta = pf.metadata.metadata or {}
+    schema_meta = pf.schema_arrow.metadata or {}
     for key, value in {**schema_meta, **meta}.items():
         if key.startswith(b"ftcal."):
             out[key.decode()] = json.loads(value)

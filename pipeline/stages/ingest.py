@@ -228,9 +228,11 @@ def run(
 def _ingest_all(
     logs: Sequence[Path], names: Sequence[str], staging: Path, spec: RobotLogSpec, progress: bool | None
 ) -> IngestSummary:
-    """Ingest the logs one by one into `staging`; a bad log raises, or is skipped with skip_bad_logs."""
+    """Ingest the logs into `staging`, one forked process per core, the largest first; their reports in
+    the logs' order. A bad log raises, or is skipped with skip_bad_logs; the bar advances by whole logs."""
     import mlflow
 
+    from pipeline.core.parallel import forked_map
     from pipeline.core.progress import progress_bar
     from pipeline.logs.tables import LogReport
 
@@ -238,22 +240,35 @@ def _ingest_all(
     reports: list[LogReport] = []
     skipped: list[LogReport] = []
     mlflow.set_tags({"logs": str(len(logs))})
+    sizes = [log_size(log) for log in logs]
+    jobs = [
+        lambda log=log, name=name: _ingest_job(log, staging, name, spec)
+        for log, name in zip(logs, names, strict=True)
+    ]
     with progress_bar(progress, bytes_=True) as bar:
-        for log, name in zip(logs, names, strict=True):
-            task = bar.add_task(log.name, total=log_size(log))
-            try:
-                reports.append(ingest_one(log, staging, name, spec, lambda n, t=task: bar.advance(t, n)))
-            except DataError as exc:
-                if not spec.cfg.skip_bad_logs:
-                    mlflow.set_tag("error", str(exc)[:5000])
-                    raise
-                skipped.append(LogReport(source=str(log), error=str(exc)))
-                print(f"ftcal: warning: skipping {exc}", file=sys.stderr)
-            except OSError as exc:
-                raise DataError(f"{staging.parent}: cannot write {name}: {exc.strerror or exc}") from None
-            finally:
-                bar.remove_task(task)
+        task = bar.add_task(f"{len(logs)} log(s)", total=sum(sizes))
+        for log, size, result in zip(logs, sizes, forked_map(jobs, costs=sizes), strict=True):
+            bar.advance(task, size)
+            if isinstance(result, LogReport):
+                reports.append(result)
+                continue
+            if not spec.cfg.skip_bad_logs:
+                mlflow.set_tag("error", str(result)[:5000])
+                raise result
+            skipped.append(LogReport(source=str(log), error=str(result)))
+            print(f"ftcal: warning: skipping {result}", file=sys.stderr)
     return IngestSummary(reports, skipped, time.perf_counter() - t0)
+
+
+def _ingest_job(log: Path, staging: Path, name: str, spec: RobotLogSpec) -> LogReport | DataError:
+    """`ingest_one` as a job of `_ingest_all`: a bad log's DataError is returned, for the caller to skip
+    or raise in the logs' order; a failed write raises a DataError at once."""
+    try:
+        return ingest_one(log, staging, name, spec, None)
+    except DataError as exc:
+        return exc
+    except OSError as exc:
+        raise DataError(f"{staging.parent}: cannot write {name}: {exc.strerror or exc}") from None
 
 
 def _log_mlflow(active: Any, summary: IngestSummary) -> None:

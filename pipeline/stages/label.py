@@ -46,6 +46,7 @@ def run(
     import mlflow
 
     from pipeline.core.config import LabelParams, repo_root, resolve_urdf, stage_section
+    from pipeline.core.parallel import forked_map
     from pipeline.core.progress import progress_bar
     from pipeline.core.tracking import stage_run
     from pipeline.labels.table import Labeller, label_table
@@ -65,16 +66,18 @@ def run(
     feet = robot_feet(robot, params.robot.foot_pairs)
     pairs = [f.pair for f in feet if f.pair is not None]
     cuts = find_cut_sets(robot, pairs, cfg.cut_max_sensors)
-    lab = Labeller(robot, pairs, cuts, cfg, params.robot.gravity, feet)
+    # one RNEA thread: the tables are labelled in forked processes, one per core
+    lab = Labeller(robot, pairs, cuts, cfg, params.robot.gravity, feet, threads=1)
     summaries: list[LogSummary] = []
     start = time.perf_counter()
     with stage_run(STAGE, {"label": asdict(cfg), "robot": asdict(params.robot)}):
         with progress_bar(progress) as bar:
             task = bar.add_task("label", total=len(tables))
-            for table in tables:
-                summaries.append(
-                    label_table(table, out / table.name, lab, Path(truth_dir) if truth_dir else None)
-                )
+            truth = Path(truth_dir) if truth_dir else None
+            # the tables are independent: one forked process per core, the largest first
+            jobs = [lambda t=table: label_table(t, out / t.name, lab, truth) for table in tables]
+            for summary in forked_map(jobs, costs=[t.stat().st_size for t in tables]):
+                summaries.append(summary)
                 bar.advance(task)
         seconds = time.perf_counter() - start
         samples = sum(s.samples for s in summaries)
