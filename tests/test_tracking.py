@@ -84,6 +84,15 @@ def runs_of(client: MlflowClient, experiment: str) -> list:
     return client.search_runs([exp.experiment_id])
 
 
+def test_a_step_of_a_dvc_stage_is_tagged_with_both(in_repo: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    # `ftcal export ... + deploy-test ...` in stage evaluate@legs: DVC names the stage in $DVC_STAGE
+    monkeypatch.setenv("DVC_STAGE", "evaluate@legs")
+    with stage_run("export@legs", experiment="test-steps") as run:
+        run_id = run.info.run_id
+    tags = MlflowClient(f"sqlite:///{in_repo / 'mlflow.db'}").get_run(run_id).data.tags
+    assert (tags["step"], tags["dvc.stage"]) == ("export@legs", "evaluate@legs")
+
+
 def test_stage_run_logs_one_tagged_run(in_repo: Path) -> None:
     params = {"seed": 42, "robot": {"urdf": "iCubGenova09", "gravity": 9.80665}, "long": "z" * 7000}
     with stage_run("label", params, experiment="test-one-run") as run:
@@ -96,7 +105,7 @@ def test_stage_run_logs_one_tagged_run(in_repo: Path) -> None:
     assert got.info.status == "FINISHED"
     assert got.info.run_name == "label"
     sha = git(in_repo, "rev-parse", "HEAD")
-    assert got.data.tags["dvc.stage"] == "label"
+    assert got.data.tags["dvc.stage"] == got.data.tags["step"] == "label"  # run outside DVC
     assert got.data.tags["git.commit"] == sha
     assert got.data.tags["mlflow.source.git.commit"] == sha
     assert got.data.tags["git.dirty"] == "false"

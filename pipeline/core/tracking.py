@@ -114,8 +114,9 @@ def stage_run(
 ) -> Iterator[Any]:
     """Run the block inside one MLflow run named after the DVC stage; yield the active run.
 
-    Tags: ``dvc.stage``, ``git.commit`` and ``mlflow.source.git.commit`` (sha or ``unknown``),
-    ``git.dirty`` (``true``/``false``). `params` are logged flattened with dotted keys.
+    Tags: ``step`` (`stage`: the step, named as its stage would be), ``dvc.stage`` (``$DVC_STAGE``, the DVC
+    stage running the step, else `stage`), ``git.commit`` and ``mlflow.source.git.commit`` (sha or
+    ``unknown``), ``git.dirty`` (``true``/``false``). `params` are logged flattened with dotted keys.
     If the block raises, the run ends FAILED (KILLED for Ctrl-C) and the exception propagates.
     """
     import mlflow  # deferred: importing mlflow takes seconds, and most of the CLI does not need it
@@ -133,7 +134,9 @@ def stage_run(
     )
     commit, dirty = git_state()
     tags = {
-        "dvc.stage": stage,
+        "step": stage,
+        # the DVC stage running this step (one stage may run several: `ftcal A + B`); the step outside DVC
+        "dvc.stage": os.environ.get("DVC_STAGE") or stage,
         "git.commit": commit,
         "git.dirty": dirty,
         "mlflow.source.git.commit": commit,
