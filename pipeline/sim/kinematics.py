@@ -7,6 +7,7 @@ Joint vectors are in ``robot.joint_names`` order (rad, m for prismatic joints); 
 
 from __future__ import annotations
 
+import math
 from collections.abc import Sequence
 from dataclasses import dataclass
 
@@ -49,6 +50,14 @@ def smoothstep(s: np.ndarray) -> np.ndarray:
     return s**5 * (126 - 420 * s + 540 * s**2 - 315 * s**3 + 70 * s**4)
 
 
+def cross3(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """a x b of two (3,) float vectors: the products and differences of np.cross (the same bits), without
+    its overhead per call (for loops over samples)."""
+    a0, a1, a2 = a.tolist()
+    b0, b1, b2 = b.tolist()
+    return np.array([a1 * b2 - a2 * b1, a2 * b0 - a0 * b2, a0 * b1 - a1 * b0])
+
+
 def multisine(
     rng: np.random.Generator, t: np.ndarray, n: int, f_min: float, f_max: float, n_terms: int = 3
 ) -> np.ndarray:
@@ -78,6 +87,16 @@ class Kinematics:
         lower = np.where(np.isfinite(lower), lower, -np.pi)
         upper = np.where(np.isfinite(upper), upper, np.pi)
         self.lower, self.upper = lower + limit_margin, upper - limit_margin
+        self._neutral = pin.neutral(self.model)
+        # (frame id, mass kg, COM (3,) m in the link frame) of every link with mass, in robot.links order
+        self._masses = [
+            (self.model.getFrameId(name), inertial.mass, inertial.com)
+            for name, inertial in robot.links.items()
+            if inertial is not None and inertial.mass != 0.0
+        ]
+        self._total_mass = 0.0
+        for _, mass, _ in self._masses:  # summed in the same order as the moments
+            self._total_mass += mass
 
     def chain(self, link: str) -> np.ndarray:
         """Indices (robot order) of the movable joints between root_link and `link`."""
@@ -94,7 +113,7 @@ class Kinematics:
         return np.array(out[::-1], dtype=np.intp)
 
     def _pin_q(self, q: np.ndarray) -> np.ndarray:
-        out = pin.neutral(self.model)
+        out = self._neutral.copy()
         out[self.to_pin] = q
         return out
 
@@ -118,19 +137,15 @@ class Kinematics:
         acc = pin.getFrameClassicalAcceleration(self.model, self.data, fid, aligned)
         r = placement.rotation @ np.asarray(point, dtype=float)
         w, alpha = vel.angular, pin.getFrameAcceleration(self.model, self.data, fid, aligned).angular
-        return placement.translation + r, acc.linear + np.cross(alpha, r) + np.cross(w, np.cross(w, r))
+        return placement.translation + r, acc.linear + cross3(alpha, r) + cross3(w, cross3(w, r))
 
     def com(self, q: np.ndarray) -> np.ndarray:
         """Centre of mass of the whole robot in the root_link frame, m (3,)."""
         pin.framesForwardKinematics(self.model, self.data, self._pin_q(q))
-        total, moment = 0.0, np.zeros(3)
-        for name, inertial in self.robot.links.items():
-            if inertial is None or inertial.mass == 0.0:
-                continue
-            pose = self.data.oMf[self.model.getFrameId(name)]
-            total += inertial.mass
-            moment += inertial.mass * pose.act(inertial.com)
-        return moment / total
+        moment = np.zeros(3)
+        for fid, mass, com in self._masses:
+            moment += mass * self.data.oMf[fid].act(com)
+        return moment / self._total_mass
 
     def ik(
         self,
@@ -148,30 +163,31 @@ class Kinematics:
         limits (minus the margin); raises RobotModelError if the target is out of reach.
         """
         q = q.copy()
-        fid = self.model.getFrameId(frame)
-        pin_idx = np.array(
-            [self.model.idx_vs[self.model.getJointId(self.robot.joint_names[j])] for j in joints]
-        )
+        model, data = self.model, self.data
+        fid = model.getFrameId(frame)
+        columns = self.to_pin_v[joints]  # the Jacobian's columns of `joints`
+        lower, upper = self.lower[joints], self.upper[joints]
+        damping = 1e-4 * np.eye(len(joints))
         err = np.inf
         for _ in range(iters):
             pq = self._pin_q(q)
-            pin.framesForwardKinematics(self.model, self.data, pq)
-            current = self.data.oMf[fid]
+            pin.forwardKinematics(model, data, pq)
+            current = pin.updateFramePlacement(model, data, fid)
             if position_only:
                 err_vec = target.translation - current.translation
-                jac = pin.computeFrameJacobian(self.model, self.data, pq, fid, pin.LOCAL_WORLD_ALIGNED)[
-                    :3, pin_idx
-                ]
             else:
                 err_vec = pin.log6(current.actInv(target)).vector
-                jac = pin.computeFrameJacobian(self.model, self.data, pq, fid, pin.LOCAL)[:, pin_idx]
-            err = np.linalg.norm(err_vec)
+            err = math.sqrt(err_vec.dot(err_vec))  # = np.linalg.norm, without its overhead
             if err < tol:
                 return q
+            if position_only:
+                jac = pin.computeFrameJacobian(model, data, pq, fid, pin.LOCAL_WORLD_ALIGNED)[:3, columns]
+            else:
+                jac = pin.computeFrameJacobian(model, data, pq, fid, pin.LOCAL)[:, columns]
             # Levenberg-Marquardt with a capped step: a straight knee is singular
-            step = np.linalg.solve(jac.T @ jac + 1e-4 * np.eye(len(joints)), jac.T @ err_vec)
+            step = np.linalg.solve(jac.T @ jac + damping, jac.T @ err_vec)
             step *= min(1.0, 0.3 / max(np.abs(step).max(), 1e-12))
-            q[joints] = np.clip(q[joints] + step, self.lower[joints], self.upper[joints])
+            q[joints] = np.clip(q[joints] + step, lower, upper)
         if err > 1e-5:
             raise RobotModelError(
                 f"inverse kinematics of {frame} did not converge (error {err:.2e}): "

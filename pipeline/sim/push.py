@@ -16,7 +16,7 @@ import numpy as np
 
 from pipeline.core.errors import ConfigError
 from pipeline.sim.interaction import InteractionParams
-from pipeline.sim.kinematics import Kinematics, smoothstep
+from pipeline.sim.kinematics import Kinematics, cross3, smoothstep
 from pipeline.sim.motion import Motion
 from pipeline.sim.params import PushParams
 from pipeline.sim.sites import KIND_HAND, Site
@@ -47,7 +47,7 @@ def add_pushes(kin: Kinematics, motion: Motion, links: Sequence[str], p: PushPar
         wrench = np.zeros((motion.n, 6))
         for k in np.flatnonzero(who == i):
             f = force[k] * direction
-            wrench[k] = np.r_[f, np.cross(kin.frame_pose(motion.q[k], link).translation, f)]
+            wrench[k] = np.concatenate((f, cross3(kin.frame_pose(motion.q[k], link).translation, f)))
         pushes[link] = wrench
     return replace(motion, pushes=pushes)
 
@@ -134,5 +134,5 @@ def add_interaction(
                 force = weight[k] * event.magnitude * np.asarray(event.direction)
             else:
                 force = weight[k] * event.magnitude * (g - acc)
-            wrench[k] += np.r_[force, np.cross(where, force)]
+            wrench[k] += np.concatenate((force, cross3(where, force)))
     return replace(motion, pushes={**motion.pushes, **pushes})

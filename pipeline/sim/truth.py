@@ -26,6 +26,7 @@ import pinocchio as pin
 from pipeline.physics.dynamics import ContactCase, choose_root, far_side_wrenches, rooted_readings
 from pipeline.physics.feet import Foot, foot_of_pair
 from pipeline.physics.robot import FootPair, RobotModel, sensor_frame_name, wrench_transform
+from pipeline.sim.kinematics import cross3
 from pipeline.sim.motion import Motion
 
 PROFILE_WEIGHT = 0.2  # share of the double-support split set by the motion's profile, not by statics
@@ -369,13 +370,11 @@ def joint_torques(robot: RobotModel, motion: Motion, gravity: np.ndarray) -> np.
             for link, w in motion.pushes.items():
                 fid = model.getFrameId(link)
                 w_root = w[idx] @ root_X_fixed.T
-                for j in range(len(idx)):
-                    if not np.any(w_root[j]):
-                        continue
+                for j in np.flatnonzero(w_root.any(axis=1)):  # the pushed samples
                     pin.framesForwardKinematics(model, data, qs[j])
                     jac = pin.computeFrameJacobian(model, data, qs[j], fid, pin.LOCAL_WORLD_ALIGNED)
                     p = data.oMf[fid].translation
-                    about = np.r_[w_root[j, :3], w_root[j, 3:] - np.cross(p, w_root[j, :3])]
+                    about = np.concatenate((w_root[j, :3], w_root[j, 3:] - cross3(p, w_root[j, :3])))
                     tau[j] -= jac.T @ about
             out[idx] = tau[:, rooted.v_index] * rooted.sign
     return out
