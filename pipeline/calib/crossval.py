@@ -15,15 +15,15 @@ from __future__ import annotations
 
 import time
 from collections.abc import Mapping
+from functools import partial
 from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
 from pipeline.calib.data import GroupData, group_errors
-from pipeline.calib.models import WRENCH
-from pipeline.calib.params import AFFINE, RAW, complexity, fold_spread, select_by_folds
+from pipeline.calib.models import WRENCH, LinearBaseline
+from pipeline.calib.params import RAW, complexity, fold_spread, select_by_folds
 from pipeline.calib.training import NetSetting, predict, train_network
-from pipeline.core.parallel import forked_map
 from pipeline.core.progress import ProgressLog
 
 if TYPE_CHECKING:
@@ -35,24 +35,23 @@ def _fold_predictions(
     prep: Prepared, nets: Mapping[str, NetResult], k: int, train: GroupData, val: GroupData, ui: ProgressLog
 ) -> dict[str, np.ndarray]:
     """Predictions (N, S, 6) on fold `k`'s validation samples of every model refitted on its training ones."""
-    from pipeline.calib.fit import fit_baselines
+    from pipeline.calib.fit import fit_beside
 
     gp, group = prep.gp, prep.group
-    baselines = fit_baselines(gp, group, train, prep.seed)
-    preds = {RAW: val.x[:, :, :WRENCH].copy()}
-    preds.update({name: model.predict(val.x) for name, model in baselines.items()})
     names = list(nets)
 
-    def fit(name: str) -> tuple[np.ndarray, list[dict[str, float]], float]:
+    def fit(name: str, start: LinearBaseline) -> tuple[np.ndarray, list[dict[str, float]], float]:
         r, t = nets[name], time.perf_counter()
         setting = NetSetting.of(gp, r.model.config.n_inputs, r.values)
-        model, history = train_network(group, train, val, setting, r.seed, None, baselines[AFFINE])
+        model, history = train_network(group, train, val, setting, r.seed, None, start)
         return predict(model, val), history, time.perf_counter() - t
 
-    # the networks of a fold are independent: one process per core (the same bits as one by one)
-    for name, (pred, history, seconds) in zip(
-        names, forked_map([lambda n=n: fit(n) for n in names]), strict=True
-    ):
+    # the networks of a fold are independent: one process per core (the same bits as one by one), the
+    # polynomial baselines fitted beside them
+    baselines, fits, _ = fit_beside(gp, group, train, prep.seed, [partial(fit, n) for n in names])
+    preds = {RAW: val.x[:, :, :WRENCH].copy()}
+    preds.update({name: model.predict(val.x) for name, model in baselines.items()})
+    for name, (pred, history, seconds) in zip(names, fits, strict=True):
         preds[name] = pred
         best = min(history, key=lambda h: h["val_rmse"])
         ui.line(

@@ -2,8 +2,9 @@
 
 from __future__ import annotations
 
-from collections.abc import Mapping
-from dataclasses import asdict, dataclass, field
+import time
+from collections.abc import Callable, Mapping, Sequence
+from dataclasses import asdict, dataclass, field, replace
 from pathlib import Path
 from typing import Any
 
@@ -32,6 +33,7 @@ from pipeline.calib.search import NetResult
 from pipeline.calib.training import NetSetting
 from pipeline.core.config import Params, stage_section
 from pipeline.core.errors import DataError
+from pipeline.core.parallel import forked_map
 from pipeline.logs import schema as S
 
 
@@ -92,17 +94,44 @@ def prepare(params: Params, group_name: str, in_dir: Path) -> Prepared:
     return Prepared(cfg, gp, seed, group, split, log_names, train, data["val"], data["test"], folds, recorded)
 
 
-def fit_baselines(gp: GroupParams, group: Group, train: GroupData, seed: int) -> dict[str, LinearBaseline]:
+def fit_baselines(
+    gp: GroupParams, group: Group, train: GroupData, seed: int, affine: bool = True
+) -> dict[str, LinearBaseline]:
     """The affine (least squares) and polynomial (ridge) baselines on the switched loss of the networks, each
-    with the group's virtual pushes (`pipeline.calib.pushes`; the polynomials' sampled from `seed`).
+    with the group's virtual pushes (`pipeline.calib.pushes`; the polynomials' sampled from `seed`); without
+    `affine`, the polynomials only (each fit is independent of the others).
 
     A group of several sensors is fitted part by part: each foot pair (a cut set with constant transforms)
     jointly with its sum term, every other sensor alone; the cut sets whose transforms depend on the joints
     are left to the networks (per-sample transforms make the normal equations of the polynomials too big).
     """
     if group.cuts:
-        return _fit_baselines_by_part(gp, group, train, seed)
-    return _fit_group_baselines(gp, group, train, NetSetting.of(gp, 7).lambdas, gp.lambda_sum, seed)
+        return _fit_baselines_by_part(gp, group, train, seed, affine)
+    return _fit_group_baselines(gp, group, train, NetSetting.of(gp, 7).lambdas, gp.lambda_sum, seed, affine)
+
+
+def fit_beside(
+    gp: GroupParams,
+    group: Group,
+    train: GroupData,
+    seed: int,
+    jobs: Sequence[Callable[[LinearBaseline], Any]],
+) -> tuple[dict[str, LinearBaseline], list[Any], float]:
+    """`fit_baselines`, and the results of `jobs` (each given the affine map the networks start from), with
+    the polynomials fitted in a forked process beside the jobs (`forked_map`: the same numbers as one after
+    the other, the polynomials in the time the jobs leave a core idle). Returns (baselines, the jobs'
+    results, seconds of the baselines' own fits)."""
+    t = time.perf_counter()
+    affine = fit_baselines(replace(gp, poly_orders=()), group, train, seed)
+    start, seconds = affine[AFFINE], time.perf_counter() - t
+
+    def polynomials() -> tuple[dict[str, LinearBaseline], float]:
+        t = time.perf_counter()
+        return fit_baselines(gp, group, train, seed, affine=False), time.perf_counter() - t
+
+    work = [*(lambda job=job: job(start) for job in jobs), polynomials]
+    *results, (polys, poly_seconds) = forked_map(work, costs=[2.0] * len(jobs) + [1.0])
+    return {**affine, **polys}, results, seconds + poly_seconds
 
 
 def _fit_group_baselines(
@@ -112,8 +141,10 @@ def _fit_group_baselines(
     lambdas: tuple[float, ...],
     lambda_sum: float,
     seed: int,
+    affine: bool = True,
 ) -> dict[str, LinearBaseline]:
-    """The baselines of a group of one sensor or one foot pair (its sum term with `lambda_sum`)."""
+    """The baselines of a group of one sensor or one foot pair (its sum term with `lambda_sum`); without
+    `affine`, the polynomials only."""
     args = {
         "push": gp.push,
         "seed": seed,
@@ -127,14 +158,14 @@ def _fit_group_baselines(
         "lambda_sum": lambda_sum,
         "n_inputs": baseline_inputs(gp.inputs),
     }
-    out = {AFFINE: fit_linear_baseline(AFFINE, order=1, ridge=0.0, **args)}
+    out = {AFFINE: fit_linear_baseline(AFFINE, order=1, ridge=0.0, **args)} if affine else {}
     for order in gp.poly_orders:
         out[poly_name(order)] = fit_linear_baseline(poly_name(order), order=order, ridge=gp.ridge, **args)
     return out
 
 
 def _fit_baselines_by_part(
-    gp: GroupParams, group: Group, train: GroupData, seed: int
+    gp: GroupParams, group: Group, train: GroupData, seed: int, affine: bool = True
 ) -> dict[str, LinearBaseline]:
     """`fit_baselines` of a group of several sensors: its foot pairs and lone sensors, stacked per sensor."""
     parts: list[tuple[list[int], int | None]] = []  # (sensor indices, fixed cut index or None)
@@ -163,7 +194,13 @@ def _fit_baselines_by_part(
             (
                 members,
                 _fit_group_baselines(
-                    gp, sub, part.subset(part.labelled()), lambdas, gp.lambda_cut, derive_seed(seed, *members)
+                    gp,
+                    sub,
+                    part.subset(part.labelled()),
+                    lambdas,
+                    gp.lambda_cut,
+                    derive_seed(seed, *members),
+                    affine,
                 ),
             )
         )

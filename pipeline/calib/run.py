@@ -7,6 +7,7 @@ from __future__ import annotations
 
 import time
 from dataclasses import asdict, dataclass, field
+from functools import partial
 from pathlib import Path
 from typing import Any
 
@@ -16,16 +17,15 @@ import torch
 from pipeline.calib.crossval import cross_validate
 from pipeline.calib.excitation import group_excitation
 from pipeline.calib.fidelity import group_fidelity
-from pipeline.calib.fit import Prepared, fit_baselines, mlflow_metrics, network_info, prepare, score
+from pipeline.calib.fit import Prepared, fit_beside, mlflow_metrics, network_info, prepare, score
 from pipeline.calib.models import WRENCH, LinearBaseline, save_model
-from pipeline.calib.params import AFFINE, RAW, nn_name
+from pipeline.calib.params import RAW, nn_name
 from pipeline.calib.records import TrainResult, log_network, log_trial_run, write_predictions
 from pipeline.calib.search import NetResult, code_digest, data_digest, search_network
 from pipeline.calib.studies import open_storage, storage_url
 from pipeline.calib.training import flat_inputs, predict, predict_inputs
 from pipeline.core.config import Params
 from pipeline.core.io import write_json
-from pipeline.core.parallel import forked_map
 from pipeline.core.progress import ProgressLog
 
 
@@ -60,27 +60,27 @@ def fit_models(params: Params, prep: Prepared, studies: Path, ui: ProgressLog) -
     gp, group = prep.gp, prep.group
     data = {"val": prep.val, "test": prep.test}
     fitted = Fitted({}, {}, {k: {RAW: d.x[:, :, :WRENCH].copy()} for k, d in data.items()})
-    t = time.perf_counter()
-    fitted.baselines = fit_baselines(gp, group, prep.train, prep.seed)
-    for name, model in fitted.baselines.items():
-        for k, d in data.items():
-            fitted.preds[k][name] = model.predict(d.x)
-    fitted.timings["baselines"] = seconds = time.perf_counter() - t
-    ui.line(f"{group.name}: baselines fitted on {len(prep.train)} samples in {seconds:.1f} s")
     identity = study_identity(params, prep)
     url = storage_url(prep.cfg.storage)
     # the networks' searches are independent: one forked process per core (`forked_map`, the same bits as
-    # one after the other), each with its own connection to the studies; their trials are logged here
-    quiet = ui if len(gp.inputs) < 2 else ProgressLog(ui.enabled)  # lines, no bars, from a forked search
+    # one after the other), each with its own connection to the studies, the polynomial baselines fitted
+    # beside them; their trials are logged here
+    quiet = ProgressLog(ui.enabled)  # lines, no bars, from a forked search
 
-    def search(n_inputs: int) -> NetResult:
+    def search(n_inputs: int, start: LinearBaseline) -> NetResult:
         storage = open_storage(url, studies, prep.cfg.heartbeat)
-        start = fitted.baselines[AFFINE]
         return search_network(
             gp, group, prep.train, prep.val, n_inputs, params.seed, storage, identity, quiet, None, start
         )
 
-    searches = forked_map([lambda n=n: search(n) for n in gp.inputs])
+    jobs = [partial(search, n) for n in gp.inputs]
+    fitted.baselines, searches, seconds = fit_beside(gp, group, prep.train, prep.seed, jobs)
+    t = time.perf_counter()
+    for name, model in fitted.baselines.items():
+        for k, d in data.items():
+            fitted.preds[k][name] = model.predict(d.x)
+    fitted.timings["baselines"] = seconds + time.perf_counter() - t
+    ui.line(f"{group.name}: baselines fitted on {len(prep.train)} samples in {seconds:.1f} s")
     for n_inputs, result in zip(gp.inputs, searches, strict=True):
         name = nn_name(n_inputs)
         t = time.perf_counter()
