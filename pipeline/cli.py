@@ -7,8 +7,11 @@ exit with status 2; Ctrl-C exits with 130. Anything else is a bug and shows its 
 from __future__ import annotations
 
 import argparse
+import contextlib
 import importlib
+import os
 import sys
+import traceback
 from collections.abc import Sequence
 
 from pipeline import __version__
@@ -168,18 +171,77 @@ def _run(argv: list[str]) -> int:
         return EXIT_INTERRUPTED
 
 
+# What the steps of a stage import, loaded once before the first step when several run: each step runs in a
+# process forked from this one (`_run_forked`), so it starts with them imported but with no thread pool or
+# open file a step before it left behind (onnxruntime's and OpenMP's pools do not survive a fork).
+SHARED_LIBRARIES = (
+    "numpy",
+    "pandas",
+    "pyarrow.parquet",
+    "scipy.signal",
+    "matplotlib.pyplot",
+    "torch",
+    "onnxruntime",
+    "pinocchio",
+    "mlflow",
+    "mlflow.store.tracking.sqlalchemy_store",
+)
+
+
+def _preload() -> None:
+    """Import `SHARED_LIBRARIES` (those installed) before the steps are forked."""
+    import matplotlib
+
+    matplotlib.use("Agg")  # figures are written to files: no display, as in every step
+    for name in SHARED_LIBRARIES:
+        with contextlib.suppress(ImportError):  # a step that needs it says so itself
+            importlib.import_module(name)
+
+
+def _run_forked(argv: list[str]) -> int:
+    """Run one command in a forked child process; return its exit status (130 after Ctrl-C)."""
+    sys.stdout.flush()
+    sys.stderr.flush()
+    pid = os.fork()
+    if pid == 0:  # the child: the command, then out without unwinding into the parent's loop
+        status = EXIT_USAGE
+        try:
+            status = _run(argv)
+        except BaseException:  # a bug: its traceback, as a process of its own would print it
+            traceback.print_exc()
+            status = 1
+        finally:
+            sys.stdout.flush()
+            sys.stderr.flush()
+            os._exit(status)
+    while True:
+        try:
+            _, wait = os.waitpid(pid, 0)
+            break
+        except KeyboardInterrupt:  # Ctrl-C reaches the child too: wait for it to stop
+            continue
+    code = os.waitstatus_to_exitcode(wait)
+    return 128 - code if code < 0 else code  # killed by signal s: 128 + s, as shells report it
+
+
 def main(argv: Sequence[str] | None = None) -> int:
     """Run `ftcal` with `argv` (default: the command line); return the exit status.
 
-    Commands joined by a standalone ``+`` run one after the other in this process (a DVC stage of several
-    steps pays the start-up, Python and its libraries, once); the first that fails stops the others.
+    Commands joined by a standalone ``+`` run one after the other, each in a process forked from this one
+    after the libraries they share are imported (`SHARED_LIBRARIES`): a DVC stage of several steps starts
+    Python and those libraries once. The first command that fails stops the others.
     """
     parts = _split(list(sys.argv[1:] if argv is None else argv))
-    if len(parts) > 1 and not all(parts):
+    if len(parts) == 1:
+        return _run(parts[0])
+    if not all(parts):
         print(f"ftcal: error: an empty command before or after {THEN!r}", file=sys.stderr)
         return EXIT_USAGE
+    forking = hasattr(os, "fork")
+    if forking:
+        _preload()
     for part in parts:
-        status = _run(part)
+        status = _run_forked(part) if forking else _run(part)
         if status != EXIT_OK:
             return status
     return EXIT_OK

@@ -84,16 +84,16 @@ def test_robot_bad_urdf_is_a_one_line_error(tmp_path: Path, capsys: pytest.Captu
 
 
 def test_commands_joined_by_plus_run_in_order_and_the_first_failure_stops_them(
-    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+    tmp_path: Path, capfd: pytest.CaptureFixture[str]
 ) -> None:
-    # a DVC stage of several steps runs them in one process: `ftcal A ... + B ...`
+    # a DVC stage of several steps: `ftcal A ... + B ...`, each step in a process forked from this one
     pytest.importorskip("pipeline.physics.robot")
     assert main(["robot", "+", "robot", "--urdf", "iCubGenova09"]) == 0
-    assert capsys.readouterr().out.count("l_foot (front)") == 2
+    assert capfd.readouterr().out.count("l_foot (front)") == 2
     missing = tmp_path / "nope.urdf"
     assert main(["robot", "--urdf", str(missing), "+", "robot"]) == 2
-    captured = capsys.readouterr()
+    captured = capfd.readouterr()
     assert "l_foot (front)" not in captured.out and str(missing) in captured.err
     for argv in (["robot", "+"], ["+", "robot"], ["robot", "+", "+", "robot"]):
         assert main(argv) == 2
-        assert capsys.readouterr().err.startswith("ftcal: error: an empty command")
+        assert capfd.readouterr().err.startswith("ftcal: error: an empty command")
