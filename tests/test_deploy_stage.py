@@ -1,4 +1,4 @@
-"""Stages `deploy_prepare`, `deploy_test@<group>` and `deploy_report` end to end: a short deployment day from
+"""Steps `deploy_prepare`, `deploy_test` and `deploy_report` end to end: a short deployment day from
 the real simulator (`ftcal simulate --deploy`), the real export of tiny trained models (nn13 for r_leg_ft,
 the affine map for the r_foot pair), the stages through the CLI; their files, and their numbers against
 independent references: Test A's flags against the params' rule, Test B's raw errors against the simulator's

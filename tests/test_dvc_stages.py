@@ -40,14 +40,14 @@ def test_adding_recorded_logs_makes_the_deployment_stages_stale(tmp_path: Path) 
     real = yaml.safe_load((ROOT / "params.yaml").read_text())["deploy"]["real_logs"].rstrip("/")
     assert any(f.startswith(real + "/") for f in tracked()), f"{real} is not a folder tracked in git"
     wired = stages()
-    assert real in wired["deploy_prepare@real"]["deps"]
-    readers = [name for name in wired if name.startswith("deploy_test@")]
+    assert real in wired["deploy_days"]["deps"]
+    readers = [name for name in wired if name.startswith("evaluate@")]
     assert readers and all(real in wired[name]["deps"] for name in readers)
 
     clone = tmp_path / "clone"
     subprocess.run(["git", "clone", "--quiet", str(ROOT), str(clone)], check=True)
     assert (clone / real).is_dir()
-    stage = "deploy_prepare@real"
+    stage = "deploy_days"
     assert real not in _changed_deps(_status(clone, stage), stage)
     (clone / real / "2026_11_25_robot_logger_device.mat").write_bytes(b"a recorded deployment log")
     assert _changed_deps(_status(clone, stage), stage).get(real) == "modified"

@@ -20,7 +20,7 @@ from pathlib import Path
 import pytest
 import yaml
 
-from pipeline.cli import COMMANDS, build_parser
+from pipeline.cli import COMMANDS, THEN, build_parser
 
 ROOT = Path(__file__).resolve().parents[1]
 DOCS = [ROOT / "README.md", *sorted((ROOT / "docs").glob("*.md"))]
@@ -169,8 +169,9 @@ def check_ftcal(words: list[str]) -> list[str]:
 def check_command(line: str) -> list[str]:
     words = shlex.split(line)
     head = words[0]
-    if head == "ftcal":
-        return check_ftcal(words[1:])
+    if head == "ftcal":  # commands joined by + run one after the other (pipeline.cli.THEN)
+        parts = " ".join(shlex.quote(w) for w in words[1:]).split(f" {THEN} ")
+        return [problem for part in parts for problem in check_ftcal(shlex.split(part))]
     if head == "dvc" and words[1:2] == ["repro"]:
         names = [w for w in words[2:] if not w.startswith("-")]
         families = {s.split("@")[0] for s in stages()}

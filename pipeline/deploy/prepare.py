@@ -146,7 +146,7 @@ def read_day(day: Path) -> list[DeployLog]:
             )  # fmt: skip
     except FileNotFoundError:
         raise DataError(
-            f"{file}: not found (a deployment day's tables: run `dvc repro deploy_prepare`)"
+            f"{file}: not found (a deployment day's tables: run `dvc repro deploy_days`)"
         ) from None
     except (OSError, ValueError, KeyError, TypeError) as exc:
         raise DataError(f"{file}: not a deployment day's list of logs: {exc}") from None

@@ -1,9 +1,9 @@
-"""Stage `deploy_prepare@<day>`: a deployment day's logs ingested, smoothed and labelled as training logs are.
+"""Step `deploy_prepare` (stage `deploy_days`): a deployment day's logs ingested, smoothed and labelled.
 
 ``ftcal deploy-prepare LOGS OUT``: every log (``*.mcap``, ``*.mat``) under LOGS (a simulated deployment
 day, or the recorded logs of ``deploy.real_logs``, which may hold none yet) through the pipeline's own
 ingest, smooth and label (`pipeline.deploy.prepare`), into OUT: ``ingested/``, ``smoothed/``,
-``labelled/`` and ``logs.json`` (the day's logs, what `deploy_test@<group>` reads). OUT is replaced
+``labelled/`` and ``logs.json`` (the day's logs, what `deploy_test` reads). OUT is replaced
 whole, atomically; the run is logged to MLflow.
 """
 

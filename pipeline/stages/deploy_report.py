@@ -1,7 +1,8 @@
-"""Stage `deploy_report`: every group's deployment tests gathered into the deployment page and verdict.
+"""Step `deploy_report` (stage `report`): every group's deployment tests gathered into a page and verdict.
 
 ``ftcal deploy-report GROUPS REPORTS``: reads GROUPS/<group>/result.json of every group of
-``train.groups`` (`deploy_test@<group>`), gathers each day's results (`pipeline.deploy.verdict`), and
+``train.groups`` (the tests of `evaluate@<group>`), gathers each day's results
+(`pipeline.deploy.verdict`), and
 writes ``REPORTS/deployment.html`` (the verdict per day, then each day's tables and the groups' figures;
 linked with the report page), ``REPORTS/deployment.json`` (per day the verdict and the smallest Test B and
 C ratios: `dvc metrics show`) and ``REPORTS/deployment/details.json`` (every table). A light assembly: one
@@ -33,7 +34,7 @@ def _group_results(groups_dir: Path, groups: list[str]) -> dict[str, dict[str, A
         try:
             out[group] = json.loads(path.read_text(encoding="utf-8"))
         except FileNotFoundError:
-            raise DataError(f"{path}: not found (run `dvc repro deploy_test@{group}`)") from None
+            raise DataError(f"{path}: not found (run `dvc repro evaluate@{group}`)") from None
         except (OSError, ValueError) as exc:
             raise DataError(f"{path}: not a deployment test result: {exc}") from None
     return out

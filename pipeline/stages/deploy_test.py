@@ -1,9 +1,10 @@
-"""Stage `deploy_test@<group>`: the thesis's deployment tests (chapter 6) of one sensor group, on logs no
-model has seen.
+"""Step `deploy_test@<group>` (stage `evaluate@<group>`): the thesis's deployment tests (chapter 6) of one
+sensor group, on logs no model has seen.
 
 ``ftcal deploy-test GROUP MODELS EXPORTED TABLES OUT``: on every deployment day under TABLES (the tables of
-`deploy_prepare@<day>`: the simulated ``later`` day, the drift check's ``drifted`` day, the recorded logs of
-``deploy.real_logs`` if it holds any), the group's tests of `pipeline.deploy.group`: A on the standing log
+`deploy_prepare`, stage `deploy_days`: the simulated ``later`` day, the drift check's ``drifted`` day, the
+recorded logs of ``deploy.real_logs`` if it holds any), the group's tests of `pipeline.deploy.group`: A on
+the standing log
 (output noise of every model in MODELS vs raw), B on the walking log (error tables vs labels and truth), C
 on the pushed pole log (leg joint torques from raw vs calibrated leg sensors against the true torques). The
 calibration is the group's export (EXPORTED, an export directory) run causally on each log's raw messages,
@@ -32,7 +33,7 @@ def days_of(tables: Path) -> list[Path]:
     from pipeline.deploy.prepare import DAY_FILE, read_day
 
     if not tables.is_dir():
-        raise DataError(f"{tables}: deployment tables not found (run `dvc repro deploy_prepare`)")
+        raise DataError(f"{tables}: deployment tables not found (run `dvc repro deploy_days`)")
     found = [d for d in tables.iterdir() if (d / DAY_FILE).is_file() and read_day(d)]
     rank = {name: k for k, name in enumerate(DAY_ORDER)}
     return sorted(found, key=lambda d: (rank.get(d.name, len(rank)), d.name))

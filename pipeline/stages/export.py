@@ -1,12 +1,12 @@
-"""Stages `export@<group>` and `export_fused`: the recommended calibrations as ONNX graphs a robot can run.
+"""Steps `export@<group>` (stage `evaluate@<group>`) and `export_fused` (stage `report`): ONNX graphs.
 
-``ftcal export MODELS METRICS LABELLED OUT --group G`` (stage ``export@<group>``) takes the model that
-`evaluate@<group>` recommends (``recommended`` of ``METRICS/<group>/<headline>.json``;
+``ftcal export MODELS METRICS LABELLED OUT --group G`` (a step of stage ``evaluate@<group>``) takes
+the model that `evaluate@<group>` recommends (``recommended`` of ``METRICS/<group>/<headline>.json``;
 ``export.models.<group>`` overrides it), whichever its family (network, polynomial, affine, raw), and
 writes ``OUT/groups/<group>/``: ``<group>.float32.onnx``, ``<group>.float64.onnx`` (the group's graph,
 `pipeline.export.graph`: input ``inputs`` (N, S x 7 or 13) raw wrench, temperature [, accelerometer,
 gyroscope] per sensor, output ``calibrated`` (N, S x 6), normalisation inside) and the group's
-``manifest.json`` (an export directory of its own). ``ftcal export ... --fused`` (stage ``export_fused``)
+``manifest.json`` (an export directory of its own). ``ftcal export ... --fused`` (a step of stage ``report``)
 assembles every group's export: the fused graph of every group (``all.float32.onnx``, ``all.float64.onnx``:
 one call per sample for all sensors) and ``OUT/manifest.json`` (`pipeline.export.manifest`: inputs and
 outputs (order, names, units, source topics), sensors, each group's model and its training provenance, the
@@ -194,7 +194,7 @@ def run_fused(
         doc = manifest.read_manifest(out / GROUPS_DIR / group)
         if group not in doc["graphs"]:
             raise DataError(
-                f"{out / GROUPS_DIR / group}: no graph of {group} (run `dvc repro export@{group}`)"
+                f"{out / GROUPS_DIR / group}: no graph of {group} (run `dvc repro evaluate@{group}`)"
             )
         entry = dict(doc["graphs"][group])
         entry["files"] = {d: f"{GROUPS_DIR}/{group}/{f}" for d, f in entry["files"].items()}
