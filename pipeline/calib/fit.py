@@ -110,6 +110,11 @@ def fit_baselines(
     return _fit_group_baselines(gp, group, train, NetSetting.of(gp, 7).lambdas, gp.lambda_sum, seed, affine)
 
 
+def fit_affine(gp: GroupParams, group: Group, train: GroupData, seed: int) -> LinearBaseline:
+    """The affine baseline of `fit_baselines` alone: the map the group's networks correct."""
+    return fit_baselines(replace(gp, poly_orders=()), group, train, seed)[AFFINE]
+
+
 def fit_beside(
     gp: GroupParams,
     group: Group,
@@ -122,8 +127,8 @@ def fit_beside(
     the other, the polynomials in the time the jobs leave a core idle). Returns (baselines, the jobs'
     results, seconds of the baselines' own fits)."""
     t = time.perf_counter()
-    affine = fit_baselines(replace(gp, poly_orders=()), group, train, seed)
-    start, seconds = affine[AFFINE], time.perf_counter() - t
+    start = fit_affine(gp, group, train, seed)
+    seconds = time.perf_counter() - t
 
     def polynomials() -> tuple[dict[str, LinearBaseline], float]:
         t = time.perf_counter()
@@ -131,7 +136,7 @@ def fit_beside(
 
     work = [*(lambda job=job: job(start) for job in jobs), polynomials]
     *results, (polys, poly_seconds) = forked_map(work, costs=[2.0] * len(jobs) + [1.0])
-    return {**affine, **polys}, results, seconds + poly_seconds
+    return {AFFINE: start, **polys}, results, seconds + poly_seconds
 
 
 def _fit_group_baselines(

@@ -31,13 +31,11 @@ def run_worker_group(
         ConfigError: no database storage is configured (a journal file is not shared).
         StudyError: the stage did not open a study within `wait` s, or the database is unreachable.
     """
-    from dataclasses import replace
 
     import torch
 
     from pipeline.calib import studies
-    from pipeline.calib.fit import fit_baselines, prepare
-    from pipeline.calib.params import AFFINE
+    from pipeline.calib.fit import fit_affine, prepare
     from pipeline.calib.run import study_identity
     from pipeline.calib.search import _Search  # the stage's search of one network, joined here
     from pipeline.core.config import load_params
@@ -57,7 +55,7 @@ def run_worker_group(
     identity = study_identity(params, prep)
     ui = ProgressLog()
     # the networks correct the group's affine map: fitted as the stage fits it (deterministic least squares)
-    start = fit_baselines(replace(prep.gp, poly_orders=()), prep.group, prep.train, prep.seed)[AFFINE]
+    start = fit_affine(prep.gp, prep.group, prep.train, prep.seed)
     ran: dict[str, int] = {}
     with ui.running():
         for n_inputs in prep.gp.inputs:
