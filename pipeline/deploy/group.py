@@ -127,9 +127,9 @@ DAY_TESTS: dict[str, tuple[str, Callable[[GroupDay, DeployLog], TestResult]]] = 
     "test_c": ("pole", c_torques),
     "test_d": ("interaction", d_interaction),
 }
-# the tests by decreasing cost (Test C: a rigid-body pass per sample and per wrench), so that forked workers
-# end together
-_LONGEST_FIRST = ("test_c", "test_a", "test_d", "test_b")
+# the tests' relative costs (Test C: a rigid-body pass per sample and per wrench): forked workers take the
+# costliest first, so that they end together
+_COST = {"test_c": 4.0, "test_a": 3.0, "test_d": 2.0, "test_b": 1.0}
 
 
 def run_days(days: list[tuple[GroupDay, list[DeployLog]]]) -> list[TestResult]:
@@ -139,8 +139,7 @@ def run_days(days: list[tuple[GroupDay, list[DeployLog]]]) -> list[TestResult]:
 
     jobs: list[tuple[int, str, GroupDay, DeployLog]] = []
     for d, (ctx, logs) in enumerate(days):
-        for name in _LONGEST_FIRST:
-            kind, _ = DAY_TESTS[name]
+        for name, (kind, _) in DAY_TESTS.items():
             log = next((g for g in logs if g.experiment.get("type", "") == kind), None)
             if log is not None:
                 jobs.append((d, name, ctx, log))
@@ -149,7 +148,8 @@ def run_days(days: list[tuple[GroupDay, list[DeployLog]]]) -> list[TestResult]:
 
         pyplot()  # matplotlib imported once, before the workers fork
     calls = [lambda t=DAY_TESTS[name][1], c=ctx, g=log: t(c, g) for _, name, ctx, log in jobs]
-    done = {(d, name): out for (d, name, _, _), out in zip(jobs, forked_map(calls), strict=True)}
+    outs = forked_map(calls, costs=[_COST.get(name, 1.0) for _, name, _, _ in jobs])
+    done = {(d, name): out for (d, name, _, _), out in zip(jobs, outs, strict=True)}
     results: list[TestResult] = []
     for d, (_, logs) in enumerate(days):
         result: dict[str, Any] = {"logs": [log.name for log in logs]}

@@ -53,12 +53,12 @@ def _generate(world: Any, jobs: list[tuple], progress: bool | None) -> list:
     if any(job[3] for job in jobs):
         import pipeline.sim.plots  # noqa: F401  (matplotlib imported once, before the workers fork)
 
-    order = sorted(jobs, key=_cost, reverse=True)
-    tasks = [partial(simulate_log, world, index, spec, Path(out), plot) for index, spec, out, plot in order]
+    tasks = [partial(simulate_log, world, index, spec, Path(out), plot) for index, spec, out, plot in jobs]
     results = []
     with progress_bar(progress) as bar:
         task = bar.add_task("simulate (robot s)", total=sum(job[1].duration_s for job in jobs))
-        for result, job in zip(forked_map(tasks, world.sim.workers or None), order, strict=True):
+        done = forked_map(tasks, world.sim.workers or None, costs=[_cost(job) for job in jobs])
+        for result, job in zip(done, jobs, strict=True):
             results.append(result)
             bar.advance(task, job[1].duration_s)
     return sorted(results, key=lambda r: r.name)
