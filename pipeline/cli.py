@@ -21,10 +21,10 @@ from pipeline.core.errors import FtcalError
 EXIT_OK = 0
 EXIT_USAGE = 2  # as argparse: bad arguments or bad input the user can fix
 EXIT_INTERRUPTED = 130  # 128 + SIGINT, as shells report Ctrl-C
-THEN = "+"  # between two commands run one after the other in one process (`main`)
+THEN = "+"  # between two commands run one after the other, in one stage (`main`)
 
 # Commands, in pipeline order: name -> (module, one-line help). A command's module defines
-# ``add_cli(subparsers)``, which adds its subcommand (same name as its DVC stage, if it is one) with
+# ``add_cli(subparsers)``, which adds its subcommand (a step of a DVC stage, named as the step) with
 # ``set_defaults(func=...)``. Only the module of the command being run is imported (stages import torch,
 # pinocchio, mlflow): `ftcal --help` lists the commands from this table alone.
 COMMANDS: dict[str, tuple[str, str]] = {
@@ -139,7 +139,7 @@ def _command(argv: Sequence[str]) -> str | None:
     return next((a for a in argv if a in COMMANDS), None)
 
 
-def _split(argv: list[str]) -> list[list[str]]:
+def split_commands(argv: list[str]) -> list[list[str]]:
     """The commands of a command line, cut at every standalone `THEN`."""
     parts: list[list[str]] = [[]]
     for arg in argv:
@@ -231,7 +231,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     after the libraries they share are imported (`SHARED_LIBRARIES`): a DVC stage of several steps starts
     Python and those libraries once. The first command that fails stops the others.
     """
-    parts = _split(list(sys.argv[1:] if argv is None else argv))
+    parts = split_commands(list(sys.argv[1:] if argv is None else argv))
     if len(parts) == 1:
         return _run(parts[0])
     if not all(parts):

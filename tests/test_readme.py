@@ -20,7 +20,7 @@ from pathlib import Path
 import pytest
 import yaml
 
-from pipeline.cli import COMMANDS, THEN, build_parser
+from pipeline.cli import COMMANDS, build_parser, split_commands
 
 ROOT = Path(__file__).resolve().parents[1]
 DOCS = [ROOT / "README.md", *sorted((ROOT / "docs").glob("*.md"))]
@@ -169,9 +169,8 @@ def check_ftcal(words: list[str]) -> list[str]:
 def check_command(line: str) -> list[str]:
     words = shlex.split(line)
     head = words[0]
-    if head == "ftcal":  # commands joined by + run one after the other (pipeline.cli.THEN)
-        parts = " ".join(shlex.quote(w) for w in words[1:]).split(f" {THEN} ")
-        return [problem for part in parts for problem in check_ftcal(shlex.split(part))]
+    if head == "ftcal":  # commands joined by + run one after the other
+        return [problem for part in split_commands(words[1:]) for problem in check_ftcal(part)]
     if head == "dvc" and words[1:2] == ["repro"]:
         names = [w for w in words[2:] if not w.startswith("-")]
         families = {s.split("@")[0] for s in stages()}
