@@ -171,29 +171,63 @@ def _run(argv: list[str]) -> int:
         return EXIT_INTERRUPTED
 
 
-# What the steps of a stage import, loaded once before the first step when several run: each step runs in a
-# process forked from this one (`_run_forked`), so it starts with them imported but with no thread pool or
-# open file a step before it left behind (onnxruntime's and OpenMP's pools do not survive a fork).
-SHARED_LIBRARIES = (
+# The heavy libraries the steps import, in import order. When a stage runs several steps, those its steps
+# import (`STEP_LIBRARIES`) are imported once before the first: each step runs in a process forked from this
+# one (`_run_forked`), so it starts with them imported but with no thread pool or open file a step before it
+# left behind (onnxruntime's and OpenMP's pools do not survive a fork). Every step imports numpy, pandas,
+# pyarrow and mlflow (whose runs import IPython, when installed, to look for Databricks).
+LIBRARIES = (
     "numpy",
     "pandas",
     "pyarrow.parquet",
     "scipy.signal",
     "matplotlib.pyplot",
     "torch",
+    "onnx",
     "onnxruntime",
     "pinocchio",
     "mlflow",
     "mlflow.store.tracking.sqlalchemy_store",
+    "IPython",
 )
+_EVERY_STEP = frozenset(
+    {"numpy", "pandas", "pyarrow.parquet", "mlflow", "mlflow.store.tracking.sqlalchemy_store", "IPython"}
+)
+# what each command imports beyond those (measured by running it: `sys.modules` after the step); a library
+# missing here is imported by the step itself, a little later, so this only saves time
+STEP_LIBRARIES: dict[str, frozenset[str]] = {
+    name: _EVERY_STEP | frozenset(extra)
+    for name, extra in {
+        "simulate": ("scipy.signal", "pinocchio"),  # its plots import matplotlib (not on deployment days)
+        "ingest": (),
+        "smooth": ("scipy.signal",),
+        "label": ("pinocchio",),
+        "train": ("torch",),
+        "evaluate": ("scipy.signal", "matplotlib.pyplot"),
+        "report": ("matplotlib.pyplot",),
+        "export": ("torch", "onnx", "onnxruntime"),
+        "calibrate": ("onnx", "onnxruntime"),
+        "deploy-prepare": ("scipy.signal", "pinocchio"),
+        "deploy-test": ("matplotlib.pyplot", "torch", "onnxruntime", "pinocchio"),
+        "deploy-report": (),
+    }.items()
+}
 
 
-def _preload() -> None:
-    """Import `SHARED_LIBRARIES` (those installed) before the steps are forked."""
+def shared_libraries(commands: Sequence[str | None]) -> list[str]:
+    """The libraries of `LIBRARIES` the steps `commands` import (`STEP_LIBRARIES`; unknown command: all)."""
+    wanted: set[str] = set()
+    for command in commands:
+        wanted |= STEP_LIBRARIES.get(command, frozenset(LIBRARIES)) if command else set(LIBRARIES)
+    return [name for name in LIBRARIES if name in wanted]
+
+
+def _preload(names: Sequence[str]) -> None:
+    """Import `names` (those installed) before the steps are forked."""
     import matplotlib
 
     matplotlib.use("Agg")  # figures are written to files: no display, as in every step
-    for name in SHARED_LIBRARIES:
+    for name in names:
         with contextlib.suppress(ImportError):  # a step that needs it says so itself
             importlib.import_module(name)
 
@@ -228,7 +262,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     """Run `ftcal` with `argv` (default: the command line); return the exit status.
 
     Commands joined by a standalone ``+`` run one after the other, each in a process forked from this one
-    after the libraries they share are imported (`SHARED_LIBRARIES`): a DVC stage of several steps starts
+    after the libraries they import are imported (`shared_libraries`): a DVC stage of several steps starts
     Python and those libraries once. The first command that fails stops the others.
     """
     parts = split_commands(list(sys.argv[1:] if argv is None else argv))
@@ -239,7 +273,7 @@ def main(argv: Sequence[str] | None = None) -> int:
         return EXIT_USAGE
     forking = hasattr(os, "fork")
     if forking:
-        _preload()
+        _preload(shared_libraries([_command(part) for part in parts]))
     for part in parts:
         status = _run_forked(part) if forking else _run(part)
         if status != EXIT_OK:

@@ -97,3 +97,29 @@ def test_commands_joined_by_plus_run_in_order_and_the_first_failure_stops_them(
     for argv in (["robot", "+"], ["+", "robot"], ["robot", "+", "+", "robot"]):
         assert main(argv) == 2
         assert capfd.readouterr().err.startswith("ftcal: error: an empty command")
+
+
+def test_a_stage_of_several_steps_imports_beforehand_what_its_steps_import() -> None:
+    import shlex
+
+    import yaml
+
+    from pipeline.cli import COMMANDS, LIBRARIES, STEP_LIBRARIES, _command, shared_libraries, split_commands
+
+    stages = yaml.safe_load((Path(__file__).resolve().parents[1] / "dvc.yaml").read_text())["stages"]
+
+    def chain(stage: str) -> list[str]:
+        entry = stages[stage]
+        cmd = (entry.get("do") or entry)["cmd"]
+        return shared_libraries([_command(p) for p in split_commands(shlex.split(cmd)[1:])])
+
+    days, evaluate, report = chain("deploy_days"), chain("evaluate"), chain("report")
+    # the deployment days simulate and label: no network, no onnxruntime (seconds of import saved)
+    assert {"pinocchio", "scipy.signal", "mlflow"} <= set(days)
+    assert not {"torch", "onnxruntime", "matplotlib.pyplot"} & set(days)
+    assert {"torch", "onnx", "onnxruntime", "pinocchio", "scipy.signal", "matplotlib.pyplot"} <= set(evaluate)
+    assert {"torch", "onnx", "onnxruntime", "matplotlib.pyplot"} <= set(report)
+    assert not {"pinocchio", "scipy.signal"} & set(report)
+    assert set(STEP_LIBRARIES) <= set(COMMANDS)
+    assert all(set(libs) <= set(LIBRARIES) for libs in STEP_LIBRARIES.values())
+    assert shared_libraries(["no-such-command"]) == list(LIBRARIES)  # unknown: everything, in order
