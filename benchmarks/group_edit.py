@@ -66,6 +66,9 @@ def main() -> int:
         stages = _repro()
     finally:
         params.write_text(original)
+    if f"train@{args.group}" not in stages:  # DVC took the outputs of an earlier run of this edit back
+        _repro()
+        raise SystemExit(f"train@{args.group} did not run: DVC's run cache holds this edit; try another --lr")
     total = sum(stages.values())
     for name, seconds in stages.items():
         print(f"{name:32s} {seconds:7.1f} s")
