@@ -224,9 +224,10 @@ def shared_libraries(commands: Sequence[str | None]) -> list[str]:
 
 def _preload(names: Sequence[str]) -> None:
     """Import `names` (those installed) before the steps are forked."""
-    import matplotlib
+    if "matplotlib.pyplot" in names:  # matplotlib itself takes half a second: only for steps that draw
+        import matplotlib
 
-    matplotlib.use("Agg")  # figures are written to files: no display, as in every step
+        matplotlib.use("Agg")  # figures are written to files: no display, as in every step
     for name in names:
         with contextlib.suppress(ImportError):  # a step that needs it says so itself
             importlib.import_module(name)
