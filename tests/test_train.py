@@ -538,7 +538,9 @@ def test_several_sensors_group_trains_with_its_cut_sets(
     assert on.sum() > 100
     rmse = np.sqrt(np.mean((want[on] - label) ** 2))
     assert rmse == pytest.approx(m["test"]["nn7"][SHANK]["rmse"], rel=1e-9)
-    # a cut set's own predicted sums are not written: evaluate scores sensors and foot pairs
+    # a foot pair's predicted sum is written (a headline evaluate scores), the shank's is not
+    pair = front @ TRANSFORMS[0].T + rear @ TRANSFORMS[1].T
+    np.testing.assert_allclose(pred[prediction_cols("nn7", PAIR)].to_numpy(), pair, rtol=1e-9, atol=1e-9)
     assert not set(prediction_cols("nn7", SHANK)) & set(pred.columns)
 
 

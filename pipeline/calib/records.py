@@ -15,6 +15,7 @@ import pyarrow as pa
 import pyarrow.parquet as pq
 import torch
 
+from pipeline.calib.cuts import cut_sums_np
 from pipeline.calib.data import Group, GroupData
 from pipeline.calib.models import (
     GroupNet,
@@ -52,9 +53,14 @@ def write_predictions(
         for a, col in enumerate(S.wrench_cols(S.EXPECTED, cut.label)):
             cols[col] = pa.array(data.cut_labels[:, c, a])
         cols[S.switch_col(cut.label)] = pa.array(data.cut_switches[:, c].astype(np.uint8))
-    # the predictions of every sensor and foot pair, what evaluate scores (a cut set's predicted sums, 6 sets
-    # of the legs, were 37 % of the file and read by nothing)
+    # the predictions of every sensor and foot pair, what evaluate scores; not the sums of a group's other
+    # cut sets (a shank's: 4 of the legs' 6 sets, a quarter of the file, read by nothing)
+    pairs = [(c, cut) for c, cut in enumerate(group.cuts) if cut.pair is not None]
     for model, pred in preds.items():
+        sums = cut_sums_np(tuple(cut for _, cut in pairs), pred, data.poses) if pairs else None
+        for k, (_, cut) in enumerate(pairs):
+            for a, col in enumerate(S.prediction_cols(model, cut.label)):
+                cols[col] = pa.array(sums[:, k, a])
         for s, sensor in enumerate(group.sensors):
             for a, c in enumerate(S.prediction_cols(model, sensor)):
                 cols[c] = pa.array(pred[:, s, a])
