@@ -15,6 +15,14 @@ from pipeline.cli import main
 ROOT = Path(__file__).resolve().parent.parent
 
 
+def _env() -> dict[str, str]:
+    """The environment of a subprocess that imports this checkout's `pipeline`."""
+    return {
+        **os.environ,
+        "PYTHONPATH": os.pathsep.join(filter(None, [str(ROOT), os.environ.get("PYTHONPATH")])),
+    }
+
+
 def test_bad_params_path_is_a_one_line_error(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
     missing = tmp_path / "missing_params.yaml"
     assert main(["robot", "--params", str(missing)]) == 2
@@ -35,10 +43,7 @@ def test_invalid_params_value_names_file_and_key(tmp_path: Path, capsys: pytest.
 def test_python_m_entry_point(tmp_path: Path) -> None:
     bad = tmp_path / "broken.yaml"
     bad.write_text("seed: [42\n")
-    env = {
-        **os.environ,
-        "PYTHONPATH": os.pathsep.join(filter(None, [str(ROOT), os.environ.get("PYTHONPATH")])),
-    }
+    env = _env()
     result = subprocess.run(
         [sys.executable, "-m", "pipeline.cli", "robot", "--params", str(bad)],
         capture_output=True,
@@ -53,6 +58,39 @@ def test_python_m_entry_point(tmp_path: Path) -> None:
     assert len(lines) == 1, result.stderr
     # The file is shown relative to the working directory, as the user would type it.
     assert lines[0].startswith("ftcal: error: broken.yaml: invalid YAML at line 2")
+
+
+def test_the_console_script_leaves_without_teardown_and_loses_no_output(tmp_path: Path) -> None:
+    """`ftcal` (`pipeline.cli:entry`) ends with os._exit: what a command printed into a pipe (block-buffered)
+    still arrives, and its status is the exit status."""
+    pyproject = (ROOT / "pyproject.toml").read_text()
+    assert 'ftcal = "pipeline.cli:entry"' in pyproject
+    env = _env()
+    env.pop("PYTHONUNBUFFERED", None)  # the pipe block-buffered, as under DVC
+    run = [sys.executable, "-c", "import sys; from pipeline.cli import entry; sys.argv[0] = 'ftcal'; entry()"]
+    result = subprocess.run([*run, "--version"], capture_output=True, text=True, env=env, timeout=60)
+    assert (result.returncode, result.stdout) == (0, f"ftcal {__version__}\n"), result.stderr
+    missing = tmp_path / "missing_params.yaml"
+    result = subprocess.run(
+        [*run, "robot", "--params", str(missing)], capture_output=True, text=True, env=env, timeout=60
+    )
+    assert result.returncode == 2 and result.stderr.startswith("ftcal: error: ")
+    assert str(missing) in result.stderr
+
+
+def test_the_steps_of_a_stage_start_with_the_preloaded_libraries_frozen() -> None:
+    """`_preload` freezes what it imported (`gc.freeze`), so that the forked steps' collections neither scan
+    nor copy it; and it imports the params validators every step runs first."""
+    code = (
+        "import gc, sys; from pipeline.cli import _preload; n = gc.get_freeze_count(); _preload(['numpy']); "
+        "assert n == 0 and gc.get_freeze_count() > 10000, gc.get_freeze_count(); "
+        "assert 'pipeline.calib.params' in sys.modules and 'pipeline.deploy.params' in sys.modules"
+    )
+    env = _env()
+    result = subprocess.run(
+        [sys.executable, "-P", "-c", code], capture_output=True, text=True, env=env, timeout=120
+    )
+    assert result.returncode == 0, result.stderr
 
 
 def test_version(capsys: pytest.CaptureFixture[str]) -> None:

@@ -8,6 +8,7 @@ kernels). Where the OS cannot fork, or for one job or one core, the jobs run her
 
 from __future__ import annotations
 
+import gc
 import multiprocessing
 import os
 from collections.abc import Callable, Iterator, Sequence
@@ -42,6 +43,7 @@ def forked_map(
         ranked = list(costs)
         order.sort(key=lambda i: -ranked[i])  # stable: equal costs keep the jobs' order
     _JOBS = [jobs[i] for i in order]
+    gc.freeze()  # what exists now is out of the workers' collections: they neither scan nor copy it
     pool = ProcessPoolExecutor(n, mp_context=multiprocessing.get_context("fork"))
     try:
         done: dict[int, Any] = {}
