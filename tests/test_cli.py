@@ -144,7 +144,7 @@ def test_a_stage_of_several_steps_imports_beforehand_what_its_steps_import() -> 
 
     from pipeline.cli import COMMANDS, LIBRARIES, STEP_LIBRARIES, _command, shared_libraries, split_commands
 
-    stages = yaml.safe_load((Path(__file__).resolve().parents[1] / "dvc.yaml").read_text())["stages"]
+    stages = yaml.safe_load((ROOT / "dvc.yaml").read_text())["stages"]
 
     def chain(stage: str) -> list[str]:
         entry = stages[stage]
