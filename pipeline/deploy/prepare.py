@@ -117,6 +117,16 @@ def _experiment(table: Path) -> dict[str, str]:
 DAY_FILE = "logs.json"  # a day's tables directory: its logs, in order (`write_day`)
 
 
+def not_simulated(folder: Path) -> str | None:
+    """Why a simulated day's folder (or its tables) holds no log: the first line of its
+    `S.NOT_SIMULATED` note (``ftcal simulate --if-ingested`` with recorded logs only); None if it has none."""
+    note = Path(folder) / S.NOT_SIMULATED
+    if not note.is_file():
+        return None
+    lines = note.read_text(encoding="utf-8").splitlines()
+    return lines[0].strip() if lines else None
+
+
 def write_day(out: Path, logs: list[DeployLog]) -> None:
     """Write `out`/logs.json: each log's name, source file (as given), experiment record and whether it has
     truth; `read_day` finds its tables again under the directory the day's tables end up in."""
