@@ -75,7 +75,7 @@ def prepare_logs(
         lambda log=log: _prepare_one(log, output_name(log, source_dir), dirs, spec, smooth_cfg, lab)
         for log in logs
     ]
-    return list(forked_map(jobs, costs=[log_size(log) for log in logs]))
+    return list(forked_map(jobs, costs=[log_size(log) for log in logs], labels=list(map(str, logs))))
 
 
 def _prepare_one(

@@ -247,7 +247,8 @@ def _ingest_all(
     ]
     with progress_bar(progress, bytes_=True) as bar:
         task = bar.add_task(f"{len(logs)} log(s)", total=sum(sizes))
-        for log, size, result in zip(logs, sizes, forked_map(jobs, costs=sizes), strict=True):
+        done = forked_map(jobs, costs=sizes, labels=[str(log) for log in logs])
+        for log, size, result in zip(logs, sizes, done, strict=True):
             bar.advance(task, size)
             if isinstance(result, LogReport):
                 reports.append(result)

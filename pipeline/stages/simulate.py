@@ -38,8 +38,9 @@ def _cost(job: tuple[int, Any, str, bool]) -> float:
     return spec.duration_s * per_second + (_PLOT_COST if plot else 0.0)
 
 
-def _generate(world: Any, jobs: list[tuple], progress: bool | None) -> list:
-    """Run every job (in forked worker processes, or in this one); results sorted by log name.
+def _generate(world: Any, jobs: list[tuple], progress: bool | None, section: str) -> list:
+    """Run every job (in forked worker processes, or in this one); results sorted by log name. section: the
+    params section of the logs (simulate, deploy), which names a failed log.
 
     The jobs start most expensive first, so that no core idles at the end while another finishes a long
     log. Each log draws from its own random streams: the results do not depend on the order.
@@ -57,7 +58,8 @@ def _generate(world: Any, jobs: list[tuple], progress: bool | None) -> list:
     results = []
     with progress_bar(progress) as bar:
         task = bar.add_task("simulate (robot s)", total=sum(job[1].duration_s for job in jobs))
-        done = forked_map(tasks, world.sim.workers or None, costs=[_cost(job) for job in jobs])
+        labels = [f"{section}.logs[{index}] ({spec.name(index)})" for index, spec, _, _ in jobs]
+        done = forked_map(tasks, world.sim.workers or None, [_cost(job) for job in jobs], labels)
         for result, job in zip(done, jobs, strict=True):
             results.append(result)
             bar.advance(task, job[1].duration_s)
@@ -197,7 +199,7 @@ def run(params: Any, out_dir: Path, progress: bool | None = None, deploy: str | 
         logged.update(deploy=params.raw["deploy"], variant=deploy)
     with stage_run("simulate", logged):
         start = time.perf_counter()
-        results = _generate(world, jobs, progress)
+        results = _generate(world, jobs, progress, "simulate" if deploy is None else "deploy")
         metrics = _write_outputs(world, results, time.perf_counter() - start, tmp)
         _log_mlflow(world, results, metrics, tmp)
     _swap_in(tmp, out_dir)
