@@ -165,3 +165,32 @@ def test_a_forked_stage_job_error_is_one_line_and_exit_2(
     what = SCIPY if raising is scipy_error else PINOCCHIO
     path = _traceback_file(err.removeprefix("ftcal: error: ").rstrip("\n"), label, what, raising.__name__)
     assert (tmp_path / path).is_file()
+
+
+def test_a_deployment_test_error_names_the_log_group_and_day(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """The deployment tests of a group (`ftcal deploy-test`) run each test of each day in a forked job."""
+    from pipeline.deploy import group as G
+    from pipeline.deploy.prepare import DeployLog
+
+    monkeypatch.chdir(tmp_path)
+    monkeypatch.setattr(
+        G, "DAY_TESTS", {"test_a": ("standing", lambda c, g: ({}, {})), "test_c": ("pole", pinocchio_error)}
+    )
+    ctx = G.GroupDay(LEG, [LEG], tmp_path, tmp_path, "nn7", None, None, None, None, "later", tmp_path)
+    logs = [
+        DeployLog(
+            kind,
+            Path(f"data/deploy/later/{k:02d}_{kind}_test.mcap"),
+            tmp_path,
+            tmp_path,
+            None,
+            {"type": kind},
+        )
+        for k, kind in enumerate(("standing", "pole"))
+    ]
+    with pytest.raises(JobError) as info:
+        G.run_days([(ctx, logs)])
+    label = rf"data/deploy/later/01_pole_test\.mcap \({LEG} test_c, day later\)"
+    _traceback_file(str(info.value), label, PINOCCHIO, "pinocchio_error")
