@@ -1,7 +1,9 @@
 """The `ftcal` command: one subcommand per pipeline stage (added with each stage), plus inspection tools.
 
 Errors the user can fix (`FtcalError`) print one line, ``ftcal: error: <message>``, on stderr and
-exit with status 2; Ctrl-C exits with 130. Anything else is a bug and shows its traceback.
+exit with status 2; so does any exception inside a step's forked jobs (`pipeline.core.parallel`: the line
+names the job's file or name and the file holding the traceback). Ctrl-C exits with 130. Anything else
+raised by a step itself is a bug and shows its traceback.
 """
 
 from __future__ import annotations

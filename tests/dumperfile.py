@@ -1,11 +1,16 @@
 """Test fixtures: YARP dataDumper runs written from MCAP contract logs, as the dumper prints them.
 
-A run is ``<run>/<robot>/<part>/<port>/{info.log,data.log}`` (../shared/reference/yarp-datadumper-format.md).
+A run is a folder of port folders ``{info.log,data.log}`` (../shared/reference/yarp-datadumper-format.md):
+the dumper's layout ``<run>/<robot>/<part>/<port>/`` (`dumper_folder`), or folders a lab's recorder named
+(`recorder_folder`: ``rightLegFT/``, ``joints/rightLegPos/``); info.log names the port
+(``/icub/right_leg/analog:o``), and since YARP 3.2 the stamp form (``Stamp: tx;`` or ``tx+rx;``).
 Lines are ``<seq> <time> [<reception time>] <payload>``; times with 6 decimals; numbers as YARP prints a
 double (6 decimals, trailing zeros dropped, at least one: ``0.0``, ``1.101``). FT parts' ``analog:o``
 carry the 6 wrench values; control boards' ``stateExt:o`` 10 groups, each ``(values) [status]``:
 positions (deg), velocities (deg/s), accelerations (zeros), motor positions / velocities /
-accelerations (copies), torques (Nm; ``[er]`` when the log has none), PWM, and two groups of modes.
+accelerations (copies), torques (Nm; ``[er]`` when the log has none), PWM, and two groups of modes;
+their ``state:o`` the positions alone (deg), one plain vector (the control-board wrapper's
+``yarp::sig::Vector`` of encoders, printed by the dumper as a Bottle).
 
 `mcap_to_run` writes every part of the maps it is given from the log's joint states and wrenches, in the
 log's arrival order (the dumper writes what it receives when it receives it), plus the experiment sidecar
@@ -14,7 +19,7 @@ log's arrival order (the dumper writes what it receives when it receives it), pl
 
 from __future__ import annotations
 
-from collections.abc import Mapping, Sequence
+from collections.abc import Callable, Mapping, Sequence
 from pathlib import Path
 
 import numpy as np
@@ -49,11 +54,28 @@ def _arrival(batches: Sequence[rosmsg.Batch]) -> dict[str, np.ndarray]:
     return {k: v[order] for k, v in data.items()}
 
 
-def write_port(folder: Path, lines: Sequence[str] | None, port_name: str, t0: float) -> None:
-    """A port folder: info.log, and data.log unless `lines` is None (a port that never sent)."""
+def dumper_folder(robot: str, part: str, port: str) -> str:
+    """The dumper's own layout: ``<robot>/<part>/<port>``."""
+    return f"{robot}/{part}/{port}"
+
+
+def recorder_folder(robot: str, part: str, port: str) -> str:
+    """Folders a lab's recorder named, at two depths: ``rightLegFT`` (FT ports), ``joints/rightLegPos``."""
+    first, *rest = part.split("_")
+    name = first + "".join(word.title() for word in rest)
+    return f"{name}FT" if port == "analog:o" else f"joints/{name}Pos"
+
+
+def write_port(
+    folder: Path, lines: Sequence[str] | None, port_name: str, t0: float, stamp: str | None = None
+) -> None:
+    """A port folder: info.log (with the ``Stamp:`` line of `stamp`, ``tx`` or ``tx+rx``, if given), and
+    data.log unless `lines` is None (a port that never sent)."""
     folder.mkdir(parents=True, exist_ok=True)
+    stamp_line = f"Stamp: {stamp};\n" if stamp else ""
     (folder / "info.log").write_text(
-        f"Type: Bottle;\n[{t0:.6f}] {port_name} [connected]\n[{t0 + 60:.6f}] {port_name} [disconnected]\n"
+        f"Type: Bottle;\n{stamp_line}[{t0:.6f}] {port_name} [connected]\n"
+        f"[{t0 + 60:.6f}] {port_name} [disconnected]\n"
     )
     if lines is not None:
         (folder / "data.log").write_text("".join(line + "\n" for line in lines))
@@ -84,14 +106,21 @@ def state_lines(
     return lines
 
 
-def analog_lines(stamps_ns: np.ndarray, recv_ns: np.ndarray | None, wrench: np.ndarray) -> list[str]:
-    """analog:o lines of one FT board: wrench (M, 6) N, Nm."""
+def vector_lines(
+    stamps_ns: np.ndarray, recv_ns: np.ndarray | None, values: np.ndarray, seq0: int
+) -> list[str]:
+    """Plain-vector lines ``<seq> <time> [<time>] v1 ... vn`` of one port: values (M, n)."""
     t, r = ns_to_seconds(stamps_ns), None if recv_ns is None else ns_to_seconds(recv_ns)
     return [
-        f"{(29000 + k) % 32768} {_times(t[k], None if r is None else r[k])} "
-        + " ".join(yarp_number(v) for v in wrench[k])
+        f"{(seq0 + k) % 32768} {_times(t[k], None if r is None else r[k])} "
+        + " ".join(yarp_number(v) for v in values[k])
         for k in range(len(t))
     ]
+
+
+def analog_lines(stamps_ns: np.ndarray, recv_ns: np.ndarray | None, wrench: np.ndarray) -> list[str]:
+    """analog:o lines of one FT board: wrench (M, 6) N, Nm."""
+    return vector_lines(stamps_ns, recv_ns, wrench, 29000)
 
 
 def mcap_to_run(
@@ -105,13 +134,18 @@ def mcap_to_run(
     without_data: Sequence[str] = (),
     robot: str = "icub",
     sidecar: Mapping[str, object] | None = None,
+    joint_port: str = "stateExt:o",
+    folder: Callable[[str, str, str], str] = dumper_folder,
+    stamp_line: bool = False,
 ) -> Path:
     """Write the MCAP log's joint states and wrenches as the dataDumper run `run`.
 
     `ft_ports`: part -> sensor; `joint_map`: part -> joint per axis (None: an axis the log does not have,
-    written as 0). `without_data`: ``part/port`` folders written with info.log only. `two_times`: lines
-    carry the reception time (the MCAP log time) after the stamp. The experiment record (or `sidecar`)
-    goes to ``<run>.yaml``.
+    written as 0). `without_data`: ``part/port`` ports written with info.log only. `two_times`: lines
+    carry the reception time (the MCAP log time) after the stamp. `joint_port`: the boards' ``stateExt:o``
+    or ``state:o``; `folder`: (robot, part, port) -> the port's folder under the run; `stamp_line`:
+    info.log says the stamp form, as dumpers since YARP 3.2 do. The experiment record (or `sidecar`) goes
+    to ``<run>.yaml``.
     """
     with rosmsg.LogReader(mcap) as reader:
         experiment = dict(reader.metadata.get("experiment", {}))
@@ -120,6 +154,7 @@ def mcap_to_run(
     names = list(read[topics.joint_states][0].names or ())
     t0 = float(ns_to_seconds(js["stamp_ns"][:1])[0]) - 0.1
     recv = js["log_time_ns"] if two_times else None
+    stamp = ("tx+rx" if two_times else "tx") if stamp_line else None
     for part, axes in joint_map.items():
         cols = [names.index(j) if j is not None else -1 for j in axes]
 
@@ -129,13 +164,14 @@ def mcap_to_run(
             return out
 
         tau = pick(js["effort"]) if js["effort"].shape[1] else None
-        name = f"{part}/stateExt:o"
-        lines = (
-            None
-            if name in without_data
-            else state_lines(js["stamp_ns"], recv, pick(js["position"]), pick(js["velocity"]), tau)
-        )
-        write_port(run / robot / part / "stateExt:o", lines, f"/{robot}/{name}", t0)
+        name = f"{part}/{joint_port}"
+        if name in without_data:
+            lines = None
+        elif joint_port == "state:o":
+            lines = vector_lines(js["stamp_ns"], recv, pick(js["position"]) * DEG, 20000)
+        else:
+            lines = state_lines(js["stamp_ns"], recv, pick(js["position"]), pick(js["velocity"]), tau)
+        write_port(run / folder(robot, part, joint_port), lines, f"/{robot}/{name}", t0, stamp)
     for part, sensor in ft_ports.items():
         m = _arrival(read[topics.sensor_topic("ft_wrench", sensor)])
         name = f"{part}/analog:o"
@@ -144,7 +180,7 @@ def mcap_to_run(
             if name in without_data
             else analog_lines(m["stamp_ns"], m["log_time_ns"] if two_times else None, m["wrench"])
         )
-        write_port(run / robot / part / "analog:o", lines, f"/{robot}/{name}", t0)
+        write_port(run / folder(robot, part, "analog:o"), lines, f"/{robot}/{name}", t0, stamp)
     side = dict(sidecar) if sidecar is not None else {k: v for k, v in experiment.items() if k != "sim"}
     run.with_name(run.name + ".yaml").write_text(yaml.safe_dump(side, sort_keys=False))
     return run

@@ -36,7 +36,7 @@ STAMP_TOL_NS = 620
 HALF_PRINTED = 0.5e-6
 FT_PORTS = {"leg": "s_one", "arm": "s_two"}
 JOINT_MAP = {"leg": ["j_a", "j_b"], "torso": [None, "j_c"]}  # an axis the URDF does not have, then j_c
-DUMPER = DumperParams("analog:o", "stateExt:o", FT_PORTS, JOINT_MAP, ("leg", "torso"))
+DUMPER = DumperParams("analog:o", ("stateExt:o", "state:o"), FT_PORTS, JOINT_MAP, ("leg", "torso"))
 CFG_DUMPER = IngestParams(**{**CFG.__dict__, "dumper": DUMPER})
 
 
@@ -102,6 +102,49 @@ def test_run_ingests_like_its_mcap(tmp_path: Path, mcap_log, two_times: bool) ->
             )
         for stream in (S.IMU_STREAM, S.TEMPERATURE_STREAM):  # not in a dataDumper run of these boards
             assert not got[S.ok_col(stream, s)].any()
+
+
+@pytest.mark.parametrize("two_times, stamp_line", [(False, False), (True, False), (True, True)])
+def test_recorder_folders_with_state_ports_ingest_like_the_dumper_layout(
+    tmp_path: Path, mcap_log, two_times: bool, stamp_line: bool
+) -> None:
+    """The same run in the dumper's layout with stateExt:o ports, and in folders a recorder named
+    (``legFT/``, ``joints/legPos/``) with the boards' state:o ports (positions only): info.log names each
+    port. The same table, joint positions and wrenches equal to the bit; velocities and torques, which
+    state:o does not carry, NaN. The reception times are told from the info.log ``Stamp:`` line, or
+    without it (older dumpers) from the first line."""
+    from pipeline.stages.ingest import find_logs
+
+    mcap, _ = mcap_log
+    src = tmp_path / "raw"
+    dumper = dumperfile.mcap_to_run(mcap, src / "a" / "run", TOPICS, FT_PORTS, JOINT_MAP, two_times=two_times)
+    recorder = dumperfile.mcap_to_run(
+        mcap,
+        src / "b" / "run",
+        TOPICS,
+        FT_PORTS,
+        JOINT_MAP,
+        two_times=two_times,
+        joint_port="state:o",
+        folder=dumperfile.recorder_folder,
+        stamp_line=stamp_line,
+    )
+    assert (recorder / "legFT" / "data.log").is_file() and (
+        recorder / "joints" / "torsoPos" / "data.log"
+    ).is_file()
+    assert find_logs(src) == [dumper, recorder]
+    ref = ingest(dumper, tmp_path / "a", name="log")
+    got = ingest(recorder, tmp_path / "b", name="log")
+    assert list(got.columns) == list(ref.columns)
+    np.testing.assert_array_equal(got[S.STAMP], ref[S.STAMP])
+    for j in JOINTS:
+        np.testing.assert_array_equal(got[S.joint_col(S.Q, j)], ref[S.joint_col(S.Q, j)])
+        assert ref[S.joint_col(S.DQ_ENC, j)].notna().all()
+        for quantity in (S.DQ_ENC, S.TAU_ENC):
+            assert got[S.joint_col(quantity, j)].isna().all()
+    for s in SENSORS:
+        for c in [*S.wrench_cols(S.FT, s), S.ok_col(S.WRENCH_STREAM, s)]:
+            np.testing.assert_array_equal(got[c], ref[c], err_msg=c)
 
 
 def test_converted_run_ingests_exactly_like_the_run(tmp_path: Path, mcap_log) -> None:
@@ -252,6 +295,14 @@ BAD_RUNS = {
         lambda run: (run / "icub/right_leg/rpc:i").mkdir(),
         r"icub/right_leg/rpc:i: unknown port 'rpc:i' of part 'right_leg'",
     ),
+    "two folders, one port": (
+        lambda run: shutil.copytree(run / "icub/right_foot/analog:o", run / "rightFootFT"),
+        r"icub/right_foot/analog:o and \S+/yoga/rightFootFT both hold port right_foot/analog:o",
+    ),
+    "a folder naming no port": (
+        lambda run: (run / "notes").mkdir() or (run / "notes" / "info.log").write_text("Type: Bottle;\n"),
+        r"yoga/notes: its info.log names no port, so what it holds is unknown",
+    ),
     "segments overlap": (
         lambda run: _sidecar(run, {**SIDE, "segments": _segs((0.1, 0.8, "train"), (0.7, 1.4, "test"))}),
         r"yoga.yaml: segments\[1\] \[0.7, 1.4\] s overlaps segments\[0\] \[0.1, 0.8\] s",
@@ -342,6 +393,11 @@ def test_dumper_params_name_the_key() -> None:
         ),
         ({"ft_ports": {"leg": "s_one", "arm": "s_one"}}, "ingest.dumper.ft_ports maps two parts"),
         ({"extra": 1}, "unknown key ingest.dumper.extra"),
+        ({"joint_ports": []}, "ingest.dumper.joint_ports must be a non-empty list of port names"),
+        (
+            {"joint_ports": ["state:o", "analog:o"]},
+            "ingest.dumper.joint_ports: 'analog:o' is also the ft_port",
+        ),
     ):
         with pytest.raises(ConfigError, match=message):
             DumperParams.from_mapping({**good, **change})

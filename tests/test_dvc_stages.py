@@ -51,3 +51,41 @@ def test_adding_recorded_logs_makes_the_deployment_stages_stale(tmp_path: Path) 
     assert real not in _changed_deps(_status(clone, stage), stage)
     (clone / real / "2026_11_25_robot_logger_device.mat").write_bytes(b"a recorded deployment log")
     assert _changed_deps(_status(clone, stage), stage).get(real) == "modified"
+
+
+def test_recorded_logs_only_dvc_repro_simulates_nothing(tmp_path: Path) -> None:
+    """`dvc repro simulate deploy_days` on a fresh clone with ingest.source on recorded logs (data/raw): no
+    log simulated, no URDF loaded (robot.urdf names an absent file), each folder a note saying why."""
+    import os
+    import time
+
+    clone = tmp_path / "clone"
+    subprocess.run(["git", "clone", "--quiet", str(ROOT), str(clone)], check=True)
+    data = yaml.safe_load((clone / "params.yaml").read_text())
+    data["ingest"]["source"] = "data/raw"
+    data["robot"]["urdf"] = "robots/absent.urdf"
+    (clone / "params.yaml").write_text(yaml.safe_dump(data, sort_keys=False))
+    env = {
+        **os.environ,
+        "PYTHONPATH": os.pathsep.join(filter(None, [str(clone), os.environ.get("PYTHONPATH")])),
+        "MLFLOW_TRACKING_URI": f"sqlite:///{tmp_path / 'mlflow.db'}",
+    }
+    start = time.perf_counter()
+    proc = subprocess.run(
+        [sys.executable, "-m", "dvc", "repro", "simulate", "deploy_days"],
+        cwd=clone,
+        env=env,
+        capture_output=True,
+        text=True,
+    )
+    seconds = time.perf_counter() - start
+    assert proc.returncode == 0, proc.stderr[-2000:]
+    assert "simulate: data/sim: nothing simulated: ingest.source is data/raw, not data/sim" in proc.stdout
+    for folder in ("data/sim", "data/deploy/later", "data/deploy/drifted"):
+        assert [p.name for p in (clone / folder).iterdir()] == ["not_simulated.txt"], folder
+    for day in ("later", "drifted"):
+        tables = clone / "data" / "deploy" / "tables" / day
+        assert json.loads((tables / "logs.json").read_text()) == []
+        assert (tables / "not_simulated.txt").read_text().startswith("nothing simulated: ingest.source")
+    assert not list(clone.rglob("*.mcap"))
+    assert seconds < 60, f"dvc repro took {seconds:.0f} s"

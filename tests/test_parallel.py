@@ -3,10 +3,12 @@
 from __future__ import annotations
 
 import os
+from pathlib import Path
 
 import numpy as np
 import pytest
 
+from pipeline.core.errors import JobError
 from pipeline.core.parallel import forked_map
 
 
@@ -28,11 +30,12 @@ def test_costliest_jobs_first_still_yield_in_order() -> None:
     assert [r[0] for r in forked_map(jobs, workers=1, costs=[3.0, 1.0, 2.0, 0.0, 4.0])] == list(range(5))
 
 
-def test_a_failing_job_raises_in_the_caller() -> None:
+def test_a_failing_job_raises_in_the_caller(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
     def fail() -> None:
-        raise ValueError("job 1")
+        raise ValueError("bad value")
 
-    with pytest.raises(ValueError, match="job 1"):
+    monkeypatch.chdir(tmp_path)  # where the traceback goes (tests/test_job_errors.py)
+    with pytest.raises(JobError, match=r"^job 1: ValueError: bad value \(traceback in "):
         list(forked_map([lambda: 0, fail, lambda: 2], workers=2))
 
 

@@ -43,6 +43,7 @@ SEGMENTS = [  # s of the pole run: two training segments and a test one, 0.5 s a
     {"start_s": 13.0, "end_s": 19.5, "role": "test"},
 ]
 GROUP = "r_leg_ft"
+DAYS = ("later", "drifted")  # the simulated deployment days
 
 
 @pytest.fixture(scope="module")
@@ -194,3 +195,50 @@ def test_a_simulated_log_written_as_a_run_ingests_like_its_mcap(recorded_run: di
                 got[c], ref[c], atol=_bound(ref, c, HALF_PRINTED, 0.005), rtol=0, err_msg=c
             )
         assert not got[S.ok_col(S.TEMPERATURE_STREAM, s)].any() and not got[S.ok_col(S.IMU_STREAM, s)].any()
+
+
+def test_recorded_logs_only_simulate_nothing_and_deployment_says_so(
+    recorded_run: dict[str, Any], tmp_path, capfd: pytest.CaptureFixture[str]
+) -> None:
+    """With ingest.source on the recorded runs, the steps of stages `simulate` and `deploy_days` (as dvc.yaml
+    runs them, `--if-ingested` the simulated data's folder) simulate nothing and never load the URDF (an
+    absent file here), each printing one line; the prepared days pass the note on, and the group's
+    deployment tests and page say there is nothing simulated to test on."""
+    from pipeline.cli import main
+
+    d = recorded_run["dirs"]
+    data = yaml.safe_load((d["sim"].parent / "params.yaml").read_text())
+    data["ingest"]["source"] = str(d["raw"])
+    recorded = tmp_path / "params.yaml"
+    recorded.write_text(yaml.safe_dump(data, sort_keys=False))
+    data["robot"]["urdf"] = str(tmp_path / "absent" / "robot.urdf")
+    unloadable = tmp_path / "unloadable.yaml"
+    unloadable.write_text(yaml.safe_dump(data, sort_keys=False))
+    sim, days, tables = tmp_path / "sim", tmp_path / "days", tmp_path / "tables"
+    steps = [
+        ["simulate", str(sim), "--if-ingested", str(sim)],
+        *(["simulate", str(days / v), "--deploy", v, "--quiet", "--if-ingested", str(sim)] for v in DAYS),
+        *(["deploy-prepare", str(days / v), str(tables / v)] for v in DAYS),
+    ]
+    assert main([a for step in steps for a in ["+", *step, "--params", str(unloadable)]][1:]) == 0
+    out, err = capfd.readouterr()
+    note = f"nothing simulated: ingest.source is {d['raw']}, not {sim} (recorded logs only)"
+    assert out.splitlines() == [
+        f"simulate: {sim}: {note}",
+        *(f"simulate: {days / v}: {note}" for v in DAYS),
+        *(f"{tables / v}: {note}" for v in DAYS),
+    ]
+    assert not err
+    for folder in (sim, *(days / v for v in DAYS)):
+        assert [p.name for p in folder.iterdir()] == ["not_simulated.txt"]
+    groups = tmp_path / "groups"
+    exported = d["exported"] / "groups" / GROUP
+    tested = deploy_test.run(
+        load_params(recorded), GROUP, d["models"] / GROUP, exported, tables, groups / GROUP
+    )
+    assert tested["days"] == {} and tested["not_simulated"] == dict.fromkeys(DAYS, note)
+    deployed = deploy_report.run(load_params(recorded), groups, tmp_path / "reports")
+    assert deployed["nothing"].startswith(
+        f"Nothing to test: there is nothing simulated to test on ({DAYS[1]}"
+    )
+    assert note in (tmp_path / "reports" / "deployment.html").read_text()

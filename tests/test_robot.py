@@ -36,14 +36,14 @@ def test_joints_match_pinocchio(robot: RobotModel) -> None:
     assert robot.total_mass() == pytest.approx(sum(i.mass for i in model.inertias), rel=1e-12)
 
 
-def _random_state(robot: RobotModel, rng: np.random.Generator, n: int) -> tuple[np.ndarray, ...]:
+def random_state(robot: RobotModel, rng: np.random.Generator, n: int) -> tuple[np.ndarray, ...]:
     lower = np.array([robot.joints[j].lower for j in robot.joint_names])
     upper = np.array([robot.joints[j].upper for j in robot.joint_names])
     q = rng.uniform(lower, upper, (n, len(lower)))
     return q, rng.uniform(-1, 1, q.shape), rng.uniform(-5, 5, q.shape)
 
 
-def _to_pin(robot: RobotModel, x: np.ndarray) -> np.ndarray:
+def to_pin(robot: RobotModel, x: np.ndarray) -> np.ndarray:
     """Robot joint order -> Pinocchio's own model order."""
     model = robot.pinocchio_model
     out = np.zeros(model.nq)
@@ -54,12 +54,17 @@ def _to_pin(robot: RobotModel, x: np.ndarray) -> np.ndarray:
 
 def test_rooted_at_root_link_has_pinocchio_joint_torques(robot: RobotModel) -> None:
     """Same fixed base, two model builders: the joint torques of RNEA must agree."""
+    check_pinocchio_joint_torques(robot, np.random.default_rng(1), 20)
+
+
+def check_pinocchio_joint_torques(robot: RobotModel, rng: np.random.Generator, n: int) -> None:
+    """RNEA's joint torques of the model rooted at root_link equal those of Pinocchio's own URDF model,
+    in `n` random states."""
     rooted = robot.rooted(robot.root_link)
     ref_model = robot.pinocchio_model
     ref_data, data = ref_model.createData(), rooted.model.createData()
-    rng = np.random.default_rng(1)
-    for q, dq, ddq in zip(*_random_state(robot, rng, 20), strict=True):
-        tau_ref = pin.rnea(ref_model, ref_data, _to_pin(robot, q), _to_pin(robot, dq), _to_pin(robot, ddq))
+    for q, dq, ddq in zip(*random_state(robot, rng, n), strict=True):
+        tau_ref = pin.rnea(ref_model, ref_data, to_pin(robot, q), to_pin(robot, dq), to_pin(robot, ddq))
         qs = pin.neutral(rooted.model)
         vs, accs = np.zeros(rooted.model.nv), np.zeros(rooted.model.nv)
         qs[rooted.q_index], vs[rooted.v_index], accs[rooted.v_index] = (
@@ -81,8 +86,8 @@ def test_rerooted_kinematics_match_pinocchio(robot: RobotModel, root: str) -> No
     rooted = robot.rooted(root)
     data = rooted.model.createData()
     rng = np.random.default_rng(2)
-    for q in _random_state(robot, rng, 5)[0]:
-        pin.framesForwardKinematics(ref_model, ref_data, _to_pin(robot, q))
+    for q in random_state(robot, rng, 5)[0]:
+        pin.framesForwardKinematics(ref_model, ref_data, to_pin(robot, q))
         qs = pin.neutral(rooted.model)
         qs[rooted.q_index] = q * rooted.sign
         pin.framesForwardKinematics(rooted.model, data, qs)

@@ -48,7 +48,8 @@ def _fold_predictions(
 
     # the networks of a fold are independent: one process per core (the same bits as one by one), the
     # polynomial baselines fitted beside them
-    baselines, fits, _ = fit_beside(gp, group, train, prep.seed, [partial(fit, n) for n in names])
+    jobs, labels = [partial(fit, n) for n in names], [f"{n} fold {k + 1}" for n in names]
+    baselines, fits, _ = fit_beside(gp, group, train, prep.seed, jobs, labels)
     preds = {RAW: val.x[:, :, :WRENCH].copy()}
     preds.update({name: model.predict(val.x) for name, model in baselines.items()})
     for name, (pred, history, seconds) in zip(names, fits, strict=True):

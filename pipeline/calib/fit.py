@@ -121,11 +121,12 @@ def fit_beside(
     train: GroupData,
     seed: int,
     jobs: Sequence[Callable[[LinearBaseline], Any]],
+    labels: Sequence[str],
 ) -> tuple[dict[str, LinearBaseline], list[Any], float]:
     """`fit_baselines`, and the results of `jobs` (each given the affine map the networks start from), with
     the polynomials fitted in a forked process beside the jobs (`forked_map`: the same numbers as one after
-    the other, the polynomials in the time the jobs leave a core idle). Returns (baselines, the jobs'
-    results, seconds of the baselines' own fits)."""
+    the other, the polynomials in the time the jobs leave a core idle; `labels` name the jobs in an error).
+    Returns (baselines, the jobs' results, seconds of the baselines' own fits)."""
     t = time.perf_counter()
     start = fit_affine(gp, group, train, seed)
     seconds = time.perf_counter() - t
@@ -135,7 +136,8 @@ def fit_beside(
         return fit_baselines(gp, group, train, seed, affine=False), time.perf_counter() - t
 
     work = [*(lambda job=job: job(start) for job in jobs), polynomials]
-    *results, (polys, poly_seconds) = forked_map(work, costs=[2.0] * len(jobs) + [1.0])
+    named = [*(f"{group.name}: {label}" for label in labels), f"{group.name}: polynomial baselines"]
+    *results, (polys, poly_seconds) = forked_map(work, costs=[2.0] * len(jobs) + [1.0], labels=named)
     return {AFFINE: start, **polys}, results, seconds + poly_seconds
 
 

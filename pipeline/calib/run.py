@@ -74,7 +74,8 @@ def fit_models(params: Params, prep: Prepared, studies: Path, ui: ProgressLog) -
         )
 
     jobs = [partial(search, n) for n in gp.inputs]
-    fitted.baselines, searches, seconds = fit_beside(gp, group, prep.train, prep.seed, jobs)
+    labels = [f"search of the {n}-input network" for n in gp.inputs]
+    fitted.baselines, searches, seconds = fit_beside(gp, group, prep.train, prep.seed, jobs, labels)
     t = time.perf_counter()
     for name, model in fitted.baselines.items():
         for k, d in data.items():

@@ -21,3 +21,9 @@ class RobotModelError(FtcalError):
 
 class DataError(FtcalError):
     """A log or table that cannot be used (the message names the file and the problem)."""
+
+
+class JobError(FtcalError):
+    """An unexpected exception inside a job of `pipeline.core.parallel.forked_map` (a library's ValueError or
+    RuntimeError on the data): the message names the job's file or name and the exception, and the file that
+    holds its traceback (the terminal shows one line)."""

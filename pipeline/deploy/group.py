@@ -148,7 +148,8 @@ def run_days(days: list[tuple[GroupDay, list[DeployLog]]]) -> list[TestResult]:
 
         pyplot()  # matplotlib imported once, before the workers fork
     calls = [lambda t=DAY_TESTS[name][1], c=ctx, g=log: t(c, g) for _, name, ctx, log in jobs]
-    outs = forked_map(calls, costs=[_COST.get(name, 1.0) for _, name, _, _ in jobs])
+    labels = [f"{log.source} ({ctx.group} {name}, day {ctx.day})" for _, name, ctx, log in jobs]
+    outs = forked_map(calls, costs=[_COST.get(name, 1.0) for _, name, _, _ in jobs], labels=labels)
     done = {(d, name): out for (d, name, _, _), out in zip(jobs, outs, strict=True)}
     results: list[TestResult] = []
     for d, (_, logs) in enumerate(days):

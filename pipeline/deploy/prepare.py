@@ -75,7 +75,7 @@ def prepare_logs(
         lambda log=log: _prepare_one(log, output_name(log, source_dir), dirs, spec, smooth_cfg, lab)
         for log in logs
     ]
-    return list(forked_map(jobs, costs=[log_size(log) for log in logs]))
+    return list(forked_map(jobs, costs=[log_size(log) for log in logs], labels=list(map(str, logs))))
 
 
 def _prepare_one(
@@ -115,6 +115,16 @@ def _experiment(table: Path) -> dict[str, str]:
 
 
 DAY_FILE = "logs.json"  # a day's tables directory: its logs, in order (`write_day`)
+
+
+def not_simulated(folder: Path) -> str | None:
+    """Why a simulated day's folder (or its tables) holds no log: the first line of its
+    `S.NOT_SIMULATED` note (``ftcal simulate --if-ingested`` with recorded logs only); None if it has none."""
+    note = Path(folder) / S.NOT_SIMULATED
+    if not note.is_file():
+        return None
+    lines = note.read_text(encoding="utf-8").splitlines()
+    return lines[0].strip() if lines else None
 
 
 def write_day(out: Path, logs: list[DeployLog]) -> None:

@@ -460,7 +460,8 @@ def write_group_figures(
     from pipeline.core.parallel import forked_map
 
     pyplot()  # matplotlib imported once, before the workers fork
-    for _ in forked_map([lambda p=out / path, job=job: job(p) for path, job in jobs]):
+    drawn = [lambda p=out / path, job=job: job(p) for path, job in jobs]
+    for _ in forked_map(drawn, labels=[str(out / path) for path, _ in jobs]):
         if task is not None:
             progress.advance(task)
     return figures

@@ -218,7 +218,8 @@ def scored(g: GroupInputs, cfg: EvaluateParams) -> tuple[dict, dict, NoiseResult
     from pipeline.core.parallel import forked_map
 
     jobs = [lambda: noise_check(g, cfg), *(lambda name=name: name_errors(g, name) for name in g.names)]
-    noise, *per_name = forked_map(jobs)
+    labels = [f"{g.group}: noise check", *(f"{g.group}: errors of {name}" for name in g.names)]
+    noise, *per_name = forked_map(jobs, labels=labels)
     tables = {name: t for name, (t, _) in zip(g.names, per_name, strict=True)}
     by_exp = {name: b for name, (_, b) in zip(g.names, per_name, strict=True)}
     return tables, by_exp, noise

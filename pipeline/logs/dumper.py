@@ -1,25 +1,33 @@
 """A YARP dataDumper run read as the topics of the MCAP contract (format: the reference and README).
 
-A run is a directory ``<run>/<robot>/<part>/<port>/{info.log,data.log}`` (one robot prefix folder, e.g.
-``icub``). `DumperRunReader` offers what ingest uses of `rosmsg.LogReader` (``path``, ``size_bytes``,
-``metadata``, ``topics``, ``iter_chunks``), through the maps of ``ingest.dumper`` (`DumperParams`):
+A run is a folder of port folders, one per dumped port, each with ``info.log`` and ``data.log``: the
+dumper's own layout ``<run>/<robot>/<part>/<port>/`` (one robot prefix folder, e.g. ``icub``), or folders
+the recorder named (``rightLegFT/``, ``rightLegPos/``), at any depth. What a folder holds is the port that
+its info.log names (``/icub/right_leg/analog:o``: robot prefix ``icub``, part ``right_leg``, port
+``analog:o``), never its folder name; a folder of the dumper's layout whose info.log names none (a port
+that never connected) is taken as its path says. `DumperRunReader` offers what ingest uses of
+`rosmsg.LogReader` (``path``, ``size_bytes``, ``metadata``, ``topics``, ``iter_chunks``), through the maps
+of ``ingest.dumper`` (`DumperParams`):
 
 - each FT part's ``analog:o`` port -> the wrench topic of its URDF sensor (stamped by the sender);
-- the control boards' ``stateExt:o`` ports -> one joint-state topic. The first part of
+- the control boards' joint ports (the first of ``ingest.dumper.joint_ports`` a board has with data:
+  ``stateExt:o``, or ``state:o`` with positions only) -> one joint-state topic. The first part of
   ``ingest.dumper.time_base`` present in the run is the time base: each of its messages is one
   joint-state message, and every other board's positions (velocities, torques) are interpolated at its
   stamp within ``ingest.max_gap_s`` (`pipeline.logs.align.align_continuous`, after dropping their
   duplicate stamps). A time-base message with no position of another board within that gap is dropped
-  and counted (the time base then has a gap, as for a lost message). Degrees become radians.
+  and counted (the time base then has a gap, as for a lost message). Degrees become radians; a board's
+  velocities and torques that its port does not carry are NaN.
 
 Arrival order: the reception time where the dumper wrote one (two-time form), else the file order, so
 stamps stepping back in a file are re-sorted or are a clock jump, exactly as for an MCAP log.
 
 A port folder without ``data.log``, or a URDF FT sensor with no port in the run, is an absent stream: the
 ``recording`` metadata record (`pipeline.logs.sidecar`) names it, ingest leaves its columns NaN and
-flagged and names it in its summary. Joints of absent boards are NaN. A folder that no map names (and
-``ingest.dumper.ignore`` does not skip) is an error, as are bad lines (`pipeline.logs.dumper_text`).
-The experiment metadata comes from the sidecar ``<run>.yaml`` beside the run folder.
+flagged and names it in its summary. Joints of absent boards are NaN. A port that no map names (and
+``ingest.dumper.ignore`` does not skip), two folders holding one port, ports of two robot prefixes, are
+errors, as are bad lines (`pipeline.logs.dumper_text`). The experiment metadata comes from the sidecar
+``<run>.yaml`` beside the run folder.
 """
 
 from __future__ import annotations
@@ -35,7 +43,7 @@ from pipeline.core.config import TopicParams
 from pipeline.core.errors import ConfigError, DataError
 from pipeline.logs import rosmsg
 from pipeline.logs.align import align_continuous, sort_unique
-from pipeline.logs.dumper_text import PortData, read_analog, read_info, read_state
+from pipeline.logs.dumper_text import PortData, read_analog, read_info, read_joint_port
 from pipeline.logs.matlog import iter_windows
 from pipeline.logs.params import DumperParams
 from pipeline.logs.sidecar import RECORDING, absent_record, read_sidecar
@@ -44,11 +52,36 @@ DATA, INFO = "data.log", "info.log"
 CHUNK_ROWS = 3_000  # time-base messages per chunk handed out
 
 
-def is_run(path: Path) -> bool:
-    """Whether `path` is a dataDumper run: a directory holding ``<robot>/<part>/<port>/{data,info}.log``."""
-    if not path.is_dir():
+def _is_port(folder: Path) -> bool:
+    return (folder / INFO).is_file() or (folder / DATA).is_file()
+
+
+def port_folders(run: Path) -> list[Path]:
+    """The port folders under `run` (not itself), sorted: folders holding info.log or data.log, and
+    folders holding no folder (a port that never wrote anything), at any depth."""
+    out, stack = [], [run]
+    while stack:
+        folder = stack.pop()
+        subs = sorted((d for d in folder.iterdir() if d.is_dir()), reverse=True)
+        if folder != run and (_is_port(folder) or not subs):
+            out.append(folder)
+            continue
+        stack.extend(subs)
+    return sorted(out)
+
+
+def is_run(path: Path, sidecar_suffix: str = ".yaml") -> bool:
+    """Whether `path` is a dataDumper run: a folder (not a port folder) holding port folders at any depth
+    with the experiment sidecar ``<run><sidecar_suffix>`` beside it, or in the dumper's layout: a folder
+    ``<robot>/<part>/<port>`` whose info.log names that very port."""
+    if not path.is_dir() or _is_port(path):
         return False
-    return any(path.glob(f"*/*/*/{DATA}")) or any(path.glob(f"*/*/*/{INFO}"))
+    if sidecar_of(path, sidecar_suffix).is_file() and any(_is_port(p) for p in path.rglob("*") if p.is_dir()):
+        return True
+    return any(
+        read_info(info)["port"] == "/" + info.parent.relative_to(path).as_posix()
+        for info in path.glob(f"*/*/*/{INFO}")
+    )
 
 
 def sidecar_of(run: Path, suffix: str) -> Path:
@@ -58,9 +91,11 @@ def sidecar_of(run: Path, suffix: str) -> Path:
 
 @dataclass
 class _Port:
+    robot: str
     part: str
     port: str
     folder: Path
+    info: dict[str, str]
 
     @property
     def name(self) -> str:
@@ -93,7 +128,6 @@ class DumperRunReader:
         self.max_gap_ns = round(max_gap_s * 1e9)
         self.warnings: list[str] = []
         experiment = read_sidecar(sidecar_of(self.path, cfg.sidecar_suffix), self.path)
-        self.robot_dir = self._robot_dir()
         ports = self._ports()
         self.size_bytes = sum(p.data.stat().st_size for p in ports if p.data is not None)
         absent_streams = [p.name for p in ports if p.data is None]
@@ -102,7 +136,9 @@ class DumperRunReader:
         if not self.wrenches:
             raise DataError(f"{self.path}: no FT port ({cfg.ft_port}) with a {DATA} (the run has no wrench)")
         if not state_ports:
-            raise DataError(f"{self.path}: no control-board port ({cfg.joint_port}) with a {DATA}")
+            raise DataError(
+                f"{self.path}: no control-board port ({', '.join(cfg.joint_ports)}) with a {DATA}"
+            )
         rank = {part: k for k, part in enumerate(cfg.time_base)}
         state_ports.sort(key=lambda p: rank.get(p[0].part, len(rank)))
         if state_ports[0][0].part not in rank:
@@ -111,7 +147,7 @@ class DumperRunReader:
                 f"{self.path}: none of the boards of ingest.dumper.time_base ({', '.join(cfg.time_base)}) "
                 f"has a {DATA} (boards with one: {have})"
             )
-        self.time_base = f"{state_ports[0][0].part}/{cfg.joint_port}"
+        self.time_base = state_ports[0][0].name
         self.joint_names = [name for _, _, names in state_ports for name in names]  # the columns' order
         self.dropped_rows = 0  # time-base messages without another board's positions
         self.joint_rows = self._joint_states(state_ports)
@@ -120,7 +156,7 @@ class DumperRunReader:
             "experiment": experiment,
             RECORDING: absent_record(absent_topics, absent_joints, absent_streams),
             "dumper": {
-                "robot": self.robot_dir.name,
+                "robot": ports[0].robot if ports else "",
                 "time_base": self.time_base,
                 "time_base_dropped": self.dropped_rows,
                 "ports": {p.name: self._port_info(p) for p in ports},
@@ -133,41 +169,59 @@ class DumperRunReader:
 
     # -- layout --
 
-    def _robot_dir(self) -> Path:
-        robots = sorted(d for d in self.path.iterdir() if d.is_dir())
-        if len(robots) != 1:
-            names = ", ".join(d.name for d in robots) or "none"
-            raise DataError(f"{self.path}: a dataDumper run holds one robot prefix folder, found: {names}")
-        return robots[0]
+    def _identify(self, folder: Path) -> _Port | None:
+        """The port a folder holds, from its info.log (else from the dumper's layout); None: ignored."""
+        info = read_info(folder / INFO)
+        rel = folder.relative_to(self.path).as_posix()
+        name = info["port"] or (f"/{rel}" if len(rel.split("/")) == 3 else "")
+        if rel in self.cfg.ignore:
+            return None
+        if not name:
+            raise DataError(
+                f"{folder}: its {INFO} names no port, so what it holds is unknown (ingest.dumper.ignore "
+                "skips a folder)"
+            )
+        elements = name.strip("/").split("/")
+        if len(elements) < 3 or not all(elements):
+            raise DataError(f"{folder}: port {name!r} of its {INFO} is not /<robot>/<part>/<port>")
+        *robot, part, port = elements
+        if part in self.cfg.ignore or f"{part}/{port}" in self.cfg.ignore:
+            return None
+        return _Port("/".join(robot), part, port, folder, info)
 
     def _ports(self) -> list[_Port]:
-        """Every port folder the maps name; an unknown part or port is an error (unless ignored)."""
-        cfg, out = self.cfg, []
-        for part_dir in sorted(d for d in self.robot_dir.iterdir() if d.is_dir()):
-            part = part_dir.name
-            if part in cfg.ignore:
+        """Every port the maps name, sorted by part and port; an unknown part or port is an error (unless
+        ignored), as are two folders of one port and ports of two robot prefixes."""
+        cfg, out = self.cfg, {}
+        for folder in port_folders(self.path):
+            p = self._identify(folder)
+            if p is None:
                 continue
-            known = part in cfg.ft_ports or part in cfg.joints
-            if not known:
+            # the folder to name: the part's own folder in the dumper's layout
+            where = folder.parent if folder.parent.name == p.part else folder
+            if p.part not in cfg.ft_ports and p.part not in cfg.joints:
                 raise DataError(
-                    f"{part_dir}: unknown part {part!r} (not in ingest.dumper.ft_ports, ingest.dumper.joints "
+                    f"{where}: unknown part {p.part!r} (not in ingest.dumper.ft_ports, ingest.dumper.joints "
                     "or ingest.dumper.ignore)"
                 )
-            for port_dir in sorted(d for d in part_dir.iterdir() if d.is_dir()):
-                port = port_dir.name
-                if f"{part}/{port}" in cfg.ignore:
-                    continue
-                wanted = (port == cfg.ft_port and part in cfg.ft_ports) or (
-                    port == cfg.joint_port and part in cfg.joints
+            wanted = (p.port == cfg.ft_port and p.part in cfg.ft_ports) or (
+                p.port in cfg.joint_ports and p.part in cfg.joints
+            )
+            if not wanted:
+                raise DataError(
+                    f"{folder}: unknown port {p.port!r} of part {p.part!r} (ingest.dumper reads "
+                    f"{cfg.ft_port} of ft_ports parts and {', '.join(cfg.joint_ports)} of joints parts; "
+                    "ingest.dumper.ignore skips others)"
                 )
-                if not wanted:
-                    raise DataError(
-                        f"{port_dir}: unknown port {port!r} of part {part!r} (ingest.dumper reads "
-                        f"{cfg.ft_port} of ft_ports parts and {cfg.joint_port} of joints parts; "
-                        "ingest.dumper.ignore skips others)"
-                    )
-                out.append(_Port(part, port, port_dir))
-        return out
+            if p.name in out:
+                raise DataError(f"{self.path}: {out[p.name].folder} and {folder} both hold port {p.name}")
+            out[p.name] = p
+        robots = sorted({p.robot for p in out.values()})
+        if len(robots) > 1:
+            raise DataError(
+                f"{self.path}: a dataDumper run holds one robot's ports, found: {', '.join(robots)}"
+            )
+        return [out[k] for k in sorted(out, key=lambda k: (out[k].part, out[k].port))]
 
     def _wrenches(
         self, ports: Sequence[_Port], sensors: Sequence[str], absent: list[str]
@@ -198,7 +252,11 @@ class DumperRunReader:
     def _joint_map(self, ports: Sequence[_Port], joints: Sequence[str]) -> list:
         """[(port, axis indices, URDF joint names)] of the boards with data, in the map's order."""
         cfg = self.cfg
-        found = {p.part: p for p in ports if p.port == cfg.joint_port and p.data is not None}
+        found: dict[str, _Port] = {}
+        for name in cfg.joint_ports:  # each board's first joint port with data
+            for p in ports:
+                if p.port == name and p.data is not None:
+                    found.setdefault(p.part, p)
         out = []
         for part, axes in cfg.joints.items():
             if part not in found:
@@ -216,12 +274,12 @@ class DumperRunReader:
     def _joint_states(self, state_ports: list) -> PortData:
         """The time base's messages with every board's joints (see the module docstring)."""
         port, idx, _ = state_ports[0]
-        base = read_state(port.data, len(self.cfg.joints[port.part]))
+        base = read_joint_port(port.data, len(self.cfg.joints[port.part]), port.info["stamp"])
         self.warnings += base.warnings
         values = {k: [v[:, idx]] for k, v in base.values.items()}
         keep = np.ones(len(base), dtype=bool)
         for other, other_idx, _ in state_ports[1:]:
-            data = read_state(other.data, len(self.cfg.joints[other.part]))
+            data = read_joint_port(other.data, len(self.cfg.joints[other.part]), other.info["stamp"])
             self.warnings += data.warnings
             order = np.lexsort((np.arange(len(data)), data.recv_ns))  # arrival order, then first kept
             stamps, rows, dropped = sort_unique(data.stamp_ns[order], np.arange(len(data))[order])
@@ -247,8 +305,7 @@ class DumperRunReader:
         return PortData(port.data, base.stamp_ns[keep], base.recv_ns[keep], merged, base.two_times)
 
     def _port_info(self, port: _Port) -> dict[str, Any]:
-        info = read_info(port.folder / INFO)
-        return {"type": info["type"], "port": info["port"], "data": port.data is not None}
+        return {"type": port.info["type"], "port": port.info["port"], "data": port.data is not None}
 
     # -- reading --
 

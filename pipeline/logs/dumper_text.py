@@ -8,7 +8,13 @@ field count, never guessed per line. Payloads:
 - ``analog:o`` of an FT part: 6 floats ``fx fy fz tx ty tz`` (N, Nm);
 - ``stateExt:o`` of a control board: parenthesised groups, each followed by a status word (``[ok]``):
   joint positions (deg), velocities (deg/s), accelerations, motor positions, motor velocities, motor
-  accelerations, joint torques (Nm), PWM, modes. Only `GROUPS` are read, by position.
+  accelerations, joint torques (Nm), PWM, modes. Only `GROUPS` are read, by position;
+- ``state:o`` of a control board: the joint positions alone (deg), one plain vector of the board's axes
+  (YARP's control-board wrapper writes a ``yarp::sig::Vector`` of its encoders there, which the dumper
+  prints as a Bottle: the numbers separated by spaces). Its field count does not tell the two time forms
+  apart (the board's axis count is not known): the ``Stamp:`` line of info.log does (``tx``, ``rx`` or
+  ``tx+rx``, written by dumpers since YARP 3.2), else the first line's third field is the reception time
+  when it lies within a minute of an epoch stamp (no joint angle in degrees does).
 
 A malformed line (field count, a non-number, a positions group whose status word is not ``ok``, too few
 joint values) is an error naming the file and line; a group of velocities or torques whose status word is
@@ -91,14 +97,36 @@ def _times(tokens: list[str], n_times: int, path: Path, line: int) -> tuple[floa
     return t, recv
 
 
+def _rows(values: list | np.ndarray, m: int) -> np.ndarray:
+    """(m, K) float64 of `m` rows (an empty data.log: (0, 0))."""
+    a = np.asarray(values, dtype=np.float64)
+    return a.reshape(m, -1) if m else a.reshape(0, a.shape[1] if a.ndim == 2 else 0)
+
+
 def _finish(path: Path, stamps: list[float], recv: list[float | None], values: dict, two: bool, warnings):
     stamp_ns = seconds_to_ns(np.asarray(stamps, dtype=np.float64))
     if two:
         recv_ns = seconds_to_ns(np.asarray(recv, dtype=np.float64))
     else:
         recv_ns = np.maximum.accumulate(stamp_ns) if len(stamp_ns) else stamp_ns.copy()
-    arrays = {k: np.asarray(v, dtype=np.float64).reshape(len(stamps), -1) for k, v in values.items()}
+    arrays = {k: _rows(v, len(stamps)) for k, v in values.items()}
     return PortData(path, stamp_ns, recv_ns, arrays, two, warnings)
+
+
+def _vectors(path: Path, lines: list[str], n_times: int, what: str) -> tuple[list, list, list]:
+    """(stamps, reception times, values) of plain-vector lines ``<seq> <time> [<time>] v1 ... vn``, every
+    line with the field count of the first."""
+    width = len(lines[0].split(" ")) if lines else 0
+    stamps, recv, rows = [], [], []
+    for k, text in enumerate(lines, start=1):
+        tokens = text.split(" ")
+        if len(tokens) != width:
+            raise DataError(f"{path}:{k}: {len(tokens)} fields, expected {width} (as on line 1)")
+        t, r = _times(tokens, n_times, path, k)
+        stamps.append(t)
+        recv.append(r)
+        rows.append([_float(v, path, k, what) for v in tokens[1 + n_times :]])
+    return stamps, recv, rows
 
 
 def read_analog(path: Path) -> PortData:
@@ -112,16 +140,46 @@ def read_analog(path: Path) -> PortData:
             f"or {3 + WRENCH_VALUES} (with the reception time)"
         )
     n_times = width - 1 - WRENCH_VALUES
-    stamps, recv, wrench = [], [], []
-    for k, text in enumerate(lines, start=1):
-        tokens = text.split(" ")
-        if len(tokens) != width:
-            raise DataError(f"{path}:{k}: {len(tokens)} fields, expected {width} (as on line 1)")
-        t, r = _times(tokens, n_times, path, k)
-        stamps.append(t)
-        recv.append(r)
-        wrench.append([_float(v, path, k, "wrench value") for v in tokens[1 + n_times :]])
+    stamps, recv, wrench = _vectors(path, lines, n_times, "wrench value")
     return _finish(path, stamps, recv, {"wrench": wrench}, n_times == 2, warnings)
+
+
+def _state_times(path: Path, first: str, stamp: str) -> int:
+    """How many times (1 or 2) a ``state:o`` line carries: from info.log's `stamp` form, else from the
+    first line (module docstring)."""
+    if stamp:
+        return 2 if stamp == "tx+rx" else 1
+    tokens = first.split(" ")
+    if len(tokens) < 3:
+        return 1
+    t = _float(tokens[1], path, 1, "time")
+    try:
+        third = float(tokens[2])
+    except ValueError:
+        return 1
+    return 2 if t > 1e8 and -1.0 <= third - t <= 60.0 else 1
+
+
+def read_positions(path: Path, n_axes: int, stamp: str = "") -> PortData:
+    """A control board's ``state:o`` data.log: position (M, A) rad of its first `n_axes` axes; velocity
+    and effort (M, A) NaN (the port has none). `stamp`: info.log's ``Stamp:`` form ('' if absent)."""
+    warnings: list[str] = []
+    lines = _lines(path, warnings)
+    n_times = _state_times(path, lines[0], stamp) if lines else 1
+    stamps, recv, rows = _vectors(path, lines, n_times, "joint position")
+    if rows and len(rows[0]) < n_axes:
+        raise DataError(f"{path}:1: {len(rows[0])} joint positions, the joint map needs {n_axes} axes")
+    q = np.asarray(rows, dtype=np.float64)[:, :n_axes] * _DEG if rows else np.zeros((0, n_axes))
+    values = {"position": q, "velocity": np.full_like(q, np.nan), "effort": np.full_like(q, np.nan)}
+    return _finish(path, stamps, recv, values, n_times == 2, warnings)
+
+
+def read_joint_port(path: Path, n_axes: int, stamp: str = "") -> PortData:
+    """A control board's joint port, ``stateExt:o`` (groups in parentheses: `read_state`) or ``state:o``
+    (a plain vector of positions: `read_positions`), told apart by its first line."""
+    with open(path, "rb") as f:
+        first = f.readline()
+    return read_state(path, n_axes) if b"(" in first else read_positions(path, n_axes, stamp)
 
 
 def read_state(path: Path, n_axes: int) -> PortData:
@@ -172,8 +230,9 @@ def read_state(path: Path, n_axes: int) -> PortData:
 
 
 def read_info(path: Path) -> dict[str, str]:
-    """``info.log``: the type line and the full port name, {"type", "port"} ('' when not found)."""
-    out = {"type": "", "port": ""}
+    """``info.log``: the type line, the stamp line (``tx``, ``rx``, ``tx+rx``; dumpers since YARP 3.2) and
+    the full port name of the first connection, {"type", "stamp", "port"} ('' when not found)."""
+    out = {"type": "", "stamp": "", "port": ""}
     try:
         text = path.read_text(encoding="utf-8", errors="replace")
     except OSError:
@@ -181,6 +240,8 @@ def read_info(path: Path) -> dict[str, str]:
     for line in text.splitlines():
         if line.startswith("Type:"):
             out["type"] = line[len("Type:") :].strip().rstrip(";").strip()
+        elif line.startswith("Stamp:"):
+            out["stamp"] = line[len("Stamp:") :].strip().rstrip(";").strip()
         elif "]" in line and not out["port"]:
             words = line.split("]", 1)[1].split()
             out["port"] = words[0] if words else ""

@@ -66,15 +66,18 @@ def _name(value: Any, key: str) -> str:
 class DumperParams:
     """Section `ingest.dumper`: how a YARP dataDumper run's ports map to the contract's streams.
 
-    A run is ``<run>/<robot>/<part>/<port>/data.log`` (`pipeline.logs.dumper`). `ft_ports` maps an FT
-    part to its URDF sensor (its `ft_port` carries the wrench); `joints` maps a control-board part to the
-    URDF joints of its axes in the board's order (null: an axis the URDF does not have; axes past the
-    list are ignored), read from its `joint_port`. The first part of `time_base` present in a run is the
-    time base. `ignore`: parts or ``part/port`` folders skipped on purpose (any other folder is an error).
+    A run is a folder of port folders (``data.log``, ``info.log``), each port named by its info.log
+    (``/icub/right_leg/analog:o``: robot prefix, part, port; `pipeline.logs.dumper`). `ft_ports` maps an
+    FT part to its URDF sensor (its `ft_port` carries the wrench); `joints` maps a control-board part to
+    the URDF joints of its axes in the board's order (null: an axis the URDF does not have; axes past the
+    list are ignored), read from the first of its `joint_ports` the run has (``stateExt:o``: positions,
+    velocities, torques; ``state:o``: positions only). The first part of `time_base` present in a run is
+    the time base. `ignore`: parts, ``part/port`` names or folders (relative to the run) skipped on
+    purpose (any other port is an error).
     """
 
-    ft_port: str  # port folder of an FT part's wrench, e.g. "analog:o"
-    joint_port: str  # port folder of a control board's state, e.g. "stateExt:o"
+    ft_port: str  # port of an FT part's wrench, e.g. "analog:o"
+    joint_ports: tuple[str, ...]  # ports of a control board's joint states, by preference, e.g. stateExt:o
     ft_ports: Mapping[str, str]  # part -> URDF FT sensor
     joints: Mapping[str, tuple[str | None, ...]]  # part -> URDF joint per axis (None: not in the URDF)
     time_base: tuple[str, ...]  # parts of `joints`, in order of preference as the run's time base
@@ -86,7 +89,14 @@ class DumperParams:
 
         key = "ingest.dumper"
         _name(self.ft_port, f"{key}.ft_port")
-        _name(self.joint_port, f"{key}.joint_port")
+        ports = self.joint_ports
+        if not isinstance(ports, list | tuple) or not ports:
+            raise ConfigError(f"{key}.joint_ports must be a non-empty list of port names, got {ports!r}")
+        for k, port in enumerate(ports):
+            _name(port, f"{key}.joint_ports[{k}]")
+        if self.ft_port in ports:
+            raise ConfigError(f"{key}.joint_ports: {self.ft_port!r} is also the ft_port")
+        object.__setattr__(self, "joint_ports", tuple(ports))
         if not isinstance(self.ft_ports, Mapping) or not self.ft_ports:
             raise ConfigError(f"{key}.ft_ports must be a mapping part -> FT sensor, got {self.ft_ports!r}")
         for part, sensor in self.ft_ports.items():

@@ -134,6 +134,9 @@ META_LABEL = b"ftcal.label"
 KIND_INGESTED, KIND_TRUTH, KIND_SMOOTHED, KIND_LABELLED = "ingested", "truth", "smoothed", "labelled"
 TRUTH_SUFFIX = ".truth"  # <log>.truth.parquet
 PARQUET_SUFFIX = ".parquet"
+# the note left in a simulation's output folder (and a deployment day's tables) when nothing was simulated:
+# its first line says why (recorded logs only)
+NOT_SIMULATED = "not_simulated.txt"
 
 
 # --- column names ---

@@ -340,7 +340,8 @@ class RobotModel:
 
     def _append_link(self, model: pin.Model, link: str, jid: int, placement: pin.SE3) -> None:
         inertial = self.links[link]
-        if inertial is not None and inertial.mass > 0.0:
+        # a massless link's rotational inertia counts too (iCub 2.x torso_1), as in Pinocchio's parser
+        if inertial is not None and (inertial.mass > 0.0 or np.any(inertial.inertia)):
             model.appendBodyToJoint(jid, inertial.to_pinocchio(), placement)
         model.addFrame(pin.Frame(link, jid, 0, placement, pin.FrameType.BODY))
 

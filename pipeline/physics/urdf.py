@@ -147,6 +147,56 @@ def _inertial(link: ET.Element, where: str) -> LinkInertial | None:
     return LinkInertial(mass=mass, com=origin.translation.copy(), inertia=rot @ inertia_com @ rot.T)
 
 
+# Inertias are written with about six significant digits, and CAD exporters write point masses as tensors
+# that are zero up to rounding (iCubGenova03's legs: eigenvalues down to -5e-20 kg m^2).
+INERTIA_RTOL = 1e-6
+MIN_LINK_SIZE_M = 0.01  # the least link size the rounding tolerance assumes (a link reduced to a point)
+
+
+def checked_inertial(inertial: LinkInertial, size_m: float, where: str) -> LinkInertial:
+    """`inertial` if physical, with rotational inertia zero or negative only by rounding clamped to the
+    point mass it is; else RobotModelError naming `where` (the link) and what is wrong.
+
+    The rounding tolerance is ``INERTIA_RTOL * max(m L^2, max |I_ij|)`` (kg m^2) with m the mass (kg) and
+    L the link's size (m, at least ``MIN_LINK_SIZE_M``): the inertia a body of that mass and size could
+    have, and the size of the printed values. A principal moment below 0 by at most this is set to 0
+    (the tensor rebuilt from its eigen-decomposition: positive semidefinite, as Pinocchio requires of
+    every diagonal entry); below it by more, or principal moments violating the triangle inequality
+    (``I1 + I2 >= I3``) by more, or a negative mass, or a non-finite number, is refused.
+    """
+    mass, inertia = float(inertial.mass), np.asarray(inertial.inertia, float)
+    if not (np.isfinite(mass) and np.all(np.isfinite(inertia)) and np.all(np.isfinite(inertial.com))):
+        raise RobotModelError(f"{where}: <inertial> has a non-finite number")
+    if mass < 0.0:
+        raise RobotModelError(f"{where}: negative mass {mass:g} kg")
+    inertia = 0.5 * (inertia + inertia.T)
+    tol = INERTIA_RTOL * max(mass * max(size_m, MIN_LINK_SIZE_M) ** 2, float(np.abs(inertia).max()))
+    moments, axes = np.linalg.eigh(inertia)
+    if moments[0] < -tol:
+        raise RobotModelError(
+            f"{where}: inertia is not positive semidefinite: principal moments "
+            f"{', '.join(f'{v:.3g}' for v in moments)} kg m^2 (rounding tolerance {tol:.2g})"
+        )
+    if moments[0] + moments[1] < moments[2] - tol:
+        raise RobotModelError(
+            f"{where}: inertia violates the triangle inequality: principal moments "
+            f"{', '.join(f'{v:.3g}' for v in moments)} kg m^2, the two least sum below the largest"
+        )
+    if moments[0] >= 0.0 and np.all(np.diag(inertia) >= 0.0):
+        return inertial
+    clamped = (axes * np.maximum(moments, 0.0)) @ axes.T
+    return LinkInertial(mass=mass, com=inertial.com, inertia=0.5 * (clamped + clamped.T))
+
+
+def _link_sizes(joints: Iterable[URDFJoint], links: dict[str, LinkInertial | None]) -> dict[str, float]:
+    """m: each link's size, the farthest from its frame's origin of its centre of mass and the origins
+    of the joints it is the parent of."""
+    sizes = {name: float(np.linalg.norm(i.com)) if i is not None else 0.0 for name, i in links.items()}
+    for joint in joints:
+        sizes[joint.parent] = max(sizes[joint.parent], float(np.linalg.norm(joint.origin.translation)))
+    return sizes
+
+
 @dataclass(frozen=True)
 class URDFParts:
     """What :func:`parse_urdf_parts` reads: the robot name and its links, joints and FT sensors, each
@@ -231,7 +281,8 @@ def parse_urdf_parts(path: Path) -> URDFParts:
     """Parse links, joints and top-level ``<sensor type="force_torque">`` elements of a URDF file.
 
     Raises RobotModelError (naming the file and element) for invalid XML, unsupported joint types,
-    dangling link or joint references, or links and joints that do not form one tree.
+    dangling link or joint references, links and joints that do not form one tree, or a link's
+    non-physical inertial parameters (:func:`checked_inertial`, which also clamps rounding).
     """
     try:
         root = ET.parse(path).getroot()
@@ -249,6 +300,11 @@ def parse_urdf_parts(path: Path) -> URDFParts:
     for el in root.findall("sensor"):  # top level only: <gazebo> copies are ignored
         if el.get("type") == "force_torque":
             sensors[el.get("name")] = _parse_sensor(el, joints, path)
+    sizes = _link_sizes(joints.values(), links)
+    links = {
+        name: checked_inertial(i, sizes[name], f"{path}: link {name}") if i is not None else None
+        for name, i in links.items()
+    }
     children = [j.child for j in joints.values()]
     if len(set(children)) != len(children) or len([n for n in links if n not in set(children)]) != 1:
         raise RobotModelError(f"{path}: the links and joints do not form a tree with one root")

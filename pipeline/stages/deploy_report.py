@@ -75,7 +75,9 @@ def run(params: Any, groups_dir: str | Path, reports: str | Path) -> dict[str, A
     summary = {day: summarize(d, dp, target_b, dp.figure_joint) for day, d in details.items()}
     if not summary:
         targets["nothing"] = nothing_to_test(
-            [g for g, r in results.items() if r.get("recorded")], dp.real_logs
+            [g for g, r in results.items() if r.get("recorded")],
+            dp.real_logs,
+            {day: note for r in results.values() for day, note in r.get("not_simulated", {}).items()},
         )
     with stage_run(STAGE, {"groups": list(results)}):
         for day, s in summary.items():
@@ -89,14 +91,19 @@ def run(params: Any, groups_dir: str | Path, reports: str | Path) -> dict[str, A
     return {"summary": summary, "details": details, "nothing": targets.get("nothing")}
 
 
-def nothing_to_test(recorded: list[str], real: str) -> str:
-    """The page's sentence when no day has logs to test."""
-    why = (
-        f"the models ({', '.join(recorded)}) were trained on recorded logs, so the simulated deployment days "
-        "would test them on another robot's logs"
-        if recorded
-        else "there are no deployment days"
-    )
+def nothing_to_test(recorded: list[str], real: str, not_simulated: dict[str, str] | None = None) -> str:
+    """The page's sentence when no day has logs to test. not_simulated: the simulated days that were not
+    simulated -> why (their note)."""
+    if not_simulated:
+        days, notes = ", ".join(sorted(not_simulated)), "; ".join(sorted(set(not_simulated.values())))
+        why = f"there is nothing simulated to test on ({days}: {notes})"
+    elif recorded:
+        why = (
+            f"the models ({', '.join(recorded)}) were trained on recorded logs, so the simulated deployment "
+            "days would test them on another robot's logs"
+        )
+    else:
+        why = "there are no deployment days"
     return f"Nothing to test: {why}, and deploy.real_logs ({real}) holds no recorded deployment log."
 
 

@@ -9,7 +9,8 @@ the standing log
 on the pushed pole log (leg joint torques from raw vs calibrated leg sensors against the true torques). The
 calibration is the group's export (EXPORTED, an export directory) run causally on each log's raw messages,
 as on the robot. A group trained on recorded logs (train's ``data``) is tested on ``deploy.real_logs``
-only, never on the simulated days (another robot). Writes OUT/result.json (per day the results and
+only, never on the simulated days (another robot); simulated days that were not simulated (recorded logs
+only) are named with why in ``not_simulated``. Writes OUT/result.json (per day the results and
 figures) and OUT/<day>_*.png; logs one MLflow run. `deploy_report` gathers every group's into the
 deployment page and verdict.
 """
@@ -51,7 +52,7 @@ def run(
     from pipeline.deploy.group import GroupDay, run_days
     from pipeline.deploy.models import deployed_models, group_models
     from pipeline.deploy.params import deploy_params
-    from pipeline.deploy.prepare import load_nominal_robot, read_day
+    from pipeline.deploy.prepare import load_nominal_robot, not_simulated, read_day
     from pipeline.deploy.verdict import RESULT_FILE
     from pipeline.evaluation.params import EvaluateParams
     from pipeline.export.trained import read_metrics
@@ -72,6 +73,9 @@ def run(
     sensors, robot = group_models(models)[0], load_nominal_robot(params)
     result: dict[str, Any] = {"group": group, "deployed": deployed[group], "days": {}, "figures": {}}
     result["recorded"] = recorded
+    # the simulated days that were not simulated (recorded logs only), and why
+    notes = {d.name: not_simulated(d) for d in sorted(Path(tables).iterdir()) if d.is_dir()}
+    result["not_simulated"] = {day: note for day, note in notes.items() if note is not None}
     with stage_run(f"{STAGE}@{group}", {"group": group, "deployed": deployed[group]}), atomic_dir(out) as tmp:
         planned = []
         for day in days:
@@ -91,7 +95,9 @@ def _cmd(args: argparse.Namespace) -> int:
     tested = ", ".join(
         f"{day}: {', '.join(k for k in r if k.startswith('test_'))}" for day, r in result["days"].items()
     )
-    print(f"{args.group}: deployment tests of {result['deployed']} ({tested or 'no deployment logs'})")
+    untested = "; ".join(f"{day}: {note}" for day, note in result["not_simulated"].items())
+    nothing = f"no deployment logs{f' ({untested})' if untested else ''}"
+    print(f"{args.group}: deployment tests of {result['deployed']} ({tested or nothing})")
     return 0
 
 

@@ -59,12 +59,18 @@ class RobotLogSpec:
     min_gap_samples: int = 0  # least gap between a log's segments, joint-state steps (smooth.window)
 
 
-def find_logs(source_dir: Path) -> list[Path]:
+def find_logs(source_dir: Path, sidecar_suffix: str = ".yaml") -> list[Path]:
     """Every log under `source_dir` (recursively), sorted: files (`LOG_SUFFIXES`) and dataDumper run
-    directories (`pipeline.logs.dumper.is_run`)."""
+    directories (`pipeline.logs.dumper.is_run`, with their sidecars' `sidecar_suffix`), none inside a run."""
     from pipeline.logs.dumper import is_run
 
-    return sorted(p for p in source_dir.rglob("*") if (p.suffix in LOG_SUFFIXES and p.is_file()) or is_run(p))
+    logs: list[Path] = []
+    for p in sorted(source_dir.rglob("*")):
+        if logs and logs[-1].is_dir() and logs[-1] in p.parents:
+            continue  # inside a run
+        if (p.suffix in LOG_SUFFIXES and p.is_file()) or is_run(p, sidecar_suffix):
+            logs.append(p)
+    return logs
 
 
 def output_name(log: Path, source_dir: Path) -> str:
@@ -183,7 +189,7 @@ def run(
     source, out = Path(source_dir), Path(out_dir)
     if not source.is_dir():
         raise DataError(f"{source}: source directory not found")
-    logs = find_logs(source)
+    logs = find_logs(source, cfg.dumper.sidecar_suffix if cfg.dumper is not None else ".yaml")
     if not logs:
         raise DataError(f"{source}: no logs found ({', '.join('*' + s for s in LOG_SUFFIXES)})")
     names = [output_name(log, source) for log in logs]
@@ -247,7 +253,8 @@ def _ingest_all(
     ]
     with progress_bar(progress, bytes_=True) as bar:
         task = bar.add_task(f"{len(logs)} log(s)", total=sum(sizes))
-        for log, size, result in zip(logs, sizes, forked_map(jobs, costs=sizes), strict=True):
+        done = forked_map(jobs, costs=sizes, labels=[str(log) for log in logs])
+        for log, size, result in zip(logs, sizes, done, strict=True):
             bar.advance(task, size)
             if isinstance(result, LogReport):
                 reports.append(result)

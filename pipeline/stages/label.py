@@ -76,7 +76,8 @@ def run(
             truth = Path(truth_dir) if truth_dir else None
             # the tables are independent: one forked process per core, the largest first
             jobs = [lambda t=table: label_table(t, out / t.name, lab, truth) for table in tables]
-            for summary in forked_map(jobs, costs=[t.stat().st_size for t in tables]):
+            sizes = [t.stat().st_size for t in tables]
+            for summary in forked_map(jobs, costs=sizes, labels=list(map(str, tables))):
                 summaries.append(summary)
                 bar.advance(task)
         seconds = time.perf_counter() - start

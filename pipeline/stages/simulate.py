@@ -38,8 +38,9 @@ def _cost(job: tuple[int, Any, str, bool]) -> float:
     return spec.duration_s * per_second + (_PLOT_COST if plot else 0.0)
 
 
-def _generate(world: Any, jobs: list[tuple], progress: bool | None) -> list:
-    """Run every job (in forked worker processes, or in this one); results sorted by log name.
+def _generate(world: Any, jobs: list[tuple], progress: bool | None, section: str) -> list:
+    """Run every job (in forked worker processes, or in this one); results sorted by log name. section: the
+    params section of the logs (simulate, deploy), which names a failed log.
 
     The jobs start most expensive first, so that no core idles at the end while another finishes a long
     log. Each log draws from its own random streams: the results do not depend on the order.
@@ -57,7 +58,8 @@ def _generate(world: Any, jobs: list[tuple], progress: bool | None) -> list:
     results = []
     with progress_bar(progress) as bar:
         task = bar.add_task("simulate (robot s)", total=sum(job[1].duration_s for job in jobs))
-        done = forked_map(tasks, world.sim.workers or None, costs=[_cost(job) for job in jobs])
+        labels = [f"{section}.logs[{index}] ({spec.name(index)})" for index, spec, _, _ in jobs]
+        done = forked_map(tasks, world.sim.workers or None, [_cost(job) for job in jobs], labels)
         for result, job in zip(done, jobs, strict=True):
             results.append(result)
             bar.advance(task, job[1].duration_s)
@@ -127,6 +129,44 @@ def _swap_in(tmp: Path, out_dir: Path) -> None:
         tmp.rename(out_dir)
 
 
+def recorded_source(params: Any, sim_dir: str | Path) -> str | None:
+    """``ingest.source`` when it is not `sim_dir` (the simulated default data's folder): the pipeline then
+    reads recorded logs only and nothing is simulated. None when ingest reads `sim_dir`.
+
+    ingest.source is taken from the repo root (where DVC runs the stages), `sim_dir` from the working
+    directory (a command-line path)."""
+    from pipeline.core.config import repo_root, stage_section
+    from pipeline.logs.params import IngestParams
+
+    source = stage_section(params, "ingest", IngestParams).source
+    path = Path(source).expanduser()
+    path = path if path.is_absolute() else repo_root() / path
+    return None if path.resolve() == Path(sim_dir).expanduser().resolve() else source
+
+
+def leave_unsimulated(out_dir: Path, source: str, sim_dir: str | Path, deploy: str | None) -> str:
+    """Replace `out_dir` by an empty folder holding only the note `NOT_SIMULATED` (why nothing is simulated:
+    ingest reads `source`, recorded logs, not `sim_dir`); log the step to MLflow; return the note's line.
+    Neither the URDF nor the simulator is loaded."""
+    import mlflow
+
+    from pipeline.core.io import atomic_dir
+    from pipeline.core.tracking import stage_run
+    from pipeline.logs.schema import NOT_SIMULATED
+
+    note = f"nothing simulated: ingest.source is {source}, not {sim_dir} (recorded logs only)"
+    logged = {"ingest": {"source": source}, "simulated_data": str(sim_dir), "variant": deploy or "default"}
+    with stage_run("simulate", logged):
+        with atomic_dir(out_dir) as tmp:
+            (tmp / NOT_SIMULATED).write_text(
+                f"{note}\nSet ingest.source: {sim_dir} in params.yaml to simulate the default data.\n",
+                encoding="utf-8",
+            )
+        mlflow.set_tag("nothing_simulated", note)
+        mlflow.log_metric("logs", 0)
+    return note
+
+
 def run(params: Any, out_dir: Path, progress: bool | None = None, deploy: str | None = None) -> list:
     """Simulate every configured log into `out_dir` (replaced atomically as a whole) and log to MLflow.
 
@@ -159,7 +199,7 @@ def run(params: Any, out_dir: Path, progress: bool | None = None, deploy: str | 
         logged.update(deploy=params.raw["deploy"], variant=deploy)
     with stage_run("simulate", logged):
         start = time.perf_counter()
-        results = _generate(world, jobs, progress)
+        results = _generate(world, jobs, progress, "simulate" if deploy is None else "deploy")
         metrics = _write_outputs(world, results, time.perf_counter() - start, tmp)
         _log_mlflow(world, results, metrics, tmp)
     _swap_in(tmp, out_dir)
@@ -169,8 +209,14 @@ def run(params: Any, out_dir: Path, progress: bool | None = None, deploy: str | 
 def _cmd(args: argparse.Namespace) -> int:
     from pipeline.core.config import load_params
 
+    params = load_params(args.params)
+    source = recorded_source(params, args.if_ingested) if args.if_ingested is not None else None
+    if source is not None:
+        note = leave_unsimulated(Path(args.out_dir), source, args.if_ingested, args.deploy)
+        print(f"simulate: {args.out_dir}: {note}")
+        return 0
     progress = False if args.quiet else None
-    results = run(load_params(args.params), Path(args.out_dir), progress=progress, deploy=args.deploy)
+    results = run(params, Path(args.out_dir), progress=progress, deploy=args.deploy)
     total = sum(r.samples for r in results)
     print(f"simulate: {len(results)} logs, {total} samples -> {args.out_dir}")
     return 0
@@ -189,7 +235,14 @@ def add_cli(sub: argparse._SubParsersAction) -> None:
         default=None,
         help="simulate the deployment logs of params section deploy (a later day, or the drift check's)",
     )
+    p.add_argument(
+        "--if-ingested",
+        default=None,
+        metavar="SIM_DIR",
+        help="simulate only if ingest.source is SIM_DIR (the simulated default data, e.g. data/sim); with "
+        "recorded logs (any other ingest.source) leave OUT an empty folder with a note and simulate nothing",
+    )
     p.set_defaults(func=_cmd)
 
 
-__all__ = ["run"]
+__all__ = ["leave_unsimulated", "recorded_source", "run"]

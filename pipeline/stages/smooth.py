@@ -46,7 +46,8 @@ def run(params: Any, in_dir: str | Path, out_dir: str | Path, *, progress: bool 
 
         # the tables are independent: one forked process per core, the largest first
         jobs = [lambda t=table: smooth_table(t, out / t.name, cfg) for table in tables]
-        for report in forked_map(jobs, costs=[t.stat().st_size for t in tables]):
+        sizes = [t.stat().st_size for t in tables]
+        for report in forked_map(jobs, costs=sizes, labels=list(map(str, tables))):
             reports.append(report)
             bar.advance(task)
         warnings = [

@@ -30,8 +30,11 @@ def convert(run: Path, out: Path, params: Any) -> dict[str, int]:
     cfg = stage_section(params, "ingest", IngestParams)
     if cfg.dumper is None:
         raise DataError(f"{run}: converting a dataDumper run needs the maps ingest.dumper in params")
-    if not is_run(run):
-        raise DataError(f"{run}: not a dataDumper run (no <robot>/<part>/<port>/data.log or info.log)")
+    if not is_run(run, cfg.dumper.sidecar_suffix):
+        raise DataError(
+            f"{run}: not a dataDumper run (no <robot>/<part>/<port>/data.log or info.log, nor port folders "
+            f"with a sidecar {run.name}{cfg.dumper.sidecar_suffix} beside it)"
+        )
     robot = load_robot(resolve_urdf(params.robot.urdf, repo_root()))
     with DumperRunReader(
         run, params.topics, list(robot.sensors), cfg.dumper, robot.joint_names, max_gap_s=cfg.max_gap_s
