@@ -168,14 +168,15 @@ def _flags_box(results: Sequence[GroupReport], cfg: EvaluateParams) -> str:
     if unfaithful:
         items = ", ".join(f"<b>{_e(g)}/{_e(m)}</b> ({_e(why)})" for g, m, why in unfaithful)
         faith = (
-            f"<div class='flags'><b>Fidelity flags:</b> {items}: a virtual push on that axis comes out more "
-            f"than {cfg.fidelity_tolerance:g} off its size: the model reads the axis off other channels "
-            "(its training relation), and would misreport a push or a load there. Not recommended.</div>"
+            f"<div class='flags'><b>Fidelity flags:</b> {items}: a virtual push on that axis (at the "
+            f"push prior's size, or at 1, 5 or 20 N) comes out more than {cfg.fidelity_tolerance:g} off its "
+            "size: the model reads the axis off other channels (its training relation) or snaps small "
+            "changes to it, and would misreport a push, a contact or a load there. Not recommended.</div>"
         )
     else:
         faith = (
             "<div class='flags none'><b>Fidelity flags:</b> none (every model reports a virtual push on "
-            f"every axis within {cfg.fidelity_tolerance:g} of its size).</div>"
+            f"every axis within {cfg.fidelity_tolerance:g} of its size, at every scale).</div>"
         )
     return noise + faith + fallbacks
 
