@@ -211,3 +211,36 @@ def test_the_small_scale_check_flags_a_network_that_snaps_small_pushes() -> None
     np.testing.assert_allclose(fid["affine"]["s"]["scales"]["1"], np.diag(affine), atol=1e-12)
     flags = unfaithful(fid, 0.15)
     assert set(flags) == {"nn13"} and flags["nn13"].endswith("at 1 N")
+
+
+class _Report:
+    """The few fields of a GroupReport the floors read: RMSE against the truth per model, the noise floor."""
+
+    def __init__(self, truth: dict, floor: float) -> None:
+        self.group, self.headline, self.headlines, self.recommended = "arm", "arm", [], "nn7"
+        self.truth, self.floor = truth, {"arm": floor}
+
+    def headline_rmse(self, ref: str, model: str | None, name: str | None = None) -> float | None:
+        return self.truth.get(model) if ref == "truth" else None
+
+
+def test_below_the_oracle_the_page_says_which_floor() -> None:
+    import pandas as pd
+
+    from pipeline.evaluation.floors import noise_columns, noise_floor, prior_notes
+    from pipeline.logs import schema as S
+
+    rng = np.random.default_rng(8)
+    noise = rng.standard_normal((5000, 6)) * np.r_[np.full(3, 0.6), np.full(3, 0.03)]
+    clean = rng.normal(0, 20, (5000, 6))
+    cols = [c for q in (S.FT, S.DISTORTED, S.TRUE) for c in S.wrench_cols(q, "arm")]
+    frame = pd.DataFrame(np.c_[clean + noise, clean, clean], columns=cols)
+    frame = pd.concat([frame, pd.DataFrame(noise_columns(frame, ["arm"], {}, ["arm"], {}))], axis=1)
+    floor = noise_floor(frame, ["arm"])["arm"]
+    assert floor == pytest.approx(np.sqrt(np.mean(noise**2)), rel=1e-12)
+    assert floor == pytest.approx(np.sqrt((3 * 0.36 + 3 * 0.0009) / 6), rel=0.03)  # the noise std pooled
+    report = _Report({"oracle": 0.74, "affine": 0.54, "nn7": 0.30, "nn13": 0.9}, floor)
+    notes = prior_notes([report], ["affine", "nn13"])
+    assert len(notes) == 2  # nn13 is above the oracle: nothing said
+    assert "<b>affine</b>" in notes[0] and "hysteresis absorbed as gain" in notes[0]
+    assert "<b>nn7</b>" in notes[1] and "below the noise floor" in notes[1] and "prior" in notes[1]
