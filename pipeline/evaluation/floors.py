@@ -15,14 +15,13 @@ model beats the oracle against the truth on all test samples.
 from __future__ import annotations
 
 from collections.abc import Mapping, Sequence
-from typing import TYPE_CHECKING, Any
+from typing import Any
 
 import numpy as np
 
 from pipeline.logs import schema as S
 
-if TYPE_CHECKING:
-    from pipeline.evaluation.results import GroupReport
+GroupReport = Any  # pipeline.evaluation.results.GroupReport (which imports this module)
 
 NOISE = "noise"  # column prefix ``noise.<name>.<axis>``: the reading's white noise (N, Nm)
 MARK = "&#8224;"  # the footnote mark of a summary cell below the oracle (dagger)
