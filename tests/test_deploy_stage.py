@@ -146,11 +146,13 @@ def test_stages_write_pages_metrics_details_and_figures(stage: dict[str, Any]) -
     assert sorted(p.name for p in (reports / "deployment" / "groups" / LEG).iterdir()) == [
         "later_hip_pitch.png",
         "later_interaction.png",
+        "later_scales.png",
         "later_walking.png",
         "result.json",
     ]
     assert sorted(p.name for p in (reports / "deployment" / "groups" / PAIR).iterdir()) == [
         "later_interaction.png",
+        "later_scales.png",
         "later_walking.png",
         "result.json",
     ]
@@ -324,6 +326,13 @@ def test_exact_calibration_passes_with_its_expected_ratios(stage: dict[str, Any]
         assert pushes["calibrated"]["slopes"] == pytest.approx(pushes["oracle"]["slopes"], abs=1e-3), sensor
         assert d["verdict"]["pass"] and d["verdict"]["change_ratio"] == pytest.approx(1.0, abs=0.01)
     assert set(later["test_d"]) == {LEG, FRONT, REAR}  # every pushed sensor of the exported groups
+    # Test D from the noise level up: the same, pushes of every scale through the day's distortions
+    for sensor, e in later["test_d_scales"].items():
+        for row in e["force"].values():
+            for s, o in zip(row["deployed"]["slopes"], row["oracle"]["slopes"], strict=True):
+                assert (s is None) == (o is None) and (s is None or s == pytest.approx(o, abs=1e-3)), sensor
+        assert e["verdict"]["pass"], sensor
+    assert set(later["test_d_scales"]) == {LEG, FRONT, REAR}
     assert all(summary[k] for k in ("a.passed", "b.passed", "c.passed", "d.passed", "fit_to_deploy"))
     assert json.loads((stage["exact_reports"] / "deployment.json").read_text())["later"]["fit"] is True
 

@@ -8,6 +8,11 @@ its force std on force axes, force x lever on torque axes). A model that rebuild
 channels or the accelerometer has a slope far from 1 on that axis; a faithful one is within the factory
 calibration's few %.
 
+The same at small scale (``scales``): a push of 1, 5 and 20 N (`SCALES_N`; torque axes: that force at the
+prior's lever) either way along each axis, the slope ``mean((f(x + d e_a) - f(x - d e_a))_a / 2d)``: a
+calibration that snaps small changes of its input to its training relation (a network that learned to
+cancel noise) reports a 1 N push with a slope far below 1, while the larger prior size looks faithful.
+
 For a network with the FT board's IMU among its inputs, ``imu_kg`` is the largest mean derivative of a
 force output with respect to an accelerometer input (kg): how much of the wrench it reads off the IMU.
 """
@@ -24,25 +29,31 @@ from pipeline.calib.pushes import PushPrior
 WRENCH = 6
 ACC = slice(7, 10)  # accelerometer columns of a sensor's 13 inputs
 SAMPLES = 2000  # samples the slopes are averaged over (evenly spaced)
+SCALES_N = (1.0, 5.0, 20.0)  # small-scale virtual pushes, N on force axes (x the prior's lever on torques)
+DEFAULT_LEVER_M = 0.2  # lever of the torque pushes when the fit has no push prior, m
 
 Predict = Callable[[np.ndarray], np.ndarray]  # (N, S, 13) raw inputs -> (N, S, 6) calibrated
 
 
 def model_fidelity(predict: Predict, x: np.ndarray, push: PushPrior, n_inputs: int) -> list[dict[str, Any]]:
-    """Per sensor (in the group's order): {"slopes": 6 floats, "imu_kg": float or None}."""
+    """Per sensor (in the group's order): {"slopes": 6 floats, "scales": {"1": 6 floats, ...}, "imu_kg":
+    float or None} (module docstring)."""
     pick = np.unique(np.linspace(0, len(x) - 1, min(SAMPLES, len(x))).astype(int)) if len(x) else []
     x = np.asarray(x[pick], dtype=np.float64)
     if not len(x):
         return []
     base = predict(x)
     size = np.sqrt(push.variances()) if push.force_n > 0 else np.r_[np.full(3, 20.0), np.full(3, 4.0)]
-    out = [{"slopes": [], "imu_kg": None} for _ in range(x.shape[1])]
+    out: list[dict[str, Any]] = [{"slopes": [], "imu_kg": None} for _ in range(x.shape[1])]
     for a in range(WRENCH):
         moved = x.copy()
         moved[:, :, a] += size[a]
         change = (predict(moved) - base)[:, :, a] / size[a]
         for s in range(x.shape[1]):
             out[s]["slopes"].append(float(np.mean(change[:, s])))
+    lever = push.lever_m if push.force_n > 0 else DEFAULT_LEVER_M
+    for s, slopes in enumerate(scale_slopes(predict, x, lever)):
+        out[s]["scales"] = slopes
     if n_inputs == 13:
         for j in range(3):
             moved = x.copy()
@@ -51,6 +62,21 @@ def model_fidelity(predict: Predict, x: np.ndarray, push: PushPrior, n_inputs: i
             for s in range(x.shape[1]):
                 worst = float(np.max(np.abs(change[:, s].mean(axis=0))))
                 out[s]["imu_kg"] = max(out[s]["imu_kg"] or 0.0, worst)
+    return out
+
+
+def scale_slopes(predict: Predict, x: np.ndarray, lever_m: float) -> list[dict[str, list[float]]]:
+    """Per sensor: scale (N, as text) -> 6 slopes of a push of that size either way along each axis."""
+    out: list[dict[str, list[float]]] = [{} for _ in range(x.shape[1])]
+    for force in SCALES_N:
+        size = np.r_[np.full(3, force), np.full(3, force * lever_m)]
+        for a in range(WRENCH):
+            up, down = x.copy(), x.copy()
+            up[:, :, a] += size[a]
+            down[:, :, a] -= size[a]
+            change = (predict(up) - predict(down))[:, :, a] / (2 * size[a])
+            for s in range(x.shape[1]):
+                out[s].setdefault(f"{force:g}", []).append(float(np.mean(change[:, s])))
     return out
 
 
@@ -66,5 +92,13 @@ def group_fidelity(
 
 
 def worst_gap(entry: Mapping[str, Any]) -> float:
-    """Largest |slope - 1| of one sensor's entry."""
-    return max(abs(v - 1.0) for v in entry["slopes"])
+    """Largest |slope - 1| of one sensor's entry, at the prior's size and at every small scale."""
+    return max(abs(v - 1.0) for _, slopes in entry_slopes(entry) for v in slopes)
+
+
+def entry_slopes(entry: Mapping[str, Any]) -> list[tuple[str, list[float]]]:
+    """[(scale: "" for the prior's size, else "1 N", ...; its 6 slopes)] of one sensor's entry (an entry
+    written before the small scales has the prior's size only)."""
+    return [("", list(entry["slopes"]))] + [
+        (f"{k} N", list(v)) for k, v in (entry.get("scales") or {}).items()
+    ]

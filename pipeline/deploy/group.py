@@ -120,16 +120,30 @@ def d_interaction(ctx: GroupDay, log: DeployLog) -> TestResult:
     return result, {"interaction": ctx.figure("interaction").name} if drawn else {}
 
 
+def d_scales(ctx: GroupDay, log: DeployLog) -> TestResult:
+    """Test D from the noise level up (`pipeline.deploy.scales`): pushes of 1-40 N, moments and held loads
+    added through each sensor's own distortion on every simulated log of the day (`log`'s day), the
+    deployed export beside the oracle and raw; its figure: the slope against the magnitude."""
+    from pipeline.deploy.page import plot_scales
+    from pipeline.deploy.prepare import read_day
+    from pipeline.deploy.scales import day_scales
+
+    result = day_scales(ctx, read_day(log.labelled.parent.parent))
+    drawn = result and plot_scales(result, ctx.figure("scales"))
+    return result, {"scales": ctx.figure("scales").name} if drawn else {}
+
+
 # test name -> (the experiment type of the log it runs on, the test), in the order of a day's result
 DAY_TESTS: dict[str, tuple[str, Callable[[GroupDay, DeployLog], TestResult]]] = {
     "test_a": ("standing", a_noise),
     "test_b": ("walking", b_walking),
     "test_c": ("pole", c_torques),
     "test_d": ("interaction", d_interaction),
+    "test_d_scales": ("interaction", d_scales),  # reads every simulated log of the day
 }
 # the tests' relative costs (Test C: a rigid-body pass per sample and per wrench): forked workers take the
 # costliest first, so that they end together
-_COST = {"test_c": 4.0, "test_a": 3.0, "test_d": 2.0, "test_b": 1.0}
+_COST = {"test_c": 4.0, "test_a": 3.0, "test_d": 2.0, "test_d_scales": 2.0, "test_b": 1.0}
 
 
 def run_days(days: list[tuple[GroupDay, list[DeployLog]]]) -> list[TestResult]:

@@ -64,6 +64,36 @@ def plot_torques(series: dict[str, Any], joint_suffix: str, path: Path) -> None:
     save_figure(fig, path)
 
 
+def plot_scales(result: Mapping[str, Any], path: Any) -> bool:
+    """Per sensor: the slope of the force pushes (worst force axis against 1) and the moments' against the
+    magnitude (log x), deployed solid, oracle dashed, raw dotted. False if nothing to draw."""
+    from pipeline.deploy.scales import worst_slope
+
+    shown = [s for s, e in result.items() if e.get("force")]
+    if not shown:
+        return False
+    plt = pyplot()
+    fig, axes = plt.subplots(1, len(shown), figsize=(3.6 * len(shown), 3.2), squeeze=False)
+    styles = {"deployed": ("-", "tab:blue"), "oracle": ("--", "tab:green"), "raw": (":", "tab:red")}
+    for ax, sensor in zip(axes[0], shown, strict=True):
+        for family, marker, axes_ in (("force", "o", range(3)), ("moment", "s", range(3, 6))):
+            rows = result[sensor].get(family) or {}
+            mags = [float(m) for m in rows]
+            for model, (ls, color) in styles.items():
+                worst = [worst_slope(rows[m][model]["slopes"], axes_) for m in rows]
+                label = f"{model} ({'N' if family == 'force' else 'Nm'})"
+                ax.plot(mags, worst, ls=ls, marker=marker, color=color, ms=3, lw=1, label=label)
+        ax.axhline(1.0, color="k", lw=0.6)
+        ax.set_xscale("log")
+        ax.set_title(sensor, fontsize=9)
+        ax.set_xlabel("push magnitude (N; moments Nm)", fontsize=8)
+        ax.set_ylabel("slope, worst axis", fontsize=8)
+    axes[0, 0].legend(fontsize=6, ncol=2)
+    fig.tight_layout()
+    save_figure(fig, path)
+    return True
+
+
 _NOTES = {
     "test_a": "Output noise of every trained model standing still: high-pass std per axis over raw's on the "
     "quasi-static stretches, worst axis; a model above the limit is flagged (as evaluate flags it). The "
@@ -163,17 +193,86 @@ def _test_d(d: Mapping[str, Any], tolerance: float, target: float) -> str:
     return f'<table class="num"><thead><tr>{head}</tr></thead><tbody>{"".join(rows)}</tbody></table>'
 
 
+_SCALES_NOTE = (
+    "Virtual pushes on every simulated log of the day (standing, walking, pole, interaction), added through "
+    "each sensor's own hidden distortion (hysteresis included; the log's noise, temperature and IMU as "
+    "logged) and run through the deployed export beside the oracle and raw: forces of 1-40 N along the "
+    "sensor's axes at levers 0-1.5 x its site (hand, ankle, sole), pure moments, random 6-D directions, "
+    "loads held at the site. Per magnitude the slope of the reported change against the push per axis "
+    "(fx fy fz, or tx ty tz for moments; 1 = follows it) and the change error RMS(reported - push) / "
+    "RMS(push), deployed / oracle. Judged at every force magnitude: each axis's slope error (against 1) at "
+    "most the oracle's plus the tolerance, the change error at most the target x the oracle's."
+)
+
+
+def _scales_rows(e: Mapping[str, Any], tolerance: float, target: float) -> list[str]:
+    from pipeline.deploy.scales import JUDGED, row_judgement
+
+    rows = []
+    units = {"force": "N", "moment": "Nm", "random": "N", "load": "kg"}
+    for family, unit in units.items():
+        axes = range(3, 6) if family == "moment" else range(6) if family == "random" else range(3)
+        key = "error_torque" if family == "moment" else "error"
+        for mag, row in (e.get(family) or {}).items():
+            judged = family in JUDGED
+            excess, _, ratio = row_judgement(row, family) if judged else (None, "", None)
+            slopes = [_slopes([row[m]["slopes"][a] for a in axes]) for m in ("deployed", "oracle", "raw")]
+            rows.append(
+                f"<tr><td>{family}</td><td>{esc(mag)} {unit}</td>"
+                + "".join(f"<td>{esc(v)}</td>" for v in slopes)
+                + cell(excess, None if excess is None else excess <= tolerance, bold=judged)
+                + "".join(cell(row[m][key]) for m in ("deployed", "oracle", "raw"))
+                + cell(ratio, None if ratio is None else ratio <= target, bold=judged)
+                + "</tr>"
+            )
+    return rows
+
+
+def _scales_table(sensor: str, e: Mapping[str, Any], tolerance: float, target: float) -> str:
+    """One sensor's table: a row per family and magnitude, deployed / oracle / raw slopes and errors."""
+    header = ["what", "magnitude", "slopes deployed", "slopes oracle", "slopes raw",
+              f"slope excess (<= {tolerance:g})", "change error deployed", "oracle", "raw",
+              f"deployed / oracle (<= {target:g})"]  # fmt: skip
+    head = "".join(f"<th>{esc(h)}</th>" for h in header)
+    body = "".join(_scales_rows(e, tolerance, target))
+    v = e["verdict"]
+    where = (
+        f"worst slope excess {v.get('worst_slope_excess')} at {v.get('at_slope', '')} N, "
+        f"worst change ratio {v.get('worst_change_ratio')} at {v.get('at_change', '')} N"
+    )
+    lever = ", ".join(f"{x:.3f}" for x in e["lever_m"])
+    levers = "; ".join(
+        f"x{k}: "
+        + " ".join("-" if a is None else f"{a:.2f}/{b:.2f}" for a, b in zip(*r.values(), strict=True))
+        for k, r in e.get("levers", {}).items()
+    )
+    return (
+        f"<h4>{esc(sensor)}: {'pass' if v['pass'] else 'FAIL'} <small>({esc(where)}; site lever "
+        f"({lever}) m)</small></h4>"
+        f'<table class="num"><thead><tr>{head}</tr></thead><tbody>{body}</tbody></table>'
+        "<p class='meta'>force pushes' change error per lever scale, deployed/oracle at each force "
+        f"magnitude: {esc(levers)}</p>"
+    )
+
+
+def scales_section(ds: Mapping[str, Any], tolerance: float, target: float) -> str:
+    """Test D from the noise level up (`pipeline.deploy.scales`): its note and one table per sensor."""
+    parts = ["<h3>Test D from the noise level up: virtual pushes of every scale</h3>",
+             f"<p class='note'>{_SCALES_NOTE}</p>"]  # fmt: skip
+    parts += [_scales_table(sensor, e, tolerance, target) for sensor, e in ds.items()]
+    return "\n".join(parts)
+
+
 def verdict_table(summary: Mapping[str, Mapping[str, Any]]) -> str:
     """One row per day: each test's pass and the day's verdict."""
     rows = []
     for day, s in summary.items():
-        passed = [bool(s.get(f"{t}.passed", True)) for t in "abcd"]
+        passed = [bool(s.get(f"{t}.passed", True)) for t in ("a", "b", "c", "d", "ds")]
         cells = "".join(f'<td class="{"ok" if p else "bad"}">{"pass" if p else "fail"}</td>' for p in passed)
         verdict = "fit to deploy" if s["fit_to_deploy"] else "recalibrate"
         rows.append(f"<tr><td><a href='#{esc(day)}'>{esc(day)}</a></td>{cells}<td><b>{verdict}</b></td></tr>")
-    return table(["day", "Test A", "Test B", "Test C", "Test D", "verdict"], [], cls="num").replace(
-        "<tbody></tbody>", f"<tbody>{''.join(rows)}</tbody>"
-    )
+    head = ["day", "Test A", "Test B", "Test C", "Test D", "Test D, every scale", "verdict"]
+    return table(head, [], cls="num").replace("<tbody></tbody>", f"<tbody>{''.join(rows)}</tbody>")
 
 
 def day_section(
@@ -199,6 +298,8 @@ def day_section(
     if "test_d" in result:
         parts += ["<h3>Test D: interaction fidelity</h3>", f"<p class='note'>{_NOTES['test_d']}</p>"]
         parts.append(_test_d(result["test_d"], targets["d_slope"], targets["d_change"]))
+    if "test_d_scales" in result:
+        parts.append(scales_section(result["test_d_scales"], targets["d_slope"], targets["d_change"]))
     parts += [img(src, caption) for caption, src in figures.items()]
     return "\n".join(parts)
 

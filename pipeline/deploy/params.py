@@ -28,6 +28,20 @@ class Drift:
 
 
 @dataclass(frozen=True)
+class ScaleParams:
+    """Test D from the noise level up (``deploy.scales``, `pipeline.deploy.scales`): virtual pushes of every
+    scale added through each sensor's own distortion on every simulated log of a day."""
+
+    force_n: tuple[float, ...]  # force pushes, N (the verdict reads every one)
+    moment_nm: tuple[float, ...]  # pure moments, Nm
+    load_kg: tuple[float, ...]  # loads held at the sensor's site, kg
+    levers: tuple[float, ...]  # scales of the site's lever (its point in the sensor frame)
+    pulse_s: float  # length of a push (half-sine), s
+    load_s: float  # a held load's plateau, s
+    pulses: int  # pushes per log, sensor and magnitude at most (seeded slots; loads: a sixth)
+
+
+@dataclass(frozen=True)
 class DeployParams:
     """Section ``deploy``."""
 
@@ -43,6 +57,7 @@ class DeployParams:
     interaction: InteractionParams  # interaction log: pushes and a carried load at every sensor's site
     slope_tolerance: float  # Test D: per-axis slope error (vs 1) at most the oracle's + this
     push_rmse_target: float  # Test D: error of the pushes' reported change at most this x the oracle's
+    scales: ScaleParams  # Test D from the noise level up
 
 
 def _num(value: Any, key: str, lo: float, hi: float) -> float:
@@ -126,6 +141,30 @@ def deploy_params(params: Params) -> DeployParams:
         interaction=_interaction(raw["interaction"]),
         slope_tolerance=_num(raw["slope_tolerance"], "slope_tolerance", 0.0, 1.0),
         push_rmse_target=_num(raw["push_rmse_target"], "push_rmse_target", 1.0, math.inf),
+        scales=_scales(raw["scales"]),
+    )
+
+
+def _numbers(value: Any, key: str, lo: float, hi: float) -> tuple[float, ...]:
+    if not isinstance(value, list) or not value:
+        raise ConfigError(f"deploy.scales.{key} must be a non-empty list of numbers, got {value!r}")
+    return tuple(_num(v, f"scales.{key}", lo, hi) for v in value)
+
+
+def _scales(raw: Any) -> ScaleParams:
+    names = tuple(f.name for f in dataclasses.fields(ScaleParams))
+    raw = _mapping(raw, "scales", names)
+    pulses = raw["pulses"]
+    if isinstance(pulses, bool) or not isinstance(pulses, int) or not 1 <= pulses <= 1000:
+        raise ConfigError(f"deploy.scales.pulses must be an integer in [1, 1000], got {pulses!r}")
+    return ScaleParams(
+        force_n=_numbers(raw["force_n"], "force_n", 1e-3, 2000.0),
+        moment_nm=_numbers(raw["moment_nm"], "moment_nm", 1e-4, 200.0),
+        load_kg=_numbers(raw["load_kg"], "load_kg", 1e-3, 100.0),
+        levers=_numbers(raw["levers"], "levers", 0.0, 10.0),
+        pulse_s=_num(raw["pulse_s"], "scales.pulse_s", 0.05, 10.0),
+        load_s=_num(raw["load_s"], "scales.load_s", 0.1, 60.0),
+        pulses=pulses,
     )
 
 

@@ -4,7 +4,8 @@ A day is fit to deploy when every test passes: Test A, no deployed model flagged
 noise measured); Test B, raw / calibrated RMSE against the truth at least ``evaluate.target_raw_over_nn7``
 for every calibrated sensor and foot sum; Test C, raw / calibrated RMSE of the judged joint's torque
 (``deploy.figure_joint``) at least ``deploy.torque_target``; Test D, every pushed sensor's deployed
-calibration following the pushes as the oracle does (`pipeline.deploy.interaction.judge`). Otherwise it is
+calibration following the pushes as the oracle does (`pipeline.deploy.interaction.judge`), and following
+the virtual pushes of every scale as the oracle does (`pipeline.deploy.scales.judge`). Otherwise it is
 time to recalibrate.
 """
 
@@ -60,14 +61,18 @@ def summarize(result: dict[str, Any], dp: Any, target_b: float, joint: str) -> d
             if verdict.get(key) is not None:
                 out[f"d.{sensor}.{key}"] = verdict[key]
         out[f"d.{sensor}.passed"] = verdict["pass"]
+    from pipeline.deploy.scales import summary_keys
+
+    out.update(summary_keys(result.get("test_d_scales", {})))
     # a deployed model whose noise could not be measured (no quasi-static stretch) has not passed Test A
     deployed = [a["models"][a["deployed"]] for a in result.get("test_a", {}).values()]
     ok_a = all(not r["flagged"] and math.isfinite(r["worst"]) for r in deployed)
     ok_b = all(v >= target_b for k, v in out.items() if k.startswith("b.") and k.endswith(".ratio"))
     ok_c = all(v >= dp.torque_target for k, v in out.items() if k.startswith("c.") and k.endswith(".ratio"))
     ok_d = all(d["verdict"]["pass"] for d in result.get("test_d", {}).values())
+    ok_ds = bool(out.get("ds.passed", True))  # Test D from the noise level up (pipeline.deploy.scales)
     out.update({"a.passed": ok_a, "b.passed": ok_b, "c.passed": ok_c, "d.passed": ok_d})
-    out["fit_to_deploy"] = bool(ok_a and ok_b and ok_c and ok_d)
+    out["fit_to_deploy"] = bool(ok_a and ok_b and ok_c and ok_d and ok_ds)
     return out
 
 
@@ -91,4 +96,7 @@ def headline(summary: dict[str, Any]) -> dict[str, Any]:
     ):
         if values:
             out[key] = round(float(best(values)), 4)
+    from pipeline.deploy.scales import headline_keys
+
+    out.update(headline_keys(summary))
     return out

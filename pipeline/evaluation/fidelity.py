@@ -2,8 +2,9 @@
 (the page shows them with the fallbacks they cause: `pipeline.evaluation.trust`).
 
 - Fidelity (`pipeline.calib.fidelity`, written by train, no truth): each model's per-axis slope under a
-  virtual push; a model with a slope farther than ``evaluate.fidelity_tolerance`` from 1 on any axis of any
-  sensor is *unfaithful* and not recommended, like a noise-flagged one.
+  virtual push, at the push prior's size and at 1, 5 and 20 N; a model with a slope farther than
+  ``evaluate.fidelity_tolerance`` from 1 on any axis of any sensor at any scale is *unfaithful* and not
+  recommended, like a noise-flagged one.
 - Excitation (`pipeline.calib.excitation`, written by train): per sensor the directions its training
   labels excite; here also how far the test samples lie outside them (the recommended model's output).
 - Passed over: when the model cross-validation prefers is flagged, which one is deployed instead, why, and
@@ -18,24 +19,31 @@ from typing import Any
 import numpy as np
 
 from pipeline.calib.excitation import OUTSIDE, Excitation
+from pipeline.calib.fidelity import entry_slopes
 
 AXES = ("fx", "fy", "fz", "tx", "ty", "tz")
 NEVER_FLAGGED = ("raw", "oracle")  # the factory map and the simulator's exact inverse are references
 
 
 def unfaithful(fidelity: Mapping[str, Mapping[str, Any]], tolerance: float) -> dict[str, str]:
-    """model -> why it is unfaithful ("r_arm_ft fx slope 0.31"), for the models of `fidelity` (model ->
-    sensor -> {slopes}) with a slope farther than `tolerance` from 1."""
+    """model -> why it is unfaithful ("r_arm_ft fx slope 0.31 at 1 N"), for the models of `fidelity` (model
+    -> sensor -> {slopes, scales}) with a slope farther than `tolerance` from 1 at any scale."""
     out = {}
     for model, sensors in fidelity.items():
         if model in NEVER_FLAGGED:
             continue
         worst = max(
-            ((abs(v - 1.0), s, a, v) for s, e in sensors.items() for a, v in enumerate(e["slopes"])),
+            (
+                (abs(v - 1.0), s, a, v, scale)
+                for s, e in sensors.items()
+                for scale, slopes in entry_slopes(e)
+                for a, v in enumerate(slopes)
+            ),
             default=None,
         )
         if worst is not None and worst[0] > tolerance:
-            out[model] = f"{worst[1]} {AXES[worst[2]]} slope {worst[3]:.2f}"
+            at = f" at {worst[4]}" if worst[4] else ""
+            out[model] = f"{worst[1]} {AXES[worst[2]]} slope {worst[3]:.2f}{at}"
     return out
 
 

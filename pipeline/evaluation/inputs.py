@@ -103,6 +103,7 @@ def _read_log_extras(
         schema = pq.read_schema(path)
         cols = [S.STAMP, S.CONTACTS, S.GUARD] + [c for s in sensors for c in S.vector_cols(S.GYR, s)]
         missing = [c for c in cols if c not in schema.names]
+        cols += [c for s in sensors for c in S.wrench_cols(S.FT, s) if c in schema.names]  # the noise floor
         if missing:
             raise DataError(f"{path}: not a labelled table: missing column {missing[0]}")
         table = pq.read_table(path, columns=cols).to_pandas()
@@ -129,6 +130,8 @@ def _read_log_extras(
             missing = [c for c in want if c not in names]
             if missing:
                 raise DataError(f"{truth_path}: not a truth table: missing column {missing[0]}")
+            # the noise-free reading, for the noise floor (`pipeline.evaluation.floors`) where recorded
+            want += [c for s in sensors for c in S.wrench_cols(S.DISTORTED, s) if c in names]
             truth = pq.read_table(truth_path, columns=want).to_pandas()
         except (OSError, pa.ArrowException) as exc:
             raise DataError(f"{truth_path}: cannot read Parquet table: {exc}") from None
@@ -291,5 +294,8 @@ def _truth_and_oracle(
         for name in names:
             for a, c in enumerate(S.wrench_cols(target, name)):
                 new_cols[c] = per_sensor[name][:, a]
+    from pipeline.evaluation.floors import noise_columns
+
+    new_cols.update(noise_columns(frame, sensors, pairs, names, transforms))
     frame = frame.drop(columns=[c for c in frame.columns if c.startswith((S.TRUE + ".", S.ORACLE + "."))])
     return pd.concat([frame, pd.DataFrame(new_cols, index=frame.index)], axis=1)

@@ -10,6 +10,7 @@ from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
 from pipeline.core.io import write_text
+from pipeline.evaluation.floors import MARK, below_oracle, prior_box
 from pipeline.evaluation.html import cell as _cell
 from pipeline.evaluation.html import document, fmt
 from pipeline.evaluation.html import esc as _e
@@ -85,8 +86,12 @@ def _headline_cells(r: GroupReport, name: str, refs: Sequence[str], cfg: Evaluat
     ratios, best, row = r.ratios(name), r.best_on_validation, ""
     for ref in refs:
         row += _cell(r.headline_rmse(ref, "raw", name=name))
-        row += _cell(r.headline_rmse(ref, best, name=name) if best else None)
-        row += _cell(r.headline_rmse(ref, NN7, name=name)) + _cell(r.headline_rmse(ref, ORACLE, name=name))
+        for model in (best, NN7):
+            cell = _cell(r.headline_rmse(ref, model, name=name) if model else None)
+            if ref == TRUTH and below_oracle(r, name, model) is not None:  # a footnote: prior_box says why
+                cell = cell.replace("</td>", f"<sup>{MARK}</sup></td>", 1)
+            row += cell
+        row += _cell(r.headline_rmse(ref, ORACLE, name=name))
     for ref in refs:
         a, b = ratios["raw_over_nn7"][ref], ratios["nn7_over_oracle"][ref]
         row += _cell(a, None if a is None else a >= cfg.target_raw_over_nn7)
@@ -168,14 +173,15 @@ def _flags_box(results: Sequence[GroupReport], cfg: EvaluateParams) -> str:
     if unfaithful:
         items = ", ".join(f"<b>{_e(g)}/{_e(m)}</b> ({_e(why)})" for g, m, why in unfaithful)
         faith = (
-            f"<div class='flags'><b>Fidelity flags:</b> {items}: a virtual push on that axis comes out more "
-            f"than {cfg.fidelity_tolerance:g} off its size: the model reads the axis off other channels "
-            "(its training relation), and would misreport a push or a load there. Not recommended.</div>"
+            f"<div class='flags'><b>Fidelity flags:</b> {items}: a virtual push on that axis (at the "
+            f"push prior's size, or at 1, 5 or 20 N) comes out more than {cfg.fidelity_tolerance:g} off its "
+            "size: the model reads the axis off other channels (its training relation) or snaps small "
+            "changes to it, and would misreport a push, a contact or a load there. Not recommended.</div>"
         )
     else:
         faith = (
             "<div class='flags none'><b>Fidelity flags:</b> none (every model reports a virtual push on "
-            f"every axis within {cfg.fidelity_tolerance:g} of its size).</div>"
+            f"every axis within {cfg.fidelity_tolerance:g} of its size, at every scale).</div>"
         )
     return noise + faith + fallbacks
 
@@ -304,6 +310,7 @@ def render_html(
             figures["overview"],
             "Headline test RMSE (6 axes pooled) of every model per group and headline, log scale",
         ),
+        prior_box(results, [m for r in results for m in (r.best_on_validation, NN7) if m]),
         "<h2 id='noise'>Deployment noise check</h2>",
         _NOISE_NOTE.format(speed=cfg.still_gyro_rad_s, min_s=cfg.still_min_s, hz=cfg.highpass_hz),
         f'<table class="num"><thead><tr>{head}</tr></thead><tbody>{"".join(noise_rows)}</tbody></table>',

@@ -12,6 +12,7 @@ import numpy as np
 from pipeline.calib.params import RAW
 from pipeline.calib.scores import wrench_errors
 from pipeline.evaluation.fidelity import outside_stats, unfaithful
+from pipeline.evaluation.floors import noise_floor
 from pipeline.evaluation.inputs import GroupInputs, wrench_of
 from pipeline.evaluation.noise import highpass, noise_ratio, quasi_static_mask
 from pipeline.evaluation.params import (
@@ -118,6 +119,7 @@ class GroupReport:
     unfaithful: dict[str, str] = field(default_factory=dict)
     excitation: dict[str, Any] = field(default_factory=dict)
     outside: dict[str, Any] = field(default_factory=dict)
+    floor: dict[str, float] = field(default_factory=dict)  # name -> noise floor (pipeline.evaluation.floors)
 
     def headline_rmse(
         self, ref: str, model: str | None, key: str = "rmse", name: str | None = None
@@ -340,6 +342,7 @@ def evaluate_group(g: GroupInputs, cfg: EvaluateParams) -> GroupResult:
         unfaithful=unfaithful_models,
         excitation=excitation,
         outside=outside_stats(excitation, deployed),
+        floor=noise_floor(g.frame, g.names),
     )
 
 

@@ -1,0 +1,125 @@
+"""The two floors of a simulated sensor's error against the truth, and the warning when a model beats them.
+
+- The oracle inverts each sensor's *static* distortion exactly (`pipeline.sim.distortion.oracle_inverse`):
+  its error is the white noise plus the hysteresis it cannot know.
+- The noise floor is the white noise alone: ``raw - distorted`` of the simulator's truth (the reading minus
+  its noise-free value, static part and hysteresis), per sample in the reading's units (N, Nm), a foot
+  pair's mapped to the sole frame as its sum is. No memoryless calibration can go below it.
+
+A memoryless model may sit a little below the oracle legitimately: fitted on moving data, it absorbs part of
+the hysteresis's minor-loop gain. Below the noise floor it can only be reading a prior over the robot's
+motions (its training relation), not the sensor. `prior_notes` says which, per headline and model, where a
+model beats the oracle against the truth on all test samples.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Mapping, Sequence
+from typing import Any
+
+import numpy as np
+
+from pipeline.logs import schema as S
+
+GroupReport = Any  # pipeline.evaluation.results.GroupReport (which imports this module)
+
+NOISE = "noise"  # column prefix ``noise.<name>.<axis>``: the reading's white noise (N, Nm)
+MARK = "&#8224;"  # the footnote mark of a summary cell below the oracle (dagger)
+
+
+def noise_columns(
+    frame: Any,
+    sensors: Sequence[str],
+    pairs: Mapping[str, Sequence[str]],
+    names: Sequence[str],
+    transforms: Mapping[str, np.ndarray],
+) -> dict[str, np.ndarray]:
+    """``noise.<name>.<axis>`` columns (raw - distorted; a pair's parts mapped and summed with its (2, 6, 6)
+    transforms), for every name, where the frame holds both; else none."""
+    per: dict[str, np.ndarray] = {}
+    for s in sensors:
+        raw, clean = S.wrench_cols(S.FT, s), S.wrench_cols(S.DISTORTED, s)
+        if raw[0] in frame and clean[0] in frame:
+            per[s] = frame[raw].to_numpy(np.float64) - frame[clean].to_numpy(np.float64)
+    for pair, members in pairs.items():
+        if all(s in per for s in members) and pair in transforms:
+            per[pair] = np.einsum(
+                "sij,nsj->ni", transforms[pair], np.stack([per[s] for s in members], axis=1)
+            )
+    return {c: per[n][:, a] for n in names if n in per for a, c in enumerate(S.wrench_cols(NOISE, n))}
+
+
+def noise_floor(frame: Any, names: Sequence[str]) -> dict[str, float]:
+    """name -> RMS of its white noise, the 6 axes pooled as the headline RMSE pools them (N and Nm), over
+    the test samples with truth; names without the columns are left out."""
+    out = {}
+    for name in names:
+        cols = S.wrench_cols(NOISE, name)
+        true = S.wrench_cols(S.TRUE, name)
+        if cols[0] not in frame or true[0] not in frame:
+            continue
+        noise = frame[cols].to_numpy(np.float64)
+        ok = np.isfinite(noise).all(axis=1) & np.isfinite(frame[true].to_numpy(np.float64)).all(axis=1)
+        if ok.any():
+            out[name] = float(np.sqrt(np.mean(noise[ok] ** 2)))
+    return out
+
+
+def below_oracle(r: GroupReport, name: str, model: str | None) -> tuple[float, float, float | None] | None:
+    """(the model's RMSE, the oracle's, the noise floor) against the truth on all test samples, when the
+    model (not the oracle, not raw) beats the oracle there; else None."""
+    from pipeline.evaluation.params import ORACLE, TRUTH
+
+    if model in (None, ORACLE, "raw"):
+        return None
+    rmse, oracle = r.headline_rmse(TRUTH, model, name=name), r.headline_rmse(TRUTH, ORACLE, name=name)
+    if rmse is None or oracle is None or rmse >= oracle:
+        return None
+    return rmse, oracle, r.floor.get(name)
+
+
+_PRIOR = (
+    "impossible for a calibration of the sensor alone; it reads a prior over the robot's motions (its "
+    "training relation), not the sensor, and will misreport what its training did not show"
+)
+_GAIN = (
+    "part of the sensor's hysteresis absorbed as gain, which a memoryless model can do; a warning, not a win"
+)
+
+
+def prior_notes(results: Sequence[GroupReport], models: Sequence[str]) -> list[str]:
+    """One sentence per (group, headline, model among `models` or the deployed one) below the oracle."""
+    notes = []
+    for r in results:
+        for name in r.headlines or [r.headline]:
+            for model in dict.fromkeys([*models, r.recommended]):
+                found = below_oracle(r, name, model)
+                if found is None:
+                    continue
+                rmse, oracle, floor = found
+                if floor is not None and rmse < floor:
+                    why = f"below the noise floor ({floor:.3g}) too: {_PRIOR}"
+                else:
+                    where = (
+                        f"above the noise floor ({floor:.3g})" if floor is not None else "(no noise floor)"
+                    )
+                    why = f"{where}: {_GAIN}"
+                notes.append(
+                    f"{MARK} {r.group} / {name}: <b>{model}</b> scores {rmse:.3g} against the truth on all "
+                    f"test samples, below the oracle ({oracle:.3g}), {why}."
+                )
+    return notes
+
+
+def prior_box(results: Sequence[GroupReport], models: Sequence[str]) -> str:
+    """The page's warning under the summary and the overview figure (empty when no model beats the oracle)."""
+    notes = prior_notes(results, models)
+    if not notes:
+        return ""
+    head = (
+        "<b>Below the oracle:</b> the oracle inverts each simulated sensor's static distortion exactly, so a "
+        "memoryless model below it is either absorbing the hysteresis's minor-loop gain (between the oracle "
+        "and the noise floor, the white noise raw - distorted of the simulator's truth) or reading a prior "
+        "over the robot's motions, not the sensor (below the noise floor)."
+    )
+    return f"<div class='flags'>{head}<ul>{''.join(f'<li>{n}</li>' for n in notes)}</ul></div>"
