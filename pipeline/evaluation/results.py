@@ -118,6 +118,7 @@ class GroupReport:
     unfaithful: dict[str, str] = field(default_factory=dict)
     excitation: dict[str, Any] = field(default_factory=dict)
     outside: dict[str, Any] = field(default_factory=dict)
+    notes: list[str] = field(default_factory=list)  # train's: a network not trained and why (metrics.json)
 
     def headline_rmse(
         self, ref: str, model: str | None, key: str = "rmse", name: str | None = None
@@ -339,6 +340,7 @@ def evaluate_group(g: GroupInputs, cfg: EvaluateParams) -> GroupResult:
         unfaithful=unfaithful_models,
         excitation=excitation,
         outside=outside_stats(excitation, deployed),
+        notes=[str(n) for n in g.train.get("notes") or []],
     )
 
 
