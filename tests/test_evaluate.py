@@ -5,6 +5,7 @@ files, real MLflow sqlite store): metrics.json, plot data, report page, MLflow r
 from __future__ import annotations
 
 import copy
+import html
 import json
 import math
 from pathlib import Path
@@ -163,6 +164,7 @@ def test_repo_params_are_valid() -> None:
 
 # --- end to end ----------------------------------------------------------------------------------
 
+NOTE = f"{LEG}: no 13-input network: {LEG}: the IMU's axes are (x, y, z) = (-y, -x, z) of the sensor frame"
 # Test logs: (name, experiment type, FT boards' angular speed rad/s, contacts alternate every n samples)
 LOGS = [("08_pole_test", "pole", 0.01, None), ("11_walking_test", "walking", 0.8, 80)]
 N = 600
@@ -302,6 +304,8 @@ def build_fixture(root: Path) -> dict[str, Path]:
         }
         if group == PAIR:  # train's cross-validation record (the leg group has none)
             metrics["cv"] = CV
+        else:  # train's notes: a network it did not train, and why
+            metrics["notes"] = [NOTE]
         (out / "metrics.json").write_text(json.dumps(metrics))
     return dirs
 
@@ -430,6 +434,7 @@ def test_report_page_and_plots(evaluated: dict[str, Any]) -> None:
     for png in ("rmse_overview.png", "noise_amplification.png"):
         assert f'src="plots/{png}"' in page and (out / "plots" / png).stat().st_size > 5000
     assert "Noise flags" in page and f"{LEG}/nn13" in page
+    assert f"<b>Not trained:</b> {html.escape(NOTE)}" in page  # train's note, at the top of the page
     assert page.count("<table") >= 2 + 4 * (2 * 3 + 2)  # summary, noise; per name: refs x metrics + per type
     loss = (out / "plots_data" / "loss" / LEG / "nn7.csv").read_text().splitlines()
     assert loss[0] == "epoch,train_loss,val_rmse" and len(loss) == 6

@@ -23,6 +23,7 @@ from pipeline.calib.data import (
     resolve_group,
     split_logs,
 )
+from pipeline.calib.imu_gate import refuse_flagged_imu
 from pipeline.calib.models import (
     LinearBaseline,
     fit_linear_baseline,
@@ -53,6 +54,7 @@ class Prepared:
     # the other cross-validation folds (1..folds-1): (training samples with a loss term, validation samples)
     folds: list[tuple[GroupData, GroupData]] = field(default_factory=list)
     recorded: list[str] = field(default_factory=list)  # the logs that are recordings (no truth)
+    notes: list[str] = field(default_factory=list)  # what the group does not train and why (imu_gate)
 
 
 def prepare(params: Params, group_name: str, in_dir: Path) -> Prepared:
@@ -66,6 +68,7 @@ def prepare(params: Params, group_name: str, in_dir: Path) -> Prepared:
     logs = find_logs(in_dir)
     gp = expand_feet(cfg.group(group_name), logs)
     group = resolve_group(gp, params, logs)
+    gp, group, notes = refuse_flagged_imu(gp, group, logs)  # a board whose IMU check failed: no nn13
     split = split_logs(logs, cfg.val_logs, params.seed, cfg.folds)
     log_names = [log.name for log in logs]
     data = {}
@@ -91,7 +94,8 @@ def prepare(params: Params, group_name: str, in_dir: Path) -> Prepared:
             folds.append((fold_train.subset(fold_train.labelled()), val))
     recorded = [log.name for log in logs if not log.simulated]
     seed = derive_seed(params.seed, group_name, "pushes")
-    return Prepared(cfg, gp, seed, group, split, log_names, train, data["val"], data["test"], folds, recorded)
+    test = data["test"]
+    return Prepared(cfg, gp, seed, group, split, log_names, train, data["val"], test, folds, recorded, notes)
 
 
 def fit_baselines(

@@ -130,11 +130,14 @@ def write_outputs(prep: Prepared, fitted: Fitted, out: Path, run_id: str, t0: fl
     write_predictions(out / "predictions.parquet", group, prep.test, prep.log_names, fitted.preds["test"])
     timings["total"] = time.perf_counter() - t0
     metrics["seconds"] = timings
+    metrics["notes"] = prep.notes  # e.g. a network not trained, and why
     # how evaluate finds this run and the registered networks (by id, never by matching values)
     metrics["mlflow"] = {"run_id": run_id, "models": versions}
     write_json(out / "metrics.json", metrics)
     mlflow.log_metrics(mlflow_metrics(group, metrics))
     mlflow.set_tag("best_on_validation", metrics["best_on_validation"])
+    if prep.notes:
+        mlflow.set_tag("notes", "\n".join(prep.notes)[:5000])
     for name in ("metrics.json", "baselines.json"):
         mlflow.log_artifact(str(out / name))
     return TrainResult(group.name, metrics, time.perf_counter() - t0, run_id, files)

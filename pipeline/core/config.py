@@ -274,6 +274,7 @@ class LabelParams:
     guard_s: float  # s: half-width of the guard band around every contact change
     zero_quantile: float  # the foot's zero level is the median of its readings below this quantile
     cut_max_sensors: int  # cut sets (summed labels) of 2 to this many FT sensors; 1 = none
+    imu_check: Any = None  # label.imu_check: pipeline.labels.imu_params.ImuCheckParams (built there)
 
     def __post_init__(self) -> None:
         for name in ("contact_on", "contact_off", "guard_s", "zero_quantile"):
@@ -440,7 +441,7 @@ SECTIONS: dict[str, str] = {
     "simulate": "pipeline.sim.params:simulate_params",
     "ingest": "pipeline.logs.params:IngestParams",
     "smooth": "pipeline.logs.smoothing:SmoothParams",
-    "label": "pipeline.core.config:LabelParams",
+    "label": "pipeline.labels.imu_params:label_params",
     "train": "pipeline.calib.params:TrainParams",
     "evaluate": "pipeline.evaluation.params:EvaluateParams",
     "export": "pipeline.core.config:ExportParams",

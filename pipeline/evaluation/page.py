@@ -183,7 +183,8 @@ def _flags_box(results: Sequence[GroupReport], cfg: EvaluateParams) -> str:
             "<div class='flags none'><b>Fidelity flags:</b> none (every model reports a virtual push on "
             f"every axis within {cfg.fidelity_tolerance:g} of its size, at every scale).</div>"
         )
-    return noise + faith + fallbacks
+    notes = "".join(f"<div class='flags'><b>Not trained:</b> {_e(n)}</div>" for r in results for n in r.notes)
+    return notes + noise + faith + fallbacks
 
 
 def _no_truth_box(results: Sequence[GroupReport]) -> str:

@@ -120,6 +120,7 @@ class GroupReport:
     excitation: dict[str, Any] = field(default_factory=dict)
     outside: dict[str, Any] = field(default_factory=dict)
     floor: dict[str, float] = field(default_factory=dict)  # name -> noise floor (pipeline.evaluation.floors)
+    notes: list[str] = field(default_factory=list)  # train's: a network not trained and why (metrics.json)
 
     def headline_rmse(
         self, ref: str, model: str | None, key: str = "rmse", name: str | None = None
@@ -343,6 +344,7 @@ def evaluate_group(g: GroupInputs, cfg: EvaluateParams) -> GroupResult:
         excitation=excitation,
         outside=outside_stats(excitation, deployed),
         floor=noise_floor(g.frame, g.names),
+        notes=[str(n) for n in g.train.get("notes") or []],
     )
 
 

@@ -23,6 +23,7 @@ from pipeline.core.config import LabelParams
 from pipeline.core.errors import DataError, RobotModelError
 from pipeline.core.io import write_parquet
 from pipeline.labels.contacts import Contacts, declared_contacts, detect_contacts
+from pipeline.labels.imu_check import check_log
 from pipeline.logs import schema as S
 from pipeline.physics.cuts import CutSet, cut_poses, cut_sums
 from pipeline.physics.dynamics import ContactCase, expected_wrenches
@@ -145,6 +146,7 @@ class LogSummary:
     seconds: float
     truth_agreement: float | None = None  # simulated logs: detected == true contact set, outside guards
     label_rmse: dict[str, dict[str, float]] = field(default_factory=dict)  # vs true wrench, switch 1
+    imu_axes: dict[str, dict[str, Any]] = field(default_factory=dict)  # per sensor: its IMU check (imu_check)
 
 
 def contact_strings(contacts: Contacts) -> np.ndarray:
@@ -299,6 +301,7 @@ def label_table(src: Path, dst: Path, lab: Labeller, truth_dir: Path | None = No
             contacts = detect_contacts(robot, lab.feet, raw, time_s, lab.cfg, lab.gravity, str(src))
         gravity_fixed = _gravity_fixed(src, experiment, lab.gravity)
         columns = label_arrays(lab, contacts, q, dq, ddq, ok, gravity_fixed)
+        imu = check_log(robot, table, meta, contacts, (q, dq, ddq), ok, gravity_fixed, lab.cfg.imu_check)
     except RobotModelError as exc:
         raise DataError(f"{src}: its experiment metadata does not fit the robot: {exc}") from None
 
@@ -316,13 +319,14 @@ def label_table(src: Path, dst: Path, lab: Labeller, truth_dir: Path | None = No
         guard_fraction=float(np.mean(contacts.guard)) if n else 0.0,
         zero_levels=contacts.zero_levels,
         seconds=0.0,
+        imu_axes=imu,
     )
     truth_path = truth_dir / f"{src.stem}{S.TRUTH_SUFFIX}{S.PARQUET_SUFFIX}" if truth_dir else None
     if truth_path is not None and truth_path.is_file():
         summary.truth_agreement, summary.label_rmse = _truth_checks(
             truth_path, out[S.STAMP], lab, contacts, columns
         )
-    kv = {S.META_EXPERIMENT: experiment, S.META_LABEL: _label_metadata(lab)}
+    kv = {S.META_EXPERIMENT: experiment, S.META_LABEL: {**_label_metadata(lab), "imu_axes": imu}}
     for key in (S.META_INGEST, S.META_SMOOTH):
         if key.decode() in meta:
             kv[key] = meta[key.decode()]

@@ -23,6 +23,7 @@ from pipeline.core.errors import DataError
 from pipeline.logs import rosmsg
 from pipeline.logs import schema as S
 from pipeline.logs.align import Stream, StreamStats, align_continuous, align_latest, joint_permutation
+from pipeline.logs.imu_axes import to_sensor_frame
 from pipeline.logs.readers import open_log
 from pipeline.logs.segments import SplitTables
 from pipeline.logs.sidecar import declared_absent, describe_absent
@@ -43,9 +44,8 @@ class _Want:
 
     topic: str
     msgtype: str
-    stream: (
-        str  # "joints", "wrench", "imu", "temperature", "true", "distorted", "oracle", "external", "contacts"
-    )
+    # "joints", "wrench", "imu", "temperature", "true", "distorted", "oracle", "external", "contacts"
+    stream: str
     sensor: str | None
     required: bool
 
@@ -188,17 +188,8 @@ class _LogIngest:
         cfg = self.cfg
         gap = round(cfg.max_gap_s * 1e9)
         reorder = round(cfg.max_reorder_s * 1e9)
-        widths = {
-            S.JOINTS_STREAM: 3 * len(self.joints),
-            S.WRENCH_STREAM: 6,
-            S.IMU_STREAM: 6,
-            S.TEMPERATURE_STREAM: 1,
-            S.TRUE: 6,
-            S.DISTORTED: 6,
-            S.ORACLE: 6,
-            S.EXTERNAL: 6,
-            S.CONTACTS: 1,
-        }
+        widths = {S.JOINTS_STREAM: 3 * len(self.joints), S.TEMPERATURE_STREAM: 1, S.CONTACTS: 1}
+        widths.update(dict.fromkeys((S.WRENCH_STREAM, S.IMU_STREAM, *S.TRUTH_KINDS), 6))
         self.streams: dict[str, Stream] = {}
         self.by_topic: dict[str, Stream] = {}
         present = [k for k, j in enumerate(self.joints) if j not in set(self.absent_joints)]
@@ -299,8 +290,11 @@ class _LogIngest:
             return self._joint_values(batch)
         if batch.msgtype == rosmsg.WRENCH_STAMPED:
             return f["wrench"]
-        if batch.msgtype == rosmsg.IMU:
-            return np.concatenate([f["linear_acceleration"], f["angular_velocity"]], axis=1)
+        if batch.msgtype == rosmsg.IMU:  # a board whose axes ingest.imu_axes maps: in the sensor frame
+            axes = self.cfg.imu_axes.get(stream.name.removeprefix(S.IMU_STREAM + "."))
+            return to_sensor_frame(
+                np.concatenate([f["linear_acceleration"], f["angular_velocity"]], axis=1), axes
+            )
         if batch.msgtype == rosmsg.TEMPERATURE:
             return f["temperature"].reshape(-1, 1)
         return f["data"]
@@ -474,6 +468,7 @@ class _LogIngest:
             "absent": self.report.absent,
             "frozen_samples": self.report.frozen,
             "max_frozen_s": self.cfg.max_frozen_s,
+            "imu_axes": {s: list(axes) for s, axes in self.cfg.imu_axes.items() if s in self.sensors},
         }
 
 

@@ -8,6 +8,7 @@ from dataclasses import dataclass
 from typing import Any
 
 from pipeline.core.errors import ConfigError
+from pipeline.logs.imu_axes import parse_axis_maps
 
 
 @dataclass(frozen=True)
@@ -24,6 +25,8 @@ class IngestParams:
     max_frozen_s: float = 0.1  # s: identical FT readings spanning longer than this are a frozen board
     mat: Any = None  # MatParams (section ingest.mat): where .mat logger files keep each quantity
     dumper: Any = None  # DumperParams (section ingest.dumper): the ports and joints of dataDumper runs
+    # FT sensor -> its board's IMU axes in the sensor frame (pipeline.logs.imu_axes), mapped at ingest
+    imu_axes: Any = None
 
     def __post_init__(self) -> None:
         if not isinstance(self.source, str) or not self.source.strip():
@@ -54,6 +57,7 @@ class IngestParams:
             object.__setattr__(self, "mat", MatParams.from_mapping(self.mat))
         if self.dumper is not None:
             object.__setattr__(self, "dumper", DumperParams.from_mapping(self.dumper))
+        object.__setattr__(self, "imu_axes", parse_axis_maps(self.imu_axes, "ingest.imu_axes"))
 
 
 def _name(value: Any, key: str) -> str:

@@ -16,6 +16,7 @@ import numpy as np
 
 from pipeline.core.errors import ConfigError
 from pipeline.core.io import atomic_path
+from pipeline.logs.imu_axes import to_board
 from pipeline.physics.loads import META_KEY as META_LOADS
 from pipeline.physics.loads import Load, loads_to_metadata, with_loads
 from pipeline.sim.distortion import distort, oracle_inverse
@@ -122,6 +123,8 @@ def sensor_readings(
         temp_at = np.interp(t_ft, motion.t, temp_true)
         distorted, raw = distort(world.distortions[s], w_true, temp_at, rng)
         acc, gyro = imu_readings(rng, truth.proper_acc[s], truth.gyro[s], dt, sim.imu)
+        if s in sim.imu.axes:  # a board whose IMU is mounted in other axes reads in them
+            acc, gyro = np.split(to_board(np.c_[acc, gyro], sim.imu.axes[s]), 2, axis=1)
         out[s] = dict(
             true=w_true,
             distorted=distorted,

@@ -14,6 +14,7 @@ from typing import Any
 
 from pipeline.core.config import Params, stage_section
 from pipeline.core.errors import ConfigError
+from pipeline.logs.imu_axes import parse_axis_maps
 
 EXPERIMENT_TYPES = ("pole", "balancing", "half_foot", "walking", "standing", "known_load", "interaction")
 
@@ -157,6 +158,7 @@ class ImuNoiseParams:
     burst_freq_max: float = 40.0  # (aliased if above the Nyquist frequency, as an unfiltered sensor would)
     burst_acc: float = 2.0  # peak burst amplitude on the accelerometer, uniform in [0, this], m/s^2
     burst_gyro: float = 0.05  # peak burst amplitude on the gyroscope at the same relative level, rad/s
+    axes: Any = None  # FT sensor -> its board's IMU axes in the sensor frame (a faulty board; none: none)
 
     SECTION = "simulate.imu"  # dotted params key, for error messages (a class attribute, not a field)
 
@@ -177,6 +179,7 @@ class ImuNoiseParams:
         check_number(self, "burst_freq_min", 0.0, math.inf)
         check_number(self, "burst_freq_max", 0.0, math.inf)
         check_order(self, "burst_freq_min", "burst_freq_max")
+        object.__setattr__(self, "axes", parse_axis_maps(self.axes, "simulate.imu.axes"))
 
 
 @dataclass(frozen=True)

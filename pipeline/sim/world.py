@@ -12,6 +12,7 @@ import numpy as np
 
 from pipeline.core.config import Params, repo_root, resolve_urdf
 from pipeline.core.errors import ConfigError
+from pipeline.logs.imu_axes import check_sensors
 from pipeline.physics.feet import Foot as RobotFoot
 from pipeline.physics.feet import robot_feet
 from pipeline.physics.robot import FootPair, LinkInertial, RobotModel, load_robot
@@ -65,6 +66,7 @@ def build_world(params: Params, sim: SimulateParams) -> World:
     robot = load_robot(resolve_urdf(params.robot.urdf, repo_root()))
     models = robot_feet(robot, params.robot.foot_pairs)
     check_feet(sim, [f.name for f in models])
+    check_sensors(sim.imu.axes, robot.sensors, "simulate.imu.axes")
     pairs = [f.pair for f in models if f.pair is not None]
     feet = [
         Foot(f.name, f.sole, f.front_link, f.rear_link, tuple(f.centers[0]), tuple(f.centers[1]))

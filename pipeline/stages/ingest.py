@@ -183,6 +183,7 @@ def run(
 
     from pipeline.core.config import repo_root, resolve_urdf, stage_section
     from pipeline.core.tracking import stage_run
+    from pipeline.logs.imu_axes import check_sensors
     from pipeline.physics.robot import load_robot
 
     cfg = stage_section(params, STAGE, IngestParams)
@@ -197,6 +198,7 @@ def run(
         raise DataError(f"{source}: two logs map to the same table name")
     urdf = resolve_urdf(params.robot.urdf, repo_root())
     robot = load_robot(urdf)
+    check_sensors(cfg.imu_axes, robot.sensors, "ingest.imu_axes")
     spec = RobotLogSpec(
         cfg,
         params.topics,

@@ -11,11 +11,17 @@ Output ``data/labelled/<log>.parquet`` (schema in :mod:`pipeline.logs.schema`) a
 per-log summary (cut-set names with ':' for '+'): fraction of exact labels per sensor, pair and cut set,
 contact phases, and for simulated
 logs the contact agreement with the true contact set and the label error against the true wrenches.
+
+Every FT board's IMU is checked against the kinematics (:mod:`pipeline.labels.imu_check`): per log and
+sensor the check's record in the table's ``ftcal.label`` metadata (``imu_axes``) and the summary; a board
+whose axes are not the sensor frame's is one warning line naming the axis map it follows and the
+``ingest.imu_axes`` entry that maps it (train then refuses its 13-input networks).
 """
 
 from __future__ import annotations
 
 import argparse
+import sys
 import time
 from dataclasses import asdict
 from pathlib import Path
@@ -45,17 +51,18 @@ def run(
     """Label every smoothed table of `in_dir` into `out_dir`, in one MLflow run."""
     import mlflow
 
-    from pipeline.core.config import LabelParams, repo_root, resolve_urdf, stage_section
+    from pipeline.core.config import repo_root, resolve_urdf
     from pipeline.core.parallel import forked_map
     from pipeline.core.progress import progress_bar
     from pipeline.core.tracking import stage_run
+    from pipeline.labels.imu_params import label_params
     from pipeline.labels.table import Labeller, label_table
     from pipeline.logs.smoothing import find_tables
     from pipeline.physics.cuts import find_cut_sets
     from pipeline.physics.feet import robot_feet
     from pipeline.physics.robot import load_robot
 
-    cfg = stage_section(params, STAGE, LabelParams)
+    cfg = label_params(params)
     src, out = Path(in_dir), Path(out_dir)
     if not src.is_dir():
         raise DataError(f"{src}: input directory not found")
@@ -97,10 +104,31 @@ def run(
             for name, err in s.label_rmse.items():
                 metrics[f"{s.log}.label_rmse_force.{name}"] = err["force"]
                 metrics[f"{s.log}.label_rmse_torque.{name}"] = err["torque"]
+        metrics.update(_imu_metrics(summaries))
         # MLflow metric names cannot hold '+': cut-set names show it as ':' there
         mlflow.log_metrics({k.replace("+", ":"): v for k, v in metrics.items()})
         mlflow.log_dict({"logs": [asdict(s) for s in summaries]}, "label_summary.json")
+        mlflow.log_dict({"flagged": imu_flagged(summaries)}, "imu_check.json")
     return summaries
+
+
+def imu_flagged(summaries: list[LogSummary]) -> dict[str, str]:
+    """FT sensor -> one line, for each board whose IMU check failed in a log (`pipeline.labels.imu_check`)."""
+    from pipeline.logs.imu_axes import flagged_boards
+
+    return flagged_boards({s.log: s.imu_axes for s in summaries})
+
+
+def _imu_metrics(summaries: list[LogSummary]) -> dict[str, float]:
+    """Per log and sensor the IMU check (1 passed, 0 not checked, -1 failed) and its residual RMS (m/s^2);
+    the number of flagged sensors."""
+    out: dict[str, float] = {"imu_flagged": len(imu_flagged(summaries))}
+    for s in summaries:
+        for sensor, record in s.imu_axes.items():
+            out[f"{s.log}.imu_check.{sensor}"] = {"passed": 1, "failed": -1}.get(record["status"], 0)
+            if record["accelerometer"].get("rms_m_s2") is not None:
+                out[f"{s.log}.imu_rms.{sensor}"] = record["accelerometer"]["rms_m_s2"]
+    return out
 
 
 def _cmd(args: argparse.Namespace) -> int:
@@ -114,6 +142,10 @@ def _cmd(args: argparse.Namespace) -> int:
         f"labelled {len(summaries)} log(s), {samples} samples, {samples / max(seconds, 1e-9):.0f} samples/s, "
         f"into {args.out}"
     )
+    for line in imu_flagged(
+        summaries
+    ).values():  # a board whose IMU is not in the sensor frame: one line each
+        print(f"ftcal: warning: {line}", file=sys.stderr)
     return 0
 
 
@@ -135,4 +167,4 @@ def add_cli(subparsers: Any) -> None:
     parser.set_defaults(func=_cmd)
 
 
-__all__ = ["STAGE", "add_cli", "run"]
+__all__ = ["STAGE", "add_cli", "imu_flagged", "run"]

@@ -47,6 +47,7 @@ format (`torch.export`, loadable without unpickling) and registered as ``ftcal-<
 from __future__ import annotations
 
 import argparse
+import sys
 from pathlib import Path
 from typing import Any
 
@@ -89,6 +90,8 @@ def _cmd(args: argparse.Namespace) -> int:
         f"{result.group}: test RMSE of {head} (N, Nm pooled): {summary}; "
         f"chosen on validation: {m['best_on_validation']} ({result.seconds:.0f} s)"
     )
+    for note in m.get("notes") or []:  # e.g. a 13-input network refused: a board's IMU failed its check
+        print(f"ftcal: warning: {note}", file=sys.stderr)
     return 0
 
 
