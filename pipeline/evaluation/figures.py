@@ -422,6 +422,7 @@ def write_plot_data(out: Path, r: GroupResult) -> list[str]:
         write(sub, r.group, ["model", "rmse"], rows)
     rows = [[m, r.noise.ratio.get(m), r.noise.ratio_rms.get(m)] for m in r.models]
     write("noise", r.group, ["model", "ratio", "ratio_rms"], rows)
+    (base / "loss" / r.group).mkdir(parents=True, exist_ok=True)  # a dvc plots output, even without networks
     for old in (base / "loss" / r.group).glob("*.csv"):
         old.unlink()
     for network, history in r.histories.items():

@@ -14,6 +14,7 @@ from __future__ import annotations
 import argparse
 import json
 import os
+from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
 
@@ -74,8 +75,9 @@ def run(params: Any, groups_dir: str | Path, reports: str | Path) -> dict[str, A
     }
     summary = {day: summarize(d, dp, target_b, dp.figure_joint) for day, d in details.items()}
     if not summary:
+        uncalibrated = [g for g, r in results.items() if r.get("not_calibrated")]
         targets["nothing"] = nothing_to_test(
-            [g for g, r in results.items() if r.get("recorded")], dp.real_logs
+            [g for g, r in results.items() if r.get("recorded")], dp.real_logs, uncalibrated
         )
     with stage_run(STAGE, {"groups": list(results)}):
         for day, s in summary.items():
@@ -89,7 +91,7 @@ def run(params: Any, groups_dir: str | Path, reports: str | Path) -> dict[str, A
     return {"summary": summary, "details": details, "nothing": targets.get("nothing")}
 
 
-def nothing_to_test(recorded: list[str], real: str) -> str:
+def nothing_to_test(recorded: list[str], real: str, uncalibrated: Sequence[str] = ()) -> str:
     """The page's sentence when no day has logs to test."""
     why = (
         f"the models ({', '.join(recorded)}) were trained on recorded logs, so the simulated deployment days "
@@ -97,6 +99,10 @@ def nothing_to_test(recorded: list[str], real: str) -> str:
         if recorded
         else "there are no deployment days"
     )
+    if uncalibrated and not recorded:
+        why = f"no model to test ({', '.join(uncalibrated)}: not calibrated, no exact label)"
+    elif uncalibrated:
+        why += f" ({', '.join(uncalibrated)}: not calibrated, no exact label)"
     return f"Nothing to test: {why}, and deploy.real_logs ({real}) holds no recorded deployment log."
 
 
