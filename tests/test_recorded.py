@@ -362,7 +362,7 @@ def test_the_real_2016_run_goes_through_every_stage_and_says_why_no_sensor_is_ca
     for arm in ("l_arm_ft", "r_arm_ft"):
         assert f"{arm}: not calibrated: no exact label (lacks {lacks[arm]})" in out
     legs = next(x for x in out.splitlines() if x.startswith("legs: not calibrated: "))
-    assert all(f"{s} no exact label (lacks {lacks[s]})" in legs for s in LEGS), legs
+    assert all(f"{s} lacks {lacks[s]}" in legs for s in LEGS), legs
     page = (tmp_path / "reports" / "index.html").read_text()
     assert "<b>Not calibrated:</b>" in page and "<b>legs</b>: " in page
     manifest = json.loads((tmp_path / "exported" / "manifest.json").read_text())

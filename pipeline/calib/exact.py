@@ -96,10 +96,20 @@ def calibrable(
     kept = [s for s in sensors if usable.own[s] or s in through_sums]
     left_out = {s: reason(s, usable) for s in sensors if s not in kept}
     if not kept:
-        reasons = list(dict.fromkeys(left_out.values()))
-        text = reasons[0] if len(reasons) == 1 else "; ".join(f"{s} {r}" for s, r in left_out.items())
-        raise NotCalibrated(group, text, left_out)
+        raise NotCalibrated(group, _group_reason(left_out, usable), left_out)
     return kept, left_out
+
+
+def _group_reason(left_out: Mapping[str, str], usable: Usable) -> str:
+    """One reason for a group none of whose sensors can be calibrated: theirs if they share it, else
+    ``no exact label (l_leg_ft lacks a; r_leg_ft lacks a, b)``, else each sensor's."""
+    reasons = list(dict.fromkeys(left_out.values()))
+    if len(reasons) == 1:
+        return reasons[0]
+    if all(usable.lacks.get(s) for s in left_out):
+        each = "; ".join(f"{s} lacks {', '.join(usable.lacks[s])}" for s in left_out)
+        return f"no exact label ({each})"
+    return "; ".join(f"{s}: {r}" for s, r in left_out.items())
 
 
 def not_calibrated_record(group: str, sensors: Sequence[str], error: NotCalibrated) -> dict[str, Any]:

@@ -318,6 +318,10 @@ def render_html(
         f"{labels_link}{nav}<a href='{DEPLOYMENT_PAGE}'>Deployment tests (its own page)</a></nav>",
         "<h2 id='summary'>Summary and recommendation</h2>",
         uncalibrated,
+    ]
+    if not results:  # nothing calibrated: why, and where the labels are exact (nowhere, or too rarely)
+        return document("ftcal evaluation report", [*parts, labels])
+    parts += [
         _no_truth_box(results),
         _flags_box(results, cfg),
         summary_table(results, cfg),
@@ -325,15 +329,13 @@ def render_html(
         _img(
             figures["overview"],
             "Headline test RMSE (6 axes pooled) of every model per group and headline, log scale",
-        )
-        if figures
-        else "",
+        ),
         "<h2 id='noise'>Deployment noise check</h2>",
         _NOISE_NOTE.format(speed=cfg.still_gyro_rad_s, min_s=cfg.still_min_s, hz=cfg.highpass_hz),
         f'<table class="num"><thead><tr>{head}</tr></thead><tbody>{"".join(noise_rows)}</tbody></table>',
-        _img(figures["noise"], "Noise amplification ratio per model and group (worst axis); threshold dashed")
-        if figures
-        else "",
+        _img(
+            figures["noise"], "Noise amplification ratio per model and group (worst axis); threshold dashed"
+        ),
         labels,
     ]
     for r in results:

@@ -319,8 +319,7 @@ def not_calibrated_result(record: Mapping[str, Any]) -> GroupResult:
         best_on_validation=None,
         validation_ranking=[],
         recommended=None,
-        not_calibrated=not_calibrated(record),
-        left_out=dict(record.get(LEFT_OUT) or {}),
+        not_calibrated=not_calibrated(record),  # per sensor where the reasons differ
     )
 
 

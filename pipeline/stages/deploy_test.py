@@ -97,7 +97,7 @@ def _cmd(args: argparse.Namespace) -> int:
 
     result = run(load_params(args.params), args.group, args.models, args.exported, args.tables, args.out)
     if "not_calibrated" in result:
-        print(f"{args.group}: not calibrated, nothing to test ({result['not_calibrated']})")
+        print(f"{args.group}: not calibrated, nothing to test: {result['not_calibrated']}")
         return 0
     tested = ", ".join(
         f"{day}: {', '.join(k for k in r if k.startswith('test_'))}" for day, r in result["days"].items()

@@ -311,9 +311,9 @@ def _cmd(args: argparse.Namespace) -> int:
         result = run(params, args.models, args.report, args.labelled, args.out)
     graphs = result.manifest["graphs"]
     left = (result.manifest.get("not_calibrated") or {}).items()
-    uncalibrated = "".join(f"; {g}: not calibrated, nothing exported ({why})" for g, why in left)
+    uncalibrated = "".join(f"; {g} not calibrated, nothing exported: {why}" for g, why in left)
     if not graphs:
-        print(f"export: no graph -> {result.out_dir}{uncalibrated}")
+        print(f"export: no graph written to {result.out_dir}{uncalibrated}")
         return 0
     checks = {
         d: max(e["check"][d][k] for e in graphs.values())
