@@ -17,6 +17,7 @@ import pytest
 import yaml
 
 from pipeline.core.config import load_params, stage_section
+from pipeline.logs.tables import read_table_metadata
 from pipeline.stages import (
     deploy_prepare,
     deploy_report,
@@ -227,6 +228,12 @@ def test_a_run_without_the_arms_joints_calibrates_the_legs_and_names_what_the_ar
     assert all(exact[s] > 300 for s in LEGS) and exact["r_arm_ft"] == 0
     lacks = {log.exact["r_arm_ft"]["lacks"][0] for log in run["labelled"]}
     assert lacks == {"right_arm/stateExt:o"}
+    for table in d["labelled"].glob("*.parquet"):  # the table's own record of it
+        exact = read_table_metadata(table)["ftcal.label"]["exact"]
+        assert exact["r_arm_ft"]["samples"] == 0 and exact["r_arm_ft"]["lacks"] == ["right_arm/stateExt:o"]
+        # standing on the left sole, the left leg's free side is the upper body: then it needs the arms
+        arms = {f"{a}/stateExt:o" for a in ARMS}
+        assert exact["l_leg_ft"]["samples"] > 0 and set(exact["l_leg_ft"]["lacks"]) <= arms
     why = {"r_arm_ft": "right_arm/stateExt:o", "l_arm_ft": "left_arm/stateExt:o"}
     files = _metrics_files(run)
     assert set(files) == {"r_arm_ft/r_arm_ft", "l_arm_ft/l_arm_ft", *(f"legs/{s}" for s in LEGS)}

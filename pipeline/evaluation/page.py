@@ -314,8 +314,9 @@ def render_html(
         "<h1>FT sensor calibration: evaluation on the test logs</h1>",
         f"<p class='meta'>generated {now} · git {_e(_git_commit())} · groups: {_e(groups)} · "
         "errors in N and Nm; global = the 6 components pooled, as in the thesis</p>",
-        "<nav><a href='#summary'>Summary and recommendation</a><a href='#noise'>Deployment noise check</a>"
-        f"{labels_link}{nav}<a href='{DEPLOYMENT_PAGE}'>Deployment tests (its own page)</a></nav>",
+        "<nav><a href='#summary'>Summary and recommendation</a>"
+        + ("<a href='#noise'>Deployment noise check</a>" if results else "")
+        + f"{labels_link}{nav}<a href='{DEPLOYMENT_PAGE}'>Deployment tests (its own page)</a></nav>",
         "<h2 id='summary'>Summary and recommendation</h2>",
         uncalibrated,
     ]

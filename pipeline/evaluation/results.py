@@ -385,7 +385,7 @@ def group_metrics(r: GroupReport, name: str | None = None) -> dict[str, Any]:
     if r.not_calibrated is not None:
         return {NOT_CALIBRATED: r.not_calibrated}
     shown = {"raw": RAW, "rec": r.recommended, "nn6": NN6, "nn7": NN7, "nn13": NN13, "oracle": ORACLE}
-    shown["affine_ls"] = LS_AFFINE  # recorded logs: the plain least-squares affine map, the lab's reference
+    shown[LS_AFFINE] = LS_AFFINE  # recorded logs: the plain least-squares affine map, the lab's reference
     out: dict[str, Any] = {"recommended": r.recommended or "none"}
     for ref in (LABELS, TRUTH):
         row = {k: r.headline_rmse(ref, m, name=name) for k, m in shown.items() if m is not None}
