@@ -17,8 +17,9 @@ Ingested table ``data/ingested/<log>.parquet`` (units in brackets):
 - ``ok.<stream>.<sensor>`` [bool]: the stream's values at this sample are trustworthy: the two source
   messages around it are at most the stream's max gap apart (or one has exactly this stamp).
   Streams: ``wrench``, ``imu``, ``temperature``. Where ``ok`` is False the values are NaN.
-  Joint positions are always finite: joint-state messages without finite positions are dropped
-  (the time base then has a gap, as for a lost message).
+  Joint positions are finite: joint-state messages without finite positions are dropped (the time base
+  then has a gap, as for a lost message), except the joints a recording declares absent (a dataDumper
+  board without its ``data.log``), NaN on every sample.
 
 Truth table ``data/ingested/<log>.truth.parquet`` (simulated logs only; same rows as the ingested table):
 ``stamp_ns``, ``time_s``, ``true.<sensor>.<axis>``, ``distorted.<sensor>.<axis>``,
