@@ -14,7 +14,9 @@ their ``state:o`` the positions alone (deg), one plain vector (the control-board
 
 `mcap_to_run` writes every part of the maps it is given from the log's joint states and wrenches, in the
 log's arrival order (the dumper writes what it receives when it receives it), plus the experiment sidecar
-``<run>.yaml`` beside the run.
+``<run>.yaml`` beside the run. Ports can be left without their ``data.log`` (``info.log`` only), as real
+archives keep them: any ``part/port`` (`without_data`), or the joint streams of whole parts
+(`without_joints`, e.g. both arms, as the 2016 yoga run of ../shared/data).
 """
 
 from __future__ import annotations
@@ -132,6 +134,7 @@ def mcap_to_run(
     *,
     two_times: bool = False,
     without_data: Sequence[str] = (),
+    without_joints: Sequence[str] = (),
     robot: str = "icub",
     sidecar: Mapping[str, object] | None = None,
     joint_port: str = "stateExt:o",
@@ -141,12 +144,13 @@ def mcap_to_run(
     """Write the MCAP log's joint states and wrenches as the dataDumper run `run`.
 
     `ft_ports`: part -> sensor; `joint_map`: part -> joint per axis (None: an axis the log does not have,
-    written as 0). `without_data`: ``part/port`` ports written with info.log only. `two_times`: lines
-    carry the reception time (the MCAP log time) after the stamp. `joint_port`: the boards' ``stateExt:o``
-    or ``state:o``; `folder`: (robot, part, port) -> the port's folder under the run; `stamp_line`:
-    info.log says the stamp form, as dumpers since YARP 3.2 do. The experiment record (or `sidecar`) goes
-    to ``<run>.yaml``.
+    written as 0). `without_data`: ``part/port`` ports written with info.log only; `without_joints`: parts
+    whose joint port gets info.log only (an absent joint stream). `two_times`: lines carry the reception time
+    (the MCAP log time) after the stamp. `joint_port`: the boards' ``stateExt:o`` or ``state:o``; `folder`:
+    (robot, part, port) -> the port's folder under the run; `stamp_line`: info.log says the stamp form, as
+    dumpers since YARP 3.2 do. The experiment record (or `sidecar`) goes to ``<run>.yaml``.
     """
+    without_data = [*without_data, *(f"{part}/{joint_port}" for part in without_joints)]
     with rosmsg.LogReader(mcap) as reader:
         experiment = dict(reader.metadata.get("experiment", {}))
         read = reader.read()

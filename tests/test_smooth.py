@@ -103,6 +103,32 @@ def test_no_smoothing_across_gaps_and_short_segments_flagged() -> None:
     assert np.isnan(res.q[500:]).all()
 
 
+def test_a_joint_absent_for_a_stretch_or_the_whole_log_touches_only_its_own_columns() -> None:
+    """Joint 0 always there, joint 1 absent (NaN) for 0.6 s, joint 2 absent from the log (a recording
+    without its board): joint 0 is smoothed bit for bit as alone, joint 1 on either side of its stretch
+    as two logs of its own, joint 2 is NaN; each flag is its own, and ``ok`` is every joint's."""
+    stamps = uniform_stamps(500)
+    t = (stamps - T0) / 1e9
+    q = np.column_stack([np.sin(t), np.cos(2 * t), t])
+    q[200:260, 1] = np.nan
+    q[:, 2] = np.nan
+    res = smooth_kinematics(stamps, q, 21, 3, max_gap_s=0.05)
+    alone = smooth_kinematics(stamps, q[:, :1], 21, 3, max_gap_s=0.05)
+    for got, ref in ((res.q, alone.q), (res.dq, alone.dq), (res.ddq, alone.ddq)):
+        np.testing.assert_array_equal(got[:, 0], ref[:, 0])
+    np.testing.assert_array_equal(res.joint_ok[:, 0], alone.ok)
+    for start, stop in ((0, 200), (260, 500)):
+        side = smooth_kinematics(stamps[start:stop], q[start:stop, 1:2], 21, 3, max_gap_s=0.05)
+        np.testing.assert_allclose(res.dq[start:stop, 1], side.dq[:, 0], rtol=1e-12, atol=1e-12)
+        np.testing.assert_array_equal(res.joint_ok[start:stop, 1], side.ok)
+    assert np.isnan(res.dq[200:260, 1]).all() and not res.joint_ok[190:270, 1].any()
+    assert res.joint_ok[10:190, 1].all() and res.joint_ok[270:490, 1].all()
+    assert np.isnan(res.q[:, 2]).all() and not res.joint_ok[:, 2].any() and not res.ok.any()
+    np.testing.assert_array_equal(
+        smooth_kinematics(stamps, q[:, :2], 21, 3, 0.05).ok, res.joint_ok[:, :2].all(axis=1)
+    )
+
+
 def test_params_validation() -> None:
     with pytest.raises(ConfigError, match="smooth.window must be an odd integer"):
         SmoothParams(window=20, polyorder=3, max_gap_s=0.05)

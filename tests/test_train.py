@@ -299,18 +299,23 @@ def test_cli_bad_data_is_one_line(tmp_path: Path, labelled: Path, capsys: pytest
         (_copy_logs(labelled, tmp_path / "no_test", lambda n: "train" in n), "no test logs"),
         (_copy_logs(labelled, tmp_path / "no_train", lambda n: "test" in n), "no training logs"),
     ]
-    # a leg that never has an exact label
+    for in_dir, message in cases:
+        code, err = _run_cli([LEG, str(in_dir), str(tmp_path / "out"), "--params", params], capsys)
+        lines = err.strip().splitlines()
+        assert code == 2 and len(lines) == 1 and message in lines[0], err
+    # a leg that never has an exact label is no error: the group is not calibrated, and says why
     no_labels = _copy_logs(labelled, tmp_path / "no_labels", lambda n: True)
     for path in no_labels.glob("*train.parquet"):
         table = pq.read_table(path)
         i = table.schema.get_field_index(S.switch_col(LEG))
         table = table.set_column(i, table.schema.field(i), pa.array(np.zeros(table.num_rows, np.uint8)))
         pq.write_table(table, path)
-    cases.append((no_labels, "r_leg_ft: no training sample with an exact label (sw.r_leg_ft = 1)"))
-    for in_dir, message in cases:
-        code, err = _run_cli([LEG, str(in_dir), str(tmp_path / "out"), "--params", params], capsys)
-        lines = err.strip().splitlines()
-        assert code == 2 and len(lines) == 1 and message in lines[0], err
+    code = main(["train", LEG, str(no_labels), str(tmp_path / "out"), "--params", params])
+    out = capsys.readouterr().out.strip().splitlines()
+    why = "no exact label (one side of its cut always touches, or its wrench is not ok there)"
+    assert code == 0 and out == [f"{LEG}: not calibrated: {why}"], out
+    record = json.loads((tmp_path / "out" / "metrics.json").read_text())
+    assert record["not_calibrated"] == why and "test" not in record
 
 
 def test_log_kind_refines_the_type_with_foot_and_part(tmp_path: Path) -> None:

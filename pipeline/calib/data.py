@@ -49,18 +49,22 @@ class Group:
     transforms: np.ndarray | None = None  # (S, 6, 6) sole_X_sensor, row-major, force first
     cuts: tuple[CutTerm, ...] = ()
     n_inputs: int = 13  # inputs per sensor of the group's largest network: 7 needs no IMU
+    tested: tuple[str, ...] | None = None  # the sensors with exact labels of their own on the test logs
+    left_out: tuple[tuple[str, str], ...] = ()  # (sensor, why) of the sensors without any exact label
 
     @property
     def headlines(self) -> tuple[str, ...]:
         """The names whose errors are the group's headlines: the sensor, or the foot's sum; for several
-        sensors, each sensor in no foot pair (a leg) then each foot pair's sum."""
+        sensors, each sensor in no foot pair (a leg, an iCub 2.x foot) with exact labels of its own on the
+        test logs (`tested`, where known), then each foot pair's sum."""
         if self.pair is not None:
             return (self.pair,)
-        if not self.cuts:
+        if len(self.sensors) == 1:
             return (self.sensors[0],)
         pairs = [c for c in self.cuts if c.pair is not None]
         in_pair = {self.sensors[m] for c in pairs for m in c.members}
-        return (*(s for s in self.sensors if s not in in_pair), *(c.label for c in pairs))
+        own = [s for s in self.sensors if s not in in_pair and (self.tested is None or s in self.tested)]
+        return (*own, *(c.label for c in pairs)) or (self.sensors[0],)
 
     @property
     def headline(self) -> str:

@@ -11,8 +11,10 @@ from typing import Any
 import numpy as np
 
 from pipeline.calib.data import (
+    ROLE_TRAIN,
     Group,
     GroupData,
+    LogInfo,
     concat,
     derive_seed,
     expand_feet,
@@ -23,12 +25,13 @@ from pipeline.calib.data import (
     resolve_group,
     split_logs,
 )
+from pipeline.calib.exact import LEFT_OUT, calibrable
 from pipeline.calib.imu_gate import refuse_flagged_imu
 from pipeline.calib.models import (
     LinearBaseline,
     fit_linear_baseline,
 )
-from pipeline.calib.params import AFFINE, GroupParams, TrainParams, baseline_inputs, poly_name
+from pipeline.calib.params import AFFINE, LS_AFFINE, GroupParams, TrainParams, baseline_inputs, poly_name
 from pipeline.calib.records import flatten_metrics
 from pipeline.calib.search import NetResult
 from pipeline.calib.training import NetSetting
@@ -60,14 +63,18 @@ class Prepared:
 def prepare(params: Params, group_name: str, in_dir: Path) -> Prepared:
     """Read the group's samples from the labelled tables of `in_dir` and split them (module docstring).
 
+    A sensor of a group of several without any exact label on the training logs (its joint streams absent)
+    is left out of the group (`pipeline.calib.exact`), the others train.
+
     Raises:
         ConfigError: unknown group, or a group naming a sensor or pair the data does not have.
+        NotCalibrated: no sensor of the group has an exact label on the training logs (checked first).
         DataError: missing directory or tables, no train/test logs, no exact label to train or validate on.
     """
     cfg = stage_section(params, "train", TrainParams)
     logs = find_logs(in_dir)
     gp = expand_feet(cfg.group(group_name), logs)
-    group = resolve_group(gp, params, logs)
+    gp, group = _calibrable(params, gp, resolve_group(gp, params, logs), logs)
     gp, group, notes = refuse_flagged_imu(gp, group, logs)  # a board whose IMU check failed: no nn13
     split = split_logs(logs, cfg.val_logs, params.seed, cfg.folds)
     log_names = [log.name for log in logs]
@@ -76,6 +83,8 @@ def prepare(params: Params, group_name: str, in_dir: Path) -> Prepared:
         part = load_group_data(group, [logs[log_names.index(n)] for n in split[k]])
         part.log = np.array([log_names.index(n) for n in split[k]])[part.log]  # split-local -> global index
         data[k] = part
+    tested = data["test"].switches.any(axis=0)
+    group = replace(group, tested=tuple(s for s, on in zip(group.sensors, tested, strict=True) if on))
     train = data["train"].subset(data["train"].labelled())
     if len(train) == 0:
         names = (*group.sensors, *([group.pair] if group.pair else []))
@@ -98,6 +107,24 @@ def prepare(params: Params, group_name: str, in_dir: Path) -> Prepared:
     return Prepared(cfg, gp, seed, group, split, log_names, train, data["val"], test, folds, recorded, notes)
 
 
+def _calibrable(
+    params: Params, gp: GroupParams, group: Group, logs: Sequence[LogInfo]
+) -> tuple[GroupParams, Group]:
+    """The group without its sensors that have no exact label on the training logs (`calibrable`);
+    NotCalibrated if none has one. A sensor or foot-pair group is calibrated whole or not at all."""
+    cuts = {c.label: [group.sensors[m] for m in c.members] for c in group.cuts}
+    if group.pair is not None:
+        cuts[group.pair] = list(group.sensors)
+    paths = [log.path for log in logs if log.role == ROLE_TRAIN]
+    if not paths:  # no training log at all: `split_logs` says so
+        return gp, group
+    kept, left_out = calibrable(group.name, group.sensors, cuts, paths)
+    if not left_out or gp.sensors is None:
+        return gp, group
+    gp = replace(gp, sensors=tuple(kept)) if len(kept) > 1 else replace(gp, sensors=None, sensor=kept[0])
+    return gp, replace(resolve_group(gp, params, logs), left_out=tuple(left_out.items()))
+
+
 def fit_baselines(
     gp: GroupParams, group: Group, train: GroupData, seed: int, affine: bool = True
 ) -> dict[str, LinearBaseline]:
@@ -117,6 +144,12 @@ def fit_baselines(
 def fit_affine(gp: GroupParams, group: Group, train: GroupData, seed: int) -> LinearBaseline:
     """The affine baseline of `fit_baselines` alone: the map the group's networks correct."""
     return fit_baselines(replace(gp, poly_orders=()), group, train, seed)[AFFINE]
+
+
+def fit_plain_affine(gp: GroupParams, group: Group, train: GroupData, seed: int) -> LinearBaseline:
+    """The plain least-squares affine map (`fit_affine` without the virtual pushes), named LS_AFFINE: the
+    in-situ reference any lab computes from its labels, scored beside the models of recorded logs."""
+    return replace(fit_affine(replace(gp, lambda_push=0.0), group, train, seed), name=LS_AFFINE)
 
 
 def fit_beside(
@@ -260,6 +293,8 @@ def score(
         "selection": cv["rule"],
         "cv": dict(cv),
     }
+    if group.left_out:  # sensors of the group without any exact label: not calibrated, and why
+        metrics[LEFT_OUT] = dict(group.left_out)
     for k, data in (("val", prep.val), ("test", prep.test)):
         metrics[k] = {name: group_errors(group, data, pred) for name, pred in preds[k].items()}
     means = cv["mean"]

@@ -18,6 +18,9 @@ INPUT_SIZES = (6, 7, 13)  # raw wrench (+ temperature (+ accelerometer + gyrosco
 NORMALISATIONS = ("max", "standard")
 ACTIVATION_NAMES = ("relu", "leaky_relu", "tanh", "elu")
 RAW, AFFINE = "raw", "affine"
+# recorded logs: the plain least-squares affine map (no virtual pushes), the in-situ reference any lab can
+# compute, scored beside the models (never a candidate to deploy)
+LS_AFFINE = "affine_ls"
 STORAGE_SCHEMES = ("postgresql", "sqlite", "mysql")  # SQLAlchemy dialects Optuna's RDB storage supports
 
 

@@ -15,11 +15,20 @@ import numpy as np
 import torch
 
 from pipeline.calib.crossval import cross_validate
+from pipeline.calib.exact import NOT_CALIBRATED, NotCalibrated, not_calibrated_record
 from pipeline.calib.excitation import group_excitation
 from pipeline.calib.fidelity import group_fidelity
-from pipeline.calib.fit import Prepared, fit_beside, mlflow_metrics, network_info, prepare, score
+from pipeline.calib.fit import (
+    Prepared,
+    fit_beside,
+    fit_plain_affine,
+    mlflow_metrics,
+    network_info,
+    prepare,
+    score,
+)
 from pipeline.calib.models import WRENCH, LinearBaseline, save_model
-from pipeline.calib.params import RAW, nn_name
+from pipeline.calib.params import LS_AFFINE, RAW, nn_name
 from pipeline.calib.records import TrainResult, log_network, log_trial_run, write_predictions
 from pipeline.calib.search import NetResult, code_digest, data_digest, search_network
 from pipeline.calib.studies import open_storage, storage_url
@@ -95,6 +104,11 @@ def fit_models(params: Params, prep: Prepared, studies: Path, ui: ProgressLog) -
     t = time.perf_counter()
     fitted.cv = cross_validate(prep, fitted.preds["val"], fitted.nets, prep.cfg.selection_margin, ui)
     fitted.timings["cross_validation"] = time.perf_counter() - t
+    if prep.recorded:  # no truth: the plain least-squares affine map beside the models, never a candidate
+        plain = fit_plain_affine(gp, group, prep.train, prep.seed)
+        fitted.baselines[LS_AFFINE] = plain
+        for k, d in data.items():
+            fitted.preds[k][LS_AFFINE] = plain.predict(d.x)
     return fitted
 
 
@@ -143,6 +157,21 @@ def write_outputs(prep: Prepared, fitted: Fitted, out: Path, run_id: str, t0: fl
     return TrainResult(group.name, metrics, time.perf_counter() - t0, run_id, files)
 
 
+def write_not_calibrated(group: str, exc: NotCalibrated, out: Path, t0: float) -> TrainResult:
+    """`out`/metrics.json saying why the group is not calibrated (nothing else), in a train@<group> run."""
+    import mlflow
+
+    from pipeline.core.tracking import stage_run
+
+    metrics = not_calibrated_record(group, list(exc.left_out), exc)
+    with stage_run(f"train@{group}", {"train": {"group": group}}) as run:
+        mlflow.set_tags({"group": group, NOT_CALIBRATED: exc.reason})
+        out.mkdir(parents=True, exist_ok=True)
+        write_json(out / "metrics.json", metrics)
+        mlflow.log_artifact(str(out / "metrics.json"))
+        return TrainResult(group, metrics, time.perf_counter() - t0, run.info.run_id, ["metrics.json"])
+
+
 def train_group(
     params: Params,
     group_name: str,
@@ -159,7 +188,10 @@ def train_group(
 
     t0 = time.perf_counter()
     src, out = Path(in_dir), Path(out_dir)
-    prep = prepare(params, group_name, src)
+    try:
+        prep = prepare(params, group_name, src)
+    except NotCalibrated as exc:
+        return write_not_calibrated(group_name, exc, out, t0)
     torch.set_num_threads(prep.cfg.threads)
     torch.use_deterministic_algorithms(True)
     ui = ProgressLog(progress)

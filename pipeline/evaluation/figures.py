@@ -17,6 +17,7 @@ from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
+from pipeline.calib.params import LS_AFFINE
 from pipeline.core.io import write_atomic, write_csv
 from pipeline.evaluation.noise import highpass
 from pipeline.evaluation.params import (
@@ -51,6 +52,7 @@ COLORS = {
     "nn7": "#1f77b4",
     "nn13": "#d62728",
     "oracle": "#2ca02c",
+    LS_AFFINE: "#17becf",  # recorded logs: the plain least-squares affine map, the lab's reference
     "expected": "#000000",
     "true": "#2ca02c",
 }
@@ -422,6 +424,7 @@ def write_plot_data(out: Path, r: GroupResult) -> list[str]:
         write(sub, r.group, ["model", "rmse"], rows)
     rows = [[m, r.noise.ratio.get(m), r.noise.ratio_rms.get(m)] for m in r.models]
     write("noise", r.group, ["model", "ratio", "ratio_rms"], rows)
+    (base / "loss" / r.group).mkdir(parents=True, exist_ok=True)  # a dvc plots output, even without networks
     for old in (base / "loss" / r.group).glob("*.csv"):
         old.unlink()
     for network, history in r.histories.items():

@@ -9,6 +9,7 @@ from datetime import datetime, timezone
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
+from pipeline.calib.params import LS_AFFINE
 from pipeline.core.io import write_text
 from pipeline.evaluation.floors import MARK, below_oracle, prior_box
 from pipeline.evaluation.html import cell as _cell
@@ -21,6 +22,7 @@ from pipeline.evaluation.params import (
     LABELS,
     NN7,
     NN13,
+    NO_TRUTH,
     ORACLE,
     PLOTS_DIR,
     REFERENCE_TITLES,
@@ -189,14 +191,30 @@ def _flags_box(results: Sequence[GroupReport], cfg: EvaluateParams) -> str:
 
 def _no_truth_box(results: Sequence[GroupReport]) -> str:
     """A plain warning where the test logs are recordings: no truth, no oracle, errors against labels."""
-    if any(TRUTH in r.tables[h] for r in results for h in _headlines(r)):
+    if not results or any(TRUTH in r.tables[h] for r in results for h in _headlines(r)):
         return ""
     return (
-        "<div class='flags'><b>No truth:</b> the test logs are recordings of a robot, not simulations. "
-        "Every error on this page is against the <i>labels</i> (the expected wrench from the URDF and the "
-        "motion, exact only where one side of a sensor's cut touches nothing, and only as good as the URDF's "
-        "masses), on the labelled test samples; nothing here is measured against the true wrench, and there "
-        "is no oracle (noise floor).</div>"
+        f"<div class='flags'><b>No truth:</b> {_e(NO_TRUTH[len('no truth: ') :])}. The test logs are "
+        "recordings of a robot, not simulations. Every error on this page is against the <i>labels</i> (the "
+        "expected wrench from the URDF and the motion, exact only where one side of a sensor's cut touches "
+        "nothing, and only as good as the URDF's masses), on the labelled samples of the held-out test logs "
+        "and segments; nothing here is measured against the true wrench, and there is no oracle (noise "
+        f"floor). Beside the models, <i>{_e(LS_AFFINE)}</i> is the plain least-squares affine map fitted on "
+        "the training segments (no virtual pushes), the in-situ reference any lab can compute: it is "
+        "scored, never deployed.</div>"
+    )
+
+
+def _not_calibrated_box(results: Sequence[GroupReport]) -> str:
+    """The groups nothing could be calibrated for, and the sensors left out of a group, with why."""
+    items = [f"<b>{_e(r.group)}</b>: {_e(r.not_calibrated)}" for r in results if r.not_calibrated]
+    items += [f"<b>{_e(r.group)}/{_e(s)}</b>: {_e(why)}" for r in results for s, why in r.left_out.items()]
+    if not items:
+        return ""
+    return (
+        f"<div class='flags'><b>Not calibrated:</b> {'; '.join(items)}. A label needs the joints on the path "
+        "from the link fixed in the world to the sensor and those of its free side: without them no sample "
+        "is exact, so nothing is trained, scored or exported for these.</div>"
     )
 
 
@@ -278,9 +296,12 @@ def render_html(
     availability: Mapping[str, Any] | None = None,
 ) -> str:
     """The report page: summary, flags and overview figures, the noise check, the exact-label
-    availability (`pipeline.evaluation.availability`, if given), then one section per group."""
+    availability (`pipeline.evaluation.availability`, if given), then one section per calibrated group
+    (the others are named, with why, in the summary)."""
     now = datetime.now(timezone.utc).strftime("%Y-%m-%d %H:%M UTC")
     groups = ", ".join(r.group for r in results)
+    uncalibrated = _not_calibrated_box(results)
+    results = [r for r in results if r.not_calibrated is None]
     nav = "".join(f"<a href='#{_e(r.group)}'>{_e(r.group)}</a>" for r in results)
     models = list(dict.fromkeys(m for r in results for m in r.models))
     noise_rows = []
@@ -300,9 +321,15 @@ def render_html(
         "<h1>FT sensor calibration: evaluation on the test logs</h1>",
         f"<p class='meta'>generated {now} · git {_e(_git_commit())} · groups: {_e(groups)} · "
         "errors in N and Nm; global = the 6 components pooled, as in the thesis</p>",
-        "<nav><a href='#summary'>Summary and recommendation</a><a href='#noise'>Deployment noise check</a>"
-        f"{labels_link}{nav}<a href='{DEPLOYMENT_PAGE}'>Deployment tests (its own page)</a></nav>",
+        "<nav><a href='#summary'>Summary and recommendation</a>"
+        + ("<a href='#noise'>Deployment noise check</a>" if results else "")
+        + f"{labels_link}{nav}<a href='{DEPLOYMENT_PAGE}'>Deployment tests (its own page)</a></nav>",
         "<h2 id='summary'>Summary and recommendation</h2>",
+        uncalibrated,
+    ]
+    if not results:  # nothing calibrated: why, and where the labels are exact (nowhere, or too rarely)
+        return document("ftcal evaluation report", [*parts, labels])
+    parts += [
         _no_truth_box(results),
         _flags_box(results, cfg),
         summary_table(results, cfg),
@@ -337,8 +364,12 @@ def write_page(
 
     overview, noise = f"{PLOTS_DIR}/rmse_overview.png", f"{PLOTS_DIR}/noise_amplification.png"
     (out / PLOTS_DIR).mkdir(parents=True, exist_ok=True)
-    plot_overview(reports, out / overview)
-    plot_noise_summary(reports, cfg, out / noise)
+    calibrated = [r for r in reports if r.not_calibrated is None]
+    if not calibrated:  # nothing scored: no figure (the page says why)
+        write_text(out / REPORT_FILE, render_html(reports, cfg, {}, availability))
+        return [REPORT_FILE]
+    plot_overview(calibrated, out / overview)
+    plot_noise_summary(calibrated, cfg, out / noise)
     write_text(
         out / REPORT_FILE, render_html(reports, cfg, {"overview": overview, "noise": noise}, availability)
     )

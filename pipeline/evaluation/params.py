@@ -11,6 +11,7 @@ from pipeline.core.errors import ConfigError
 STAGE = "evaluate"
 ORACLE = "oracle"  # the simulator's oracle calibration, an extra model in the tables (truth tables only)
 LABELS, TRUTH = "labels", "truth"  # references the errors are computed against
+NO_TRUTH = "no truth: against labels on held-out segments"  # recorded test logs, in the metrics and the page
 # truth scored on the labelled samples only: like for like with LABELS (TRUTH also covers the samples
 # without labels, e.g. double support, where a model interpolates without supervision)
 TRUTH_LABELLED = "truth_labelled"

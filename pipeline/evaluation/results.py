@@ -9,7 +9,8 @@ from typing import Any
 
 import numpy as np
 
-from pipeline.calib.params import RAW
+from pipeline.calib.exact import LEFT_OUT, NOT_CALIBRATED, not_calibrated
+from pipeline.calib.params import LS_AFFINE, RAW
 from pipeline.calib.scores import wrench_errors
 from pipeline.evaluation.fidelity import outside_stats, unfaithful
 from pipeline.evaluation.floors import noise_floor
@@ -21,6 +22,7 @@ from pipeline.evaluation.params import (
     NN6,
     NN7,
     NN13,
+    NO_TRUTH,
     ORACLE,
     PHASE,
     REFERENCES,
@@ -121,6 +123,10 @@ class GroupReport:
     outside: dict[str, Any] = field(default_factory=dict)
     floor: dict[str, float] = field(default_factory=dict)  # name -> noise floor (pipeline.evaluation.floors)
     notes: list[str] = field(default_factory=list)  # train's: a network not trained and why (metrics.json)
+    # a group nothing could be calibrated for: why (train's record, `pipeline.calib.exact`); the sensors of a
+    # calibrated group left out of it and why; in report.json only where set
+    not_calibrated: str | None = None
+    left_out: dict[str, str] = field(default_factory=dict)
 
     def headline_rmse(
         self, ref: str, model: str | None, key: str = "rmse", name: str | None = None
@@ -142,7 +148,7 @@ class GroupReport:
         """JSON-ready (strict JSON after `pipeline.core.io.jsonable`)."""
         out = {f.name: getattr(self, f.name) for f in fields(self)}
         out["noise"] = {f.name: getattr(self.noise, f.name) for f in fields(self.noise) if f.name != "mask"}
-        return out
+        return {k: v for k, v in out.items() if v or k not in (NOT_CALIBRATED, LEFT_OUT)}
 
     @classmethod
     def from_dict(cls, data: Mapping[str, Any]) -> GroupReport:
@@ -300,6 +306,27 @@ def noise_check(g: GroupInputs, cfg: EvaluateParams) -> NoiseResult:
     return result
 
 
+def not_calibrated_result(record: Mapping[str, Any]) -> GroupResult:
+    """The result of a group that is not calibrated (train's record): no model, no table, the reason."""
+    sensors = [str(s) for s in record.get("sensors") or ()]
+    return GroupResult(
+        group=str(record["group"]),
+        sensors=sensors,
+        pair=None,
+        headline=str(record["group"]),
+        names=[],
+        models=[],
+        samples_test=0,
+        tables={},
+        by_experiment={},
+        noise=NoiseResult(0.0, 0, {}, {}, {}, {}, None, []),
+        best_on_validation=None,
+        validation_ranking=[],
+        recommended=None,
+        not_calibrated=not_calibrated(record),  # per sensor where the reasons differ
+    )
+
+
 def recommend(ranking: Sequence[str], flagged: Iterable[str], available: Iterable[str]) -> str | None:
     """The first model of the validation ranking that is not flagged and was evaluated (None if none)."""
     flagged, available = set(flagged), set(available)
@@ -345,6 +372,7 @@ def evaluate_group(g: GroupInputs, cfg: EvaluateParams) -> GroupResult:
         outside=outside_stats(excitation, deployed),
         floor=noise_floor(g.frame, g.names),
         notes=[str(n) for n in g.train.get("notes") or []],
+        left_out=dict(g.train.get(LEFT_OUT) or {}),
     )
 
 
@@ -360,7 +388,10 @@ def group_metrics(r: GroupReport, name: str | None = None) -> dict[str, Any]:
     sample; ``recommended``: the group's model to deploy; ``noise``: its networks' noise ratios;
     ``flagged``: how many of its models are flagged (noise or fidelity).
     """
+    if r.not_calibrated is not None:
+        return {NOT_CALIBRATED: r.not_calibrated}
     shown = {"raw": RAW, "rec": r.recommended, "nn6": NN6, "nn7": NN7, "nn13": NN13, "oracle": ORACLE}
+    shown[LS_AFFINE] = LS_AFFINE  # recorded logs: the plain least-squares affine map, the lab's reference
     out: dict[str, Any] = {"recommended": r.recommended or "none"}
     for ref in (LABELS, TRUTH):
         row = {k: r.headline_rmse(ref, m, name=name) for k, m in shown.items() if m is not None}
@@ -368,9 +399,19 @@ def group_metrics(r: GroupReport, name: str | None = None) -> dict[str, Any]:
         if row:
             out[ref] = row
     if TRUTH not in out:  # recorded test logs: said plainly in `dvc metrics show`
-        out[TRUTH] = "none: recorded logs, errors against the labels only"
+        out[TRUTH] = NO_TRUTH
     out["noise"] = {m: round(v, 3) for m in (NN6, NN7, NN13) if (v := r.noise.ratio.get(m)) is not None}
     out["flagged"] = len(set(r.noise.flagged) | set(r.unfaithful))
+    return out
+
+
+def metrics_files(r: GroupReport) -> dict[str, dict[str, Any]]:
+    """reports/metrics/<group>/<name>.json per name (one `dvc metrics show` row each): every headline of a
+    calibrated group (`group_metrics`), each sensor left out of it with why, or the group with why not."""
+    if r.not_calibrated is not None:
+        return {r.group: group_metrics(r)}
+    out = {name: group_metrics(r, name) for name in r.headlines or [r.headline]}
+    out.update({sensor: {NOT_CALIBRATED: why} for sensor, why in r.left_out.items()})
     return out
 
 

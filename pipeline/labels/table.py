@@ -5,7 +5,9 @@ Per log: the contact set of every sample (:mod:`pipeline.labels.contacts`), the 
 from the smoothed joint kinematics and the URDF (:mod:`pipeline.physics.dynamics`), every sensor's
 expected wrench and switch, each foot pair's sum in its sole frame and each cut set's signed sum in its
 common frame (:mod:`pipeline.physics.cuts`), with the per-sample poses the trainer needs to map
-predictions into that frame. Columns and metadata: :mod:`pipeline.logs.schema`.
+predictions into that frame. A label's switch is 1 only where the joints it needs are ok
+(:mod:`pipeline.physics.needs`, :mod:`pipeline.labels.joints`): a recording without an arm's joints still
+labels the legs. Columns and metadata: :mod:`pipeline.logs.schema`.
 """
 
 from __future__ import annotations
@@ -24,11 +26,13 @@ from pipeline.core.errors import DataError, RobotModelError
 from pipeline.core.io import write_parquet
 from pipeline.labels.contacts import Contacts, declared_contacts, detect_contacts
 from pipeline.labels.imu_check import check_log
+from pipeline.labels.joints import Lacking, joint_ok_of, joint_streams
 from pipeline.logs import schema as S
 from pipeline.physics.cuts import CutSet, cut_poses, cut_sums
-from pipeline.physics.dynamics import ContactCase, expected_wrenches
+from pipeline.physics.dynamics import ContactCase, choose_root, expected_wrenches
 from pipeline.physics.feet import Foot, foot_of_pair
 from pipeline.physics.loads import loads_from_metadata, with_loads
+from pipeline.physics.needs import JointNeeds
 from pipeline.physics.robot import FootPair, RobotModel
 
 
@@ -45,10 +49,12 @@ class Labeller:
     # RNEA threads per table (pinocchio's OpenMP; None: one per core). 1 where tables are labelled in
     # forked processes: one thread per process, and a child forked after an OpenMP team ran hangs in its own
     threads: int | None = None
+    needs: JointNeeds = field(init=False, repr=False)  # the joints each label needs (the tree's, cached)
 
     def __post_init__(self) -> None:
         if not self.feet:
             self.feet = [foot_of_pair(self.robot, p) for p in self.pairs]
+        self.needs = JointNeeds(self.robot, self.pairs, self.cuts)
 
     @property
     def cut_labels(self) -> list[CutSet]:
@@ -69,32 +75,48 @@ def label_arrays(
     ddq: np.ndarray,
     ok: np.ndarray,
     gravity_fixed: np.ndarray,
+    lacking: Lacking | None = None,
 ) -> dict[str, np.ndarray]:
     """Expected wrenches, switches and poses of every sensor, pair and cut set, as labelled-table columns.
 
-    q, dq, ddq: (N, n_joints) smoothed kinematics; ok: (N,) samples whose kinematics are usable;
-    gravity_fixed: (3,) gravity in the fixed link frame, m/s^2.
+    q, dq, ddq: (N, n_joints) smoothed kinematics; ok: (N, n_joints) where each joint's kinematics are
+    usable, or (N,) for every joint. A label's switch is 1 where its contact case makes it exact and the
+    joints it needs are ok (the others are set to 0 for the RNEA: they do not change it); `lacking`
+    counts the samples lost to joints that are not. gravity_fixed: (3,) gravity in the fixed link frame,
+    m/s^2.
     """
     robot, n = lab.robot, q.shape[0]
+    joint_ok = ok if ok.ndim == 2 else np.repeat(ok[:, None], q.shape[1], axis=1)
+    lacking = Lacking() if lacking is None else lacking
     exp = {name: np.full((n, 6), np.nan) for name in lab.names}
     sw = {name: np.zeros(n, dtype=np.uint8) for name in lab.names}
     reading = {s: np.full((n, 6), np.nan) for s in robot.sensors}
-    usable = ok & (contacts.index >= 0) & ~contacts.guard
+    usable = joint_ok.any(axis=1) & (contacts.index >= 0) & ~contacts.guard
     keys = sorted(
         {(int(i), str(f)) for i, f in zip(contacts.index[usable], contacts.fixed[usable], strict=True)}
     )
     for set_id, fixed in keys:
         rows = np.flatnonzero(usable & (contacts.index == set_id) & (contacts.fixed == fixed))
         case = ContactCase.make(contacts.sets[set_id], fixed, gravity_fixed)
-        out = expected_wrenches(robot, q[rows], dq[rows], ddq[rows], case, lab.pairs, lab.threads)
+        have = joint_ok[rows]
+        kin = [np.where(have, a[rows], 0.0) for a in (q, dq, ddq)]
+        out = expected_wrenches(robot, *kin, case, lab.pairs, lab.threads)
+        root = choose_root(robot, case)
+
+        def gate(name: str, on: np.ndarray, have: np.ndarray = have, root: str = root) -> np.ndarray:
+            return lacking.gate(name, on.astype(bool), have, lab.needs.of_label(name, root))
+
         for s in robot.sensors:
-            exp[s][rows], sw[s][rows], reading[s][rows] = out.wrench[s], out.switch[s], out.reading[s]
+            sw[s][rows] = on = gate(s, out.switch[s])
+            exp[s][rows] = np.where(on[:, None], out.reading[s], np.nan)
+            reading[s][rows] = out.reading[s]
         for p in lab.pairs:
-            exp[p.name][rows], sw[p.name][rows] = out.pair_sum[p.name], out.pair_switch[p.name]
+            sw[p.name][rows] = on = gate(p.name, out.pair_switch[p.name])
+            exp[p.name][rows] = np.where(on[:, None], out.pair_sum[p.name], np.nan)
         for cut in lab.cut_labels:
-            sw[cut.label][rows] = cut.switch(case.contacts)
+            sw[cut.label][rows] = gate(cut.label, np.full(len(rows), cut.switch(case.contacts)))
     columns: dict[str, np.ndarray] = {}
-    q_ok, cache = np.where(ok[:, None], q, 0.0), {}
+    q_ok, cache = np.where(joint_ok, q, 0.0), {}
     for cut in lab.cut_labels:
         poses = cut_poses(robot, cut, q_ok, cache)
         on = sw[cut.label] == 1
@@ -103,7 +125,8 @@ def label_arrays(
                 cut, {s: reading[s][on] for s in cut.sensors}, {s: p[on] for s, p in poses.items()}
             )
         for sensor, pose in poses.items():
-            pose[~ok] = np.nan
+            link = robot.sensors[sensor].child_link
+            pose[~joint_ok[:, lab.needs.of_region(cut.frame, frozenset({link}))].all(axis=1)] = np.nan
             for axis, col in enumerate(S.cut_pose_cols(cut.label, sensor)):
                 columns[col] = pose[:, axis]
     for name in lab.names:
@@ -147,6 +170,9 @@ class LogSummary:
     truth_agreement: float | None = None  # simulated logs: detected == true contact set, outside guards
     label_rmse: dict[str, dict[str, float]] = field(default_factory=dict)  # vs true wrench, switch 1
     imu_axes: dict[str, dict[str, Any]] = field(default_factory=dict)  # per sensor: its IMU check (imu_check)
+    # per label name: exact labels (samples), samples lost to joints not ok (lost), the streams (or joints)
+    # missing there (lacks): `pipeline.labels.joints.Lacking.summary`
+    exact: dict[str, dict[str, Any]] = field(default_factory=dict)
 
 
 def contact_strings(contacts: Contacts) -> np.ndarray:
@@ -292,7 +318,8 @@ def label_table(src: Path, dst: Path, lab: Labeller, truth_dir: Path | None = No
     robot = lab.robot
     n = len(table)
     q, dq, ddq = (table[S.joint_cols(k, robot.joint_names)].to_numpy() for k in (S.QS, S.DQS, S.DDQS))
-    ok = table[S.ok_col(S.KINEMATICS_STREAM)].to_numpy(bool) & np.isfinite(np.c_[q, dq, ddq]).all(axis=1)
+    ok = joint_ok_of(table, robot.joint_names)
+    lacking = Lacking()
     time_s = table[S.TIME].to_numpy()
     try:  # the log's metadata may name links the URDF lacks: the error names the log
         contacts = declared_contacts(robot, experiment, n)
@@ -300,8 +327,9 @@ def label_table(src: Path, dst: Path, lab: Labeller, truth_dir: Path | None = No
             raw = {s: table[S.wrench_cols(S.FT, s)].to_numpy() for f in lab.feet for s in f.sensors}
             contacts = detect_contacts(robot, lab.feet, raw, time_s, lab.cfg, lab.gravity, str(src))
         gravity_fixed = _gravity_fixed(src, experiment, lab.gravity)
-        columns = label_arrays(lab, contacts, q, dq, ddq, ok, gravity_fixed)
-        imu = check_log(robot, table, meta, contacts, (q, dq, ddq), ok, gravity_fixed, lab.cfg.imu_check)
+        columns = label_arrays(lab, contacts, q, dq, ddq, ok, gravity_fixed, lacking)
+        every = ok.all(axis=1)  # the IMU check reads every joint's kinematics
+        imu = check_log(robot, table, meta, contacts, (q, dq, ddq), every, gravity_fixed, lab.cfg.imu_check)
     except RobotModelError as exc:
         raise DataError(f"{src}: its experiment metadata does not fit the robot: {exc}") from None
 
@@ -320,13 +348,19 @@ def label_table(src: Path, dst: Path, lab: Labeller, truth_dir: Path | None = No
         zero_levels=contacts.zero_levels,
         seconds=0.0,
         imu_axes=imu,
+        exact=lacking.summary(
+            {m: int(columns[S.switch_col(m)].sum()) for m in lab.names},
+            robot.joint_names,
+            joint_streams(meta),
+        ),
     )
     truth_path = truth_dir / f"{src.stem}{S.TRUTH_SUFFIX}{S.PARQUET_SUFFIX}" if truth_dir else None
     if truth_path is not None and truth_path.is_file():
         summary.truth_agreement, summary.label_rmse = _truth_checks(
             truth_path, out[S.STAMP], lab, contacts, columns
         )
-    kv = {S.META_EXPERIMENT: experiment, S.META_LABEL: {**_label_metadata(lab), "imu_axes": imu}}
+    label_meta = {**_label_metadata(lab), "imu_axes": imu, "exact": summary.exact}
+    kv = {S.META_EXPERIMENT: experiment, S.META_LABEL: label_meta}
     for key in (S.META_INGEST, S.META_SMOOTH):
         if key.decode() in meta:
             kv[key] = meta[key.decode()]

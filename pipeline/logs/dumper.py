@@ -152,9 +152,15 @@ class DumperRunReader:
         self.dropped_rows = 0  # time-base messages without another board's positions
         self.joint_rows = self._joint_states(state_ports)
         absent_joints = [j for j in joints if j not in set(self.joint_names)]
+        kept = {p.part: p.name for p in ports if p.port in cfg.joint_ports}  # the run's joint port per part
+        by_stream = {  # each absent board -> its joints, so that labels name the stream they lack
+            kept.get(part, f"{part}/{cfg.joint_ports[0]}"): [j for j in axes if j in set(absent_joints)]
+            for part, axes in cfg.joints.items()
+            if any(j in set(absent_joints) for j in axes)
+        }
         self.metadata = {
             "experiment": experiment,
-            RECORDING: absent_record(absent_topics, absent_joints, absent_streams),
+            RECORDING: absent_record(absent_topics, absent_joints, absent_streams, by_stream),
             "dumper": {
                 "robot": ports[0].robot if ports else "",
                 "time_base": self.time_base,

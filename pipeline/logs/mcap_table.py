@@ -231,7 +231,7 @@ class _LogIngest:
 
         def opener(kind: str, columns: list[str], suffix: str) -> Callable[[str, dict], AtomicParquet]:
             def open_table(name: str, experiment: dict) -> AtomicParquet:
-                meta = {S.META_EXPERIMENT: experiment, b"ftcal.source": source}
+                meta = {S.META_EXPERIMENT: experiment, S.META_SOURCE: source}
                 path = self.out_dir / f"{name}{suffix}{S.PARQUET_SUFFIX}"
                 return AtomicParquet(path, S.arrow_schema(columns, kind, meta))
 

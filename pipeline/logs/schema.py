@@ -17,8 +17,9 @@ Ingested table ``data/ingested/<log>.parquet`` (units in brackets):
 - ``ok.<stream>.<sensor>`` [bool]: the stream's values at this sample are trustworthy: the two source
   messages around it are at most the stream's max gap apart (or one has exactly this stamp).
   Streams: ``wrench``, ``imu``, ``temperature``. Where ``ok`` is False the values are NaN.
-  Joint positions are always finite: joint-state messages without finite positions are dropped
-  (the time base then has a gap, as for a lost message).
+  Joint positions are finite: joint-state messages without finite positions are dropped (the time base
+  then has a gap, as for a lost message), except the joints a recording declares absent (a dataDumper
+  board without its ``data.log``), NaN on every sample.
 
 Truth table ``data/ingested/<log>.truth.parquet`` (simulated logs only; same rows as the ingested table):
 ``stamp_ns``, ``time_s``, ``true.<sensor>.<axis>``, ``distorted.<sensor>.<axis>``,
@@ -26,9 +27,10 @@ Truth table ``data/ingested/<log>.truth.parquet`` (simulated logs only; same row
 comma-separated links touching the environment; null before the first message].
 
 Smoothed table ``data/smoothed/<log>.parquet``: every column of the ingested table plus
-``qs.<joint>`` [rad], ``dqs.<joint>`` [rad/s], ``ddqs.<joint>`` [rad/s^2] (Savitzky-Golay) and
-``ok.kinematics`` [bool] (False where the sample lies in a segment too short to smooth, or its
-joint positions are not ok).
+``qs.<joint>`` [rad], ``dqs.<joint>`` [rad/s], ``ddqs.<joint>`` [rad/s^2] (Savitzky-Golay),
+``ok.kinematics.<joint>`` [bool] (False where that joint's position is absent or NaN, within half a
+window of the ends of its smoothed segments, or in a segment too short to smooth: its smoothed values
+are not usable there; the other joints' are unaffected) and ``ok.kinematics`` [bool] (every joint's).
 
 Labelled table ``data/labelled/<log>.parquet`` (same rows as the smoothed table; training input):
 ``stamp_ns``, ``time_s``; the model inputs ``ft.<sensor>.<axis>``, ``temp.<sensor>``,
@@ -130,6 +132,7 @@ META_INGEST = b"ftcal.ingest"
 META_SMOOTH = b"ftcal.smooth"
 META_SCHEMA = b"ftcal.schema"
 META_LABEL = b"ftcal.label"
+META_SOURCE = b"ftcal.source"  # ingested tables: the log's file, its topics and its reader's metadata records
 
 KIND_INGESTED, KIND_TRUTH, KIND_SMOOTHED, KIND_LABELLED = "ingested", "truth", "smoothed", "labelled"
 TRUTH_SUFFIX = ".truth"  # <log>.truth.parquet
@@ -239,6 +242,11 @@ def truth_columns(sensors: Sequence[str]) -> list[str]:
     return cols
 
 
+def joint_ok_cols(joints: Iterable[str]) -> list[str]:
+    """``ok.kinematics.<joint>`` [bool] per joint: that joint's smoothed kinematics are usable."""
+    return [ok_col(KINEMATICS_STREAM, j) for j in joints]
+
+
 def smoothed_extra_columns(joints: Sequence[str]) -> list[str]:
     """The columns that `smooth` adds to an ingested table."""
     return [
@@ -246,6 +254,7 @@ def smoothed_extra_columns(joints: Sequence[str]) -> list[str]:
         *joint_cols(DQS, joints),
         *joint_cols(DDQS, joints),
         ok_col(KINEMATICS_STREAM),
+        *joint_ok_cols(joints),
     ]
 
 

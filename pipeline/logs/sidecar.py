@@ -9,14 +9,17 @@ the form an MCAP ``experiment`` record carries them in (``ftcal convert-*`` writ
 
 A reader that knows which of the contract's streams a recording lacks (a dataDumper port folder without
 ``data.log``) says so in a ``recording`` metadata record (`RECORDING`): ``absent_topics`` (contract
-topics, comma-separated), ``absent_joints`` (URDF joints whose positions the recording does not have)
-and ``absent_streams`` (the recording's own names of what is missing, for the ingest summary). Ingest
+topics, comma-separated), ``absent_joints`` (URDF joints whose positions the recording does not have),
+``absent_streams`` (the recording's own names of what is missing, for the ingest summary) and
+``absent_joint_streams`` (JSON: each absent stream -> the joints it carries, so that a label lacking a joint
+names the recording's stream, e.g. ``left_arm/stateExt:o``). Ingest
 then treats those streams as absent (NaN and flagged) instead of as an error; a converted MCAP keeps
 the record.
 """
 
 from __future__ import annotations
 
+import json
 from collections.abc import Mapping
 from pathlib import Path
 from typing import Any
@@ -26,6 +29,7 @@ from pipeline.logs.segments import SPLIT_KEYS, parse_split, split_to_record
 
 RECORDING = "recording"  # metadata record name: what the recording lacks
 ABSENT_TOPICS, ABSENT_JOINTS, ABSENT_STREAMS = "absent_topics", "absent_joints", "absent_streams"
+ABSENT_JOINT_STREAMS = "absent_joint_streams"
 
 
 def read_sidecar(side: Path, log: Path) -> dict[str, str]:
@@ -71,23 +75,43 @@ def read_sidecar(side: Path, log: Path) -> dict[str, str]:
     return out
 
 
-def declared_absent(metadata: Mapping[str, Mapping[str, str]]) -> dict[str, list[str]]:
-    """What the `recording` record of a log's metadata declares absent: {"topics", "joints", "streams"}."""
+def declared_absent(metadata: Mapping[str, Mapping[str, str]]) -> dict[str, Any]:
+    """What the `recording` record of a log's metadata declares absent: {"topics", "joints", "streams"}
+    (lists of names) and "joint_streams" (joint -> its stream's name)."""
     record = metadata.get(RECORDING) or {}
 
     def names(key: str) -> list[str]:
         return [n for n in str(record.get(key, "")).split(",") if n]
 
-    return {"topics": names(ABSENT_TOPICS), "joints": names(ABSENT_JOINTS), "streams": names(ABSENT_STREAMS)}
-
-
-def absent_record(topics: list[str], joints: list[str], streams: list[str]) -> dict[str, str]:
-    """The `recording` record declaring these absent (see the module docstring)."""
+    try:
+        by_stream = json.loads(record.get(ABSENT_JOINT_STREAMS) or "{}")
+    except ValueError:
+        by_stream = {}
+    by_stream = by_stream if isinstance(by_stream, dict) else {}
     return {
+        "topics": names(ABSENT_TOPICS),
+        "joints": names(ABSENT_JOINTS),
+        "streams": names(ABSENT_STREAMS),
+        "joint_streams": {str(j): str(s) for s, joints in by_stream.items() for j in joints or ()},
+    }
+
+
+def absent_record(
+    topics: list[str],
+    joints: list[str],
+    streams: list[str],
+    joint_streams: Mapping[str, list[str]] | None = None,
+) -> dict[str, str]:
+    """The `recording` record declaring these absent (see the module docstring); `joint_streams`: absent
+    stream -> the joints it carries."""
+    record = {
         ABSENT_TOPICS: ",".join(topics),
         ABSENT_JOINTS: ",".join(joints),
         ABSENT_STREAMS: ",".join(streams),
     }
+    if joint_streams:
+        record[ABSENT_JOINT_STREAMS] = json.dumps({k: list(v) for k, v in joint_streams.items()})
+    return record
 
 
 _TEMPLATES = {"imu": "ft_imu", "temperature": "ft_temperature", "wrench": "ft_wrench"}

@@ -11,6 +11,12 @@ scaled by that step, so in rad/s and rad/s^2), and interpolated back to the orig
 uniformly sampled data this is exactly `scipy.signal.savgol_filter`. Segments shorter than the window
 get NaN and ``ok.kinematics`` False; so do, with their values kept, the first and last ``window // 2``
 samples of every segment, where the fitted polynomial is one-sided and its derivatives extrapolate.
+
+Each joint is smoothed on the samples where its own position is finite: a joint whose stream is absent
+(a recording without that board) or invalid for a stretch gets NaN and ``ok.kinematics.<joint>`` False
+there only, its samples on either side being segments of their own when the stretch is longer than
+``max_gap_s``; every other joint is smoothed as if it were not there. Joints sharing one validity mask
+(all of them on a complete log) are filtered together, in one call. ``ok.kinematics`` is every joint's ok.
 """
 
 from __future__ import annotations
@@ -102,15 +108,27 @@ def savgol_uniform(
 
 @dataclass
 class SmoothResult:
-    """Smoothed kinematics of one log: arrays (N, J) and (N,) ok, plus segment bookkeeping."""
+    """Smoothed kinematics of one log: arrays (N, J), per-joint ok (N, J) and every joint's ok (N,), plus
+    segment bookkeeping (summed over the groups of joints sharing one validity mask)."""
 
     q: np.ndarray
     dq: np.ndarray
     ddq: np.ndarray
     ok: np.ndarray
+    joint_ok: np.ndarray = field(default_factory=lambda: np.zeros((0, 0), dtype=bool))
     segments: int = 0
     short_segments: int = 0  # too short to smooth: NaN, not ok
     periods_s: list[float] = field(default_factory=list)  # median step per smoothed segment
+
+
+def validity_groups(valid: np.ndarray) -> list[tuple[np.ndarray, np.ndarray]]:
+    """The joints of `valid` (N, J) bool grouped by identical columns: [(rows (M,), joint columns (K,))],
+    groups without a valid row left out."""
+    if valid.shape[1] == 0:
+        return []
+    masks, which = np.unique(valid.T, axis=0, return_inverse=True)
+    which = np.asarray(which).reshape(-1)
+    return [(np.flatnonzero(mask), np.flatnonzero(which == g)) for g, mask in enumerate(masks) if mask.any()]
 
 
 def smooth_kinematics(
@@ -118,27 +136,42 @@ def smooth_kinematics(
 ) -> SmoothResult:
     """Savitzky-Golay positions, velocities, accelerations of joint positions q (N, J) rad at stamps (N,) ns.
 
-    Segments split at stamp steps > max_gap_s (s) are smoothed separately (see the module docstring).
+    Each joint is smoothed on its finite samples, segments split at stamp steps > max_gap_s (s) smoothed
+    separately (see the module docstring). ``ok`` (N,) is ``joint_ok`` (N, J) of every joint.
     """
     stamps_ns = np.asarray(stamps_ns, dtype=np.int64)
     q = np.asarray(q, dtype=np.float64)
     n, j = q.shape
     res = SmoothResult(
-        np.full((n, j), np.nan), np.full((n, j), np.nan), np.full((n, j), np.nan), np.zeros(n, dtype=bool)
+        np.full((n, j), np.nan),
+        np.full((n, j), np.nan),
+        np.full((n, j), np.nan),
+        np.zeros(n, dtype=bool),
+        np.zeros((n, j), dtype=bool),
     )
     t_s = (stamps_ns - (stamps_ns[0] if n else 0)) / 1e9
-    for start, stop in segments(stamps_ns, round(max_gap_s * 1e9)):
-        res.segments += 1
-        smoothed = savgol_uniform(t_s[start:stop], q[start:stop], window, polyorder)
-        if smoothed is None:
-            res.short_segments += 1
-            continue
-        res.q[start:stop], res.dq[start:stop], res.ddq[start:stop] = smoothed
-        # within half a window of a segment's ends the fit is one-sided (mode "interp"): its derivatives
-        # extrapolate, so those samples keep their values but are not ok for labelling
-        half = window // 2
-        res.ok[start + half : stop - half] = True
-        res.periods_s.append(float(np.median(np.diff(t_s[start:stop]))))
+    max_gap_ns = round(max_gap_s * 1e9)
+    for rows, cols in validity_groups(np.isfinite(q)):
+        every = len(rows) == n and len(cols) == j  # a complete log: the arrays as they are, no copy
+        part_q = q if every else q[np.ix_(rows, cols)]
+        for start, stop in segments(stamps_ns[rows], max_gap_ns):
+            res.segments += 1
+            smoothed = savgol_uniform(t_s[rows[start:stop]], part_q[start:stop], window, polyorder)
+            if smoothed is None:
+                res.short_segments += 1
+                continue
+            at = rows[start:stop]
+            for out, values in zip((res.q, res.dq, res.ddq), smoothed, strict=True):
+                if every:
+                    out[start:stop] = values
+                else:
+                    out[np.ix_(at, cols)] = values
+            # within half a window of a segment's ends the fit is one-sided (mode "interp"): its
+            # derivatives extrapolate, so those samples keep their values but are not ok for labelling
+            half = window // 2
+            res.joint_ok[np.ix_(at[half : len(at) - half], cols)] = True
+            res.periods_s.append(float(np.median(np.diff(t_s[at]))))
+    res.ok = res.joint_ok.all(axis=1) if j else res.ok
     return res
 
 
@@ -154,6 +187,7 @@ class SmoothReport:
     short_segments: int
     samples_not_ok: int
     seconds: float
+    joints_never_ok: list[str] = field(default_factory=list)  # no ok sample in the log (absent streams)
 
 
 def smooth_table(src: Path, dst: Path, cfg: SmoothParams) -> SmoothReport:
@@ -181,15 +215,16 @@ def smooth_table(src: Path, dst: Path, cfg: SmoothParams) -> SmoothReport:
     )
     del base
     res = smooth_kinematics(stamps, q, cfg.window, cfg.polyorder, cfg.max_gap_s)
-    res.ok &= np.isfinite(q).all(axis=1)
     extra = S.smoothed_extra_columns(joints)
     meta = read_table_metadata(pf)
+    never = [jt for k, jt in enumerate(joints) if len(stamps) and not res.joint_ok[:, k].any()]
     smooth_meta = {
         **asdict(cfg),
         "segments": res.segments,
         "short_segments": res.short_segments,
         "samples_not_ok": int((~res.ok).sum()),
         "median_period_s": float(np.median(res.periods_s)) if res.periods_s else None,
+        "joints_never_ok": never,  # no ok sample: absent from the log (or never a smoothable stretch)
     }
     kv = {k.encode(): v for k, v in meta.items() if k != S.META_SCHEMA.decode()}
     kv[S.META_SMOOTH] = smooth_meta
@@ -204,6 +239,8 @@ def smooth_table(src: Path, dst: Path, cfg: SmoothParams) -> SmoothReport:
                 for jj, name in enumerate(S.joint_cols(quantity, joints)):
                     cols[name] = pa.array(arr[sl, jj])
             cols[S.ok_col(S.KINEMATICS_STREAM)] = pa.array(res.ok[sl])
+            for jj, name in enumerate(S.joint_ok_cols(joints)):
+                cols[name] = pa.array(res.joint_ok[sl, jj])
             writer.write_table(pa.Table.from_pydict(cols, schema=out_schema))
             row += k
     return SmoothReport(
@@ -214,6 +251,7 @@ def smooth_table(src: Path, dst: Path, cfg: SmoothParams) -> SmoothReport:
         res.short_segments,
         int((~res.ok).sum()),
         time.perf_counter() - t0,
+        never,
     )
 
 

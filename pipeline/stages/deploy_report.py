@@ -14,6 +14,7 @@ from __future__ import annotations
 import argparse
 import json
 import os
+from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
 
@@ -74,10 +75,12 @@ def run(params: Any, groups_dir: str | Path, reports: str | Path) -> dict[str, A
     }
     summary = {day: summarize(d, dp, target_b, dp.figure_joint) for day, d in details.items()}
     if not summary:
+        uncalibrated = [g for g, r in results.items() if r.get("not_calibrated")]
         targets["nothing"] = nothing_to_test(
             [g for g, r in results.items() if r.get("recorded")],
             dp.real_logs,
             {day: note for r in results.values() for day, note in r.get("not_simulated", {}).items()},
+            uncalibrated,
         )
     with stage_run(STAGE, {"groups": list(results)}):
         for day, s in summary.items():
@@ -91,9 +94,14 @@ def run(params: Any, groups_dir: str | Path, reports: str | Path) -> dict[str, A
     return {"summary": summary, "details": details, "nothing": targets.get("nothing")}
 
 
-def nothing_to_test(recorded: list[str], real: str, not_simulated: dict[str, str] | None = None) -> str:
+def nothing_to_test(
+    recorded: list[str],
+    real: str,
+    not_simulated: dict[str, str] | None = None,
+    uncalibrated: Sequence[str] = (),
+) -> str:
     """The page's sentence when no day has logs to test. not_simulated: the simulated days that were not
-    simulated -> why (their note)."""
+    simulated -> why (their note); uncalibrated: the groups nothing could be calibrated for."""
     if not_simulated:
         days, notes = ", ".join(sorted(not_simulated)), "; ".join(sorted(set(not_simulated.values())))
         why = f"there is nothing simulated to test on ({days}: {notes})"
@@ -104,6 +112,10 @@ def nothing_to_test(recorded: list[str], real: str, not_simulated: dict[str, str
         )
     else:
         why = "there are no deployment days"
+    if uncalibrated and not recorded and not not_simulated:
+        why = f"no model to test ({', '.join(uncalibrated)}: not calibrated, no exact label)"
+    elif uncalibrated:
+        why += f" ({', '.join(uncalibrated)}: not calibrated, no exact label)"
     return f"Nothing to test: {why}, and deploy.real_logs ({real}) holds no recorded deployment log."
 
 

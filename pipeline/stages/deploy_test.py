@@ -46,6 +46,7 @@ def run(
     """The group's tests on every prepared day (module docstring); what OUT/result.json holds."""
     import mlflow
 
+    from pipeline.calib.exact import NOT_CALIBRATED
     from pipeline.core.config import stage_section
     from pipeline.core.io import atomic_dir, write_json
     from pipeline.core.tracking import stage_run
@@ -55,12 +56,19 @@ def run(
     from pipeline.deploy.prepare import load_nominal_robot, not_simulated, read_day
     from pipeline.deploy.verdict import RESULT_FILE
     from pipeline.evaluation.params import EvaluateParams
+    from pipeline.export.manifest import read_manifest
     from pipeline.export.trained import read_metrics
 
     dp, cfg = deploy_params(params), stage_section(params, "evaluate", EvaluateParams)
     models, exported, out = Path(models), Path(exported), Path(out)
     if not models.is_dir():
         raise DataError(f"{models}: models directory not found")
+    why = (read_manifest(exported).get(NOT_CALIBRATED) or {}).get(group) if exported.is_dir() else None
+    if why is not None:  # nothing calibrated, nothing exported: nothing to test
+        result = {"group": group, NOT_CALIBRATED: why, "days": {}, "figures": {}, "recorded": False}
+        with atomic_dir(out) as tmp:
+            write_json(tmp / RESULT_FILE, result)
+        return result
     deployed = deployed_models(exported)
     if group not in deployed:
         raise DataError(f"{exported}: the export has no graph of {group} ({', '.join(deployed)})")
@@ -92,6 +100,9 @@ def _cmd(args: argparse.Namespace) -> int:
     from pipeline.core.config import load_params
 
     result = run(load_params(args.params), args.group, args.models, args.exported, args.tables, args.out)
+    if "not_calibrated" in result:
+        print(f"{args.group}: not calibrated, nothing to test: {result['not_calibrated']}")
+        return 0
     tested = ", ".join(
         f"{day}: {', '.join(k for k in r if k.startswith('test_'))}" for day, r in result["days"].items()
     )

@@ -57,10 +57,8 @@ def run(
     from pipeline.calib.params import TrainParams
     from pipeline.core.config import stage_section
     from pipeline.core.io import write_json
-    from pipeline.core.progress import progress_bar
     from pipeline.core.tracking import stage_run
     from pipeline.evaluation import figures, links, results
-    from pipeline.evaluation.inputs import load_group
     from pipeline.evaluation.params import GROUP_REPORT, GROUPS_DIR, METRICS_DIR, EvaluateParams
 
     t0 = time.perf_counter()
@@ -73,13 +71,7 @@ def run(
     if truth is not None and not truth.is_dir():
         raise DataError(f"{truth}: truth directory not found")
     with stage_run(f"{STAGE}@{group}", {STAGE: asdict(cfg), "group": group}) as active:
-        with progress_bar(progress) as bar:
-            task = bar.add_task(f"evaluate {group}: scoring", total=None)
-            inputs = load_group(group, models, labelled, truth, cfg)
-            result = results.evaluate_group(inputs, cfg)
-            links.read_train_links(result, inputs.train)
-            bar.remove_task(task)
-            result.figures = figures.write_group_figures(out, result, cfg, bar)
+        result = _scored(group, models, labelled, out, truth, cfg, progress)
         files = figures.write_plot_data(out, result)
         report_path = out / GROUPS_DIR / group / GROUP_REPORT
         write_json(report_path, result.report().to_dict())
@@ -87,8 +79,8 @@ def run(
         metrics_dir.mkdir(parents=True, exist_ok=True)
         for old in metrics_dir.glob("*.json"):
             old.unlink()
-        for name in result.headlines or [result.headline]:
-            write_json(metrics_dir / f"{name}.json", results.group_metrics(result, name))
+        for name, values in results.metrics_files(result).items():
+            write_json(metrics_dir / f"{name}.json", values)
         tags = {"group": group, "recommended": result.recommended or "none"}
         tags["flagged"] = ",".join(result.noise.flagged) or "none"
         if result.train_run:
@@ -100,10 +92,36 @@ def run(
         mlflow.log_metric("seconds", time.perf_counter() - t0)
         links.log_model_metrics(result)
         mlflow.log_artifact(str(report_path))
-        mlflow.log_artifacts(str(out / GROUPS_DIR / group / "plots"), "plots")
+        if result.figures:
+            mlflow.log_artifacts(str(out / GROUPS_DIR / group / "plots"), "plots")
         result.seconds = time.perf_counter() - t0
         result.run_id = active.info.run_id
         result.files = files
+    return result
+
+
+def _scored(
+    group: str, models: Path, labelled: Path, out: Path, truth: Path | None, cfg: Any, progress: bool | None
+) -> Any:
+    """The group's `GroupResult` with its figures written under `out`; a group that train could not
+    calibrate (its record says why) gets the result saying so, no score and no figure."""
+    from pipeline.calib.exact import not_calibrated
+    from pipeline.core.progress import progress_bar
+    from pipeline.evaluation import figures, links, results
+    from pipeline.evaluation.inputs import load_group
+    from pipeline.evaluation.params import TRAIN_METRICS
+    from pipeline.export.trained import read_metrics
+
+    record = read_metrics(models) if (models / TRAIN_METRICS).is_file() else {}
+    if not_calibrated(record) is not None:
+        return results.not_calibrated_result(record)
+    with progress_bar(progress) as bar:
+        task = bar.add_task(f"evaluate {group}: scoring", total=None)
+        inputs = load_group(group, models, labelled, truth, cfg)
+        result = results.evaluate_group(inputs, cfg)
+        links.read_train_links(result, inputs.train)
+        bar.remove_task(task)
+        result.figures = figures.write_group_figures(out, result, cfg, bar)
     return result
 
 
@@ -116,10 +134,13 @@ def _fmt(v: float | None, digits: int = 3) -> str:
 def _cmd(args: argparse.Namespace) -> int:
     from pipeline.calib.params import RAW
     from pipeline.core.config import load_params
-    from pipeline.evaluation.params import LABELS, NN6, NN7, TRUTH
+    from pipeline.evaluation.params import LABELS, NN6, NN7, NO_TRUTH, TRUTH
 
     params = load_params(args.params)
     r = run(params, args.group, args.models, args.labelled, args.out, args.truth)
+    if r.not_calibrated is not None:
+        print(f"{r.group}: not calibrated: {r.not_calibrated}")
+        return 0
     flags = f"; noisy: {', '.join(r.noise.flagged)}" if r.noise.flagged else ""
     deploy = f"deploy {r.recommended}{flags} ({r.seconds:.0f} s)"
     for name in r.headlines or [r.headline]:
@@ -130,8 +151,10 @@ def _cmd(args: argparse.Namespace) -> int:
             if values:
                 parts.append(f"vs {ref}: " + ", ".join(f"{m} {_fmt(v)}" for m, v in values))
             elif ref == TRUTH:
-                parts.append("no truth (recorded logs)")
+                parts.append(NO_TRUTH)
         print(f"{r.group}: RMSE of {name} {'; '.join(parts)}; {deploy}")
+    for sensor, why in r.left_out.items():
+        print(f"{r.group}: {sensor} not calibrated: {why}")
     return 0
 
 

@@ -65,7 +65,7 @@ def choose_models(
 ) -> dict[str, str]:
     """group -> model to export, for the groups `only` (default all): ``export.models`` where given, else
     evaluate's recommendation (``recommended`` of the files ``<report>/<group>/*.json``, the
-    evaluate@<group> metrics)."""
+    evaluate@<group> metrics; a sensor left out of its group has a file without one)."""
     unknown = sorted(set(overrides) - set(groups))
     if unknown:
         raise ConfigError(f"export.models.{unknown[0]}: not a group of train.groups ({', '.join(groups)})")
@@ -73,10 +73,12 @@ def choose_models(
     for group in groups if only is None else only:
         name = overrides.get(group)
         if not name:
-            files = sorted((report / group).glob("*.json"))
-            path = files[0] if files else report / group / "<headline>.json"
+            files = sorted((report / group).glob("*.json")) or [report / group / "<headline>.json"]
             try:
-                name = json.loads(path.read_text(encoding="utf-8")).get("recommended")
+                for path in files:
+                    name = json.loads(path.read_text(encoding="utf-8")).get("recommended")
+                    if name is not None:
+                        break
             except FileNotFoundError:
                 raise DataError(f"{path}: not found (run `dvc repro evaluate@{group}`)") from None
             except (OSError, ValueError, AttributeError) as exc:
@@ -129,11 +131,12 @@ def run_group(
     """Export one group into `out_dir`/groups/<group>/ (module docstring)."""
     import mlflow
 
+    from pipeline.calib.exact import LEFT_OUT, NOT_CALIBRATED
     from pipeline.core.io import atomic_dir, write_json
     from pipeline.core.tracking import stage_run
     from pipeline.export import check, manifest
     from pipeline.export.registry import ARTIFACT_DIR, tag_network
-    from pipeline.export.trained import read_group
+    from pipeline.export.trained import read_group, read_metrics
 
     t0 = time.perf_counter()
     cfg, tolerance = _config(params)
@@ -142,9 +145,9 @@ def run_group(
     groups = group_names(params)
     if group not in groups:
         raise ConfigError(f"train.groups has no group {group!r} ({', '.join(groups)})")
-    name = choose_models([group], Path(report), {k: v for k, v in cfg.models.items() if k == group}, groups)[
-        group
-    ]
+    if (why := _not_calibrated(models_dir / group)) is not None:
+        return _export_nothing(params, group, why, out, t0)
+    name = choose_models(groups, Path(report), cfg.models, [group])[group]  # this group's evaluation only
     model = read_group(models_dir / group, name, group)
     samples = check.load_samples(models_dir / group, model, labelled)
     stage_params = {
@@ -163,6 +166,9 @@ def run_group(
         with atomic_dir(out) as tmp:
             entry = manifest.write_graphs(tmp, group, entry, graphs)
             doc = manifest.document(params.robot.urdf, {group: entry}, fused=None)
+            left_out = read_metrics(models_dir / group).get(LEFT_OUT)
+            if left_out:  # sensors of the group without an exact label: nothing exported for them
+                doc[NOT_CALIBRATED] = dict(left_out)
             write_json(tmp / manifest.MANIFEST_FILE, doc)
         _log_checks(doc)
         mlflow.set_tags({"group": group, "model": name, "out_dir": str(out)})
@@ -173,12 +179,33 @@ def run_group(
     return ExportResult(out, doc, files, time.perf_counter() - t0, run_id, registered)
 
 
+def _not_calibrated(model_dir: Path) -> str | None:
+    """Why train@<group> calibrated nothing for the group of `model_dir`, None if it did."""
+    from pipeline.calib.exact import not_calibrated
+    from pipeline.export.trained import read_metrics
+
+    return not_calibrated(read_metrics(model_dir)) if (model_dir / "metrics.json").is_file() else None
+
+
+def _export_nothing(params: Any, group: str, why: str, out: Path, t0: float) -> ExportResult:
+    """A group that is not calibrated: its export directory holds a manifest saying why, and no graph."""
+    from pipeline.calib.exact import NOT_CALIBRATED
+    from pipeline.core.io import atomic_dir, write_json
+    from pipeline.export import manifest
+
+    doc = {**manifest.document(params.robot.urdf, {}, fused=None), NOT_CALIBRATED: {group: why}}
+    with atomic_dir(out) as tmp:
+        write_json(tmp / manifest.MANIFEST_FILE, doc)
+    return ExportResult(out, doc, [manifest.MANIFEST_FILE], time.perf_counter() - t0)
+
+
 def run_fused(
     params: Any, models_dir: str | Path, labelled_dir: str | Path, out_dir: str | Path
 ) -> ExportResult:
     """The fused graph of the groups' exports under `out_dir`/groups and `out_dir`/manifest.json."""
     import mlflow
 
+    from pipeline.calib.exact import NOT_CALIBRATED
     from pipeline.core.io import write_json
     from pipeline.core.tracking import stage_run
     from pipeline.export import check, manifest
@@ -189,9 +216,12 @@ def run_fused(
     _, tolerance = _config(params)
     models_dir, labelled, out = Path(models_dir), Path(labelled_dir), Path(out_dir)
     _check_dirs((models_dir, "models"), (labelled, "labelled"))
-    entries = {}
+    entries, uncalibrated = {}, {}
     for group in group_names(params):
         doc = manifest.read_manifest(out / GROUPS_DIR / group)
+        uncalibrated.update(doc.get(NOT_CALIBRATED) or {})
+        if group in uncalibrated:  # not calibrated: nothing to fuse
+            continue
         if group not in doc["graphs"]:
             raise DataError(
                 f"{out / GROUPS_DIR / group}: no graph of {group} (run `dvc repro evaluate@{group}`)"
@@ -199,6 +229,8 @@ def run_fused(
         entry = dict(doc["graphs"][group])
         entry["files"] = {d: f"{GROUPS_DIR}/{group}/{f}" for d, f in entry["files"].items()}
         entries[group] = entry
+    if not entries:
+        return _fuse_nothing(params, out, uncalibrated, t0)
     models = [read_group(models_dir / g, e["models"][g], g) for g, e in entries.items()]
     samples = [check.load_samples(models_dir / m.group, m, labelled) for m in models]
     trainings = {g: e["training"][g] for g, e in entries.items()}
@@ -210,6 +242,8 @@ def run_fused(
         check.assert_within(manifest.FUSED, entry["check"], tolerance)
         entries[manifest.FUSED] = manifest.write_graphs(out, manifest.FUSED, entry, graphs)
         doc = manifest.document(params.robot.urdf, entries)
+        if uncalibrated:  # groups and sensors without an exact label, and why: nothing exported for them
+            doc[NOT_CALIBRATED] = uncalibrated
         write_json(out / manifest.MANIFEST_FILE, doc)  # last: it names (and hashes) the files above
         _log_checks(doc)
         for name in (*entries[manifest.FUSED]["files"].values(), manifest.MANIFEST_FILE):
@@ -219,6 +253,20 @@ def run_fused(
         run_id = active.info.run_id
     files = sorted(p.name for p in out.iterdir())
     return ExportResult(out, doc, files, time.perf_counter() - t0, run_id, registered)
+
+
+def _fuse_nothing(params: Any, out: Path, uncalibrated: dict[str, str], t0: float) -> ExportResult:
+    """No group is calibrated: manifest.json says why per group (and sensor), and no graph is written
+    (a fused graph left from an earlier run is removed, so that nothing stale is deployed)."""
+    from pipeline.calib.exact import NOT_CALIBRATED
+    from pipeline.core.io import write_json
+    from pipeline.export import manifest
+
+    for stale in out.glob(f"{manifest.FUSED}.*.onnx"):
+        stale.unlink()
+    doc = {**manifest.document(params.robot.urdf, {}, fused=None), NOT_CALIBRATED: uncalibrated}
+    write_json(out / manifest.MANIFEST_FILE, doc)
+    return ExportResult(out, doc, [manifest.MANIFEST_FILE], time.perf_counter() - t0)
 
 
 def _log_checks(doc: dict[str, Any]) -> None:
@@ -242,7 +290,9 @@ def run(
     """Every group's export, then the fused graph and manifest (what the stages do one by one)."""
     cfg, _ = _config(params)
     groups = group_names(params)
-    choose_models(groups, Path(report), cfg.models)  # every group's model known before anything is written
+    calibrated = [g for g in groups if _not_calibrated(Path(models_dir) / g) is None]
+    # every calibrated group's model known before anything is written
+    choose_models(groups, Path(report), cfg.models, calibrated)
     _check_dirs((Path(models_dir), "models"), (Path(labelled_dir), "labelled"))
     for group in groups:
         run_group(params, group, models_dir, report, labelled_dir, out_dir)
@@ -260,6 +310,11 @@ def _cmd(args: argparse.Namespace) -> int:
     else:
         result = run(params, args.models, args.report, args.labelled, args.out)
     graphs = result.manifest["graphs"]
+    left = (result.manifest.get("not_calibrated") or {}).items()
+    uncalibrated = "".join(f"; {g} not calibrated, nothing exported: {why}" for g, why in left)
+    if not graphs:
+        print(f"export: no graph written to {result.out_dir}{uncalibrated}")
+        return 0
     checks = {
         d: max(e["check"][d][k] for e in graphs.values())
         for d, k in (("float32", "max_ulps"), ("float64", "max_abs_diff"))
@@ -268,7 +323,7 @@ def _cmd(args: argparse.Namespace) -> int:
     print(
         f"export: {models} -> {result.out_dir} ({len(result.files)} files); onnxruntime vs the project's "
         f"predictions on the test samples: max |diff| {checks['float32']:.2g} float32 steps, "
-        f"{checks['float64']:.2g} N/Nm (float64) ({result.seconds:.0f} s)"
+        f"{checks['float64']:.2g} N/Nm (float64) ({result.seconds:.0f} s){uncalibrated}"
     )
     return 0
 

@@ -56,6 +56,7 @@ def run(
     from pipeline.core.progress import progress_bar
     from pipeline.core.tracking import stage_run
     from pipeline.labels.imu_params import label_params
+    from pipeline.labels.joints import merge_exact
     from pipeline.labels.table import Labeller, label_table
     from pipeline.logs.smoothing import find_tables
     from pipeline.physics.cuts import find_cut_sets
@@ -95,6 +96,9 @@ def run(
             "seconds": seconds,
             "samples_per_s": samples / seconds if seconds else 0.0,
         }
+        for name, entry in merge_exact([s.exact for s in summaries]).items():
+            metrics[f"exact_samples.{name}"] = entry["samples"]
+            metrics[f"lost_samples.{name}"] = entry["lost"]
         for s in summaries:
             metrics[f"{s.log}.guard_fraction"] = s.guard_fraction
             if s.truth_agreement is not None:
@@ -132,15 +136,21 @@ def _imu_metrics(summaries: list[LogSummary]) -> dict[str, float]:
 
 
 def _cmd(args: argparse.Namespace) -> int:
+    import pyarrow.parquet as pq
+
     from pipeline.core.config import load_params
+    from pipeline.labels.joints import exact_text, merge_exact
+    from pipeline.logs import schema as S
 
     params = load_params(args.params)
     summaries = run(params, args.inputs, args.out, args.truth)
     samples = sum(s.samples for s in summaries)
     seconds = sum(s.seconds for s in summaries)
+    sensors = S.sensors_of(pq.read_schema(Path(args.out) / f"{summaries[0].log}{S.PARQUET_SUFFIX}").names)
+    exact = merge_exact([s.exact for s in summaries])
     print(
         f"labelled {len(summaries)} log(s), {samples} samples, {samples / max(seconds, 1e-9):.0f} samples/s, "
-        f"into {args.out}"
+        f"into {args.out}; exact labels per sensor: {', '.join(exact_text(s, exact[s]) for s in sensors)}"
     )
     for line in imu_flagged(
         summaries

@@ -83,7 +83,11 @@ def _cmd(args: argparse.Namespace) -> int:
 
     reports, _, seconds = run(load_params(args.params), args.reports, args.labelled)
     for r in reports:
-        print(f"{r.group}: deploy {r.recommended}")
+        if r.not_calibrated is not None:
+            print(f"{r.group}: not calibrated: {r.not_calibrated}")
+            continue
+        left = "".join(f"; {s} not calibrated: {why}" for s, why in r.left_out.items())
+        print(f"{r.group}: deploy {r.recommended}{left}")
     print(f"report: {Path(args.reports) / 'index.html'} ({seconds:.1f} s)")
     return 0
 

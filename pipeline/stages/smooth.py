@@ -1,7 +1,7 @@
 """Stage `smooth`: Savitzky-Golay on joint positions -> smoothed positions, velocities, accelerations.
 
-The method (segments at stamp gaps, uniform resampling, one-sided edges flagged) is in
-`pipeline.logs.smoothing`.
+The method (segments at stamp gaps, uniform resampling, one-sided edges flagged, each joint on the samples
+where its position exists) is in `pipeline.logs.smoothing`.
 """
 
 from __future__ import annotations
@@ -80,7 +80,16 @@ def _cmd(args: argparse.Namespace) -> int:
 
     params = load_params(args.params)
     reports = run(params, args.inputs, args.out)
-    print(f"smoothed {len(reports)} log(s), {sum(r.samples for r in reports)} samples, into {args.out}")
+    line = f"smoothed {len(reports)} log(s), {sum(r.samples for r in reports)} samples, into {args.out}"
+    lacking = [
+        f"{Path(r.source).stem}: {len(r.joints_never_ok)} joints ({', '.join(r.joints_never_ok[:3])}"
+        f"{', ...' if len(r.joints_never_ok) > 3 else ''})"
+        for r in reports
+        if r.joints_never_ok
+    ]
+    if lacking:  # absent joint streams: those joints' columns stay NaN, the others are smoothed
+        line += "; without positions (NaN, not ok): " + "; ".join(lacking)
+    print(line)
     return 0
 
 

@@ -78,17 +78,22 @@ def train_group(
 
 
 def _cmd(args: argparse.Namespace) -> int:
+    from pipeline.calib.exact import LEFT_OUT, left_out_text, not_calibrated
     from pipeline.core.config import load_params
 
     params = load_params(args.params)
     result = train_group(params, args.group, args.inputs, args.out, args.studies)
     m = result.metrics
+    if (why := not_calibrated(m)) is not None:
+        print(f"{result.group}: not calibrated: {why}")
+        return 0
     test = m["test"]
     head = " + ".join(m.get("headlines") or [m["headline"]])
     summary = ", ".join(f"{name} {test[name]['rmse']:.3g}" for name in test)
+    left = f"; left out: {left_out_text(m[LEFT_OUT])}" if m.get(LEFT_OUT) else ""
     print(
         f"{result.group}: test RMSE of {head} (N, Nm pooled): {summary}; "
-        f"chosen on validation: {m['best_on_validation']} ({result.seconds:.0f} s)"
+        f"chosen on validation: {m['best_on_validation']} ({result.seconds:.0f} s){left}"
     )
     for note in m.get("notes") or []:  # e.g. a 13-input network refused: a board's IMU failed its check
         print(f"ftcal: warning: {note}", file=sys.stderr)
