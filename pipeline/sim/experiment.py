@@ -90,6 +90,8 @@ def make_motion(world: World, spec: LogSpec, rng: np.random.Generator) -> Motion
         return add_interaction(gen.kin, motion, events, world.params.robot.gravity, spec.duration_s)
     if spec.type == "standing":
         return gen.standing(rng, spec.duration_s, rate)
+    if spec.type == "poses":
+        return gen.poses(rng, spec.duration_s, rate)
     if spec.type == "balancing":
         return gen.balancing(rng, spec.duration_s, rate, spec.foot)
     if spec.type == "half_foot":
