@@ -42,6 +42,10 @@ COMMANDS: dict[str, tuple[str, str]] = {
     "report": ("pipeline.stages.report", "assemble the report page of every group's evaluation"),
     "export": ("pipeline.stages.export", "the recommended models as ONNX graphs with a manifest"),
     "calibrate": ("pipeline.tools.calibrate", "copy a log adding the exported calibration's wrenches"),
+    "rezero": (
+        "pipeline.tools.rezero",
+        "re-zero the exported calibration from a still stretch (no retraining)",
+    ),
     "deploy-prepare": ("pipeline.stages.deploy_prepare", "ingest, smooth and label a deployment day's logs"),
     "deploy-test": ("pipeline.stages.deploy_test", "deployment tests A, B, C of one sensor group"),
     "deploy-report": (

@@ -29,10 +29,13 @@ def write_log(
     joints: int = 4,
     block_s: float = 20.0,
     chunk_size: int = 4 * 2**20,
+    serials: dict[str, str] | None = None,
 ) -> int:
-    """Write a log of `seconds` of robot time in chunks of `chunk_size` bytes; the number of messages."""
+    """Write a log of `seconds` of robot time in chunks of `chunk_size` bytes; the number of messages.
+    `serials`: sensor -> serial of its board, in the experiment record (``serial.<sensor>``)."""
     rng = np.random.default_rng(seed)
     meta = {"experiment": {"type": "walking", "robot": robot, "role": "test", "log": path.stem}}
+    meta["experiment"] |= {f"serial.{s}": v for s, v in (serials or {}).items()}
     t0 = 1_700_000_000_000_000_000
     count = 0
     names = [f"joint_{k}" for k in range(joints)]

@@ -24,6 +24,7 @@ from tests.test_train import FRONT, LEG, PAIR, REAR
 OTHER = "l_leg_ft"  # a sensor of the log without a model
 SENSORS = (LEG, FRONT, REAR, OTHER)
 RECOMMENDED = {LEG: "nn13", PAIR: "nn7"}
+SERIALS = {LEG: "FT58-0001", FRONT: "FT45-0002", REAR: "FT45-0003"}  # robot.serials of the export's params
 
 
 def _metrics_dir(tmp: Path, recommended: dict[str, str]) -> Path:
@@ -38,23 +39,30 @@ def _metrics_dir(tmp: Path, recommended: dict[str, str]) -> Path:
 
 @pytest.fixture(scope="module")
 def setup(trained_models: dict, tmp_path_factory: pytest.TempPathFactory) -> dict:
+    import yaml
+
     tmp = tmp_path_factory.mktemp("calibrate")
     report = _metrics_dir(tmp, RECOMMENDED)
+    data = yaml.safe_load(Path(trained_models["params"]).read_text())
+    data["robot"]["serials"] = SERIALS  # the training tables record none: the export records these
+    params_path = tmp / "params.yaml"
+    params_path.write_text(yaml.safe_dump(data, sort_keys=False))
     patch = pytest.MonkeyPatch()
     patch.setenv("MLFLOW_TRACKING_URI", f"sqlite:///{tmp / 'mlflow.db'}")
     try:
-        params = load_params(trained_models["params"])
+        params = load_params(params_path)
         E.run(params, trained_models["models"], report, trained_models["labelled"], tmp / "exported")
     finally:
         patch.undo()
     log = tmp / "logs" / "walk.mcap"
-    write_log(log, SENSORS, 10.0, seed=3, chunk_size=32 * 1024)  # ~15 chunks: inputs cross chunk bounds
+    # ~15 chunks: inputs cross chunk bounds
+    write_log(log, SENSORS, 10.0, seed=3, chunk_size=32 * 1024, serials=SERIALS)
     return {
+        **trained_models,
         "tmp": tmp,
         "export": tmp / "exported",
         "log": log,
-        "params": trained_models["params"],
-        **trained_models,
+        "params": params_path,
     }
 
 
@@ -193,6 +201,8 @@ def _bad_cases(setup: dict, tmp: Path) -> dict[str, tuple[list[str], str]]:
     (mismatch / "manifest.json").write_text(json.dumps(manifest))
     existing = tmp / "existing.mcap"
     existing.write_bytes(b"keep")
+    swapped = tmp / "swapped.mcap"  # the leg's board replaced since the calibration
+    write_log(swapped, SENSORS, 2.0, serials={**SERIALS, LEG: "FT58-0999"})
     return {
         "models missing": (
             _cli(setup, setup["log"], tmp / "o1.mcap", models=tmp / "nowhere"),
@@ -213,13 +223,18 @@ def _bad_cases(setup: dict, tmp: Path) -> dict[str, tuple[list[str], str]]:
             _cli(setup, setup["log"], tmp / "o6.mcap", models=mismatch),
             f"inputs of {LEG} in {LEG}'s graph are",
         ),
+        "another serial": (
+            _cli(setup, swapped, tmp / "o7.mcap"),
+            f"{LEG} is serial 'FT58-0999' in this log, but the calibration in {setup['export']} belongs to "
+            f"serial '{SERIALS[LEG]}'",
+        ),
     }
 
 
 @pytest.mark.parametrize(
     "case",
     ["models missing", "another robot", "no temperature", "truncated", "no modelled sensor", "output exists"]
-    + ["inputs mismatch"],
+    + ["inputs mismatch", "another serial"],
 )
 def test_bad_input_is_one_line_and_writes_nothing(
     setup: dict, tmp_path: Path, case: str, capsys: Any
@@ -349,3 +364,24 @@ def test_logs_without_chunk_index_are_scanned_as_ingest_reads_them(
         assert reader.topics[f"/ft/{LEG}/wrench_calibrated"].message_count == sum(
             m[0] == f"/ft/{LEG}/wrench_calibrated" for m in expected
         )
+
+
+def test_the_export_records_which_boards_it_belongs_to(setup: dict, tmp_path: Path, capsys: Any) -> None:
+    """The serials recorded at export: the training logs' where they record them (they must agree), else
+    robot.serials; a log that records none is calibrated with a warning that it could not be checked."""
+    from pipeline.core.errors import DataError
+    from pipeline.export.identity import training_serials
+
+    manifest = json.loads((setup["export"] / "manifest.json").read_text())
+    assert manifest["graphs"]["all"]["serials"] == SERIALS
+    assert manifest["graphs"][PAIR]["serials"] == {FRONT: SERIALS[FRONT], REAR: SERIALS[REAR]}
+    logs = {"a.parquet": {f"serial.{LEG}": "FT58-7"}, "b.parquet": {"type": "pole"}}
+    assert training_serials(logs, [LEG, FRONT], SERIALS) == {LEG: "FT58-7", FRONT: SERIALS[FRONT]}
+    with pytest.raises(
+        DataError, match=f"c.parquet: {LEG} is serial 'FT58-8' there but 'FT58-7' in a.parquet"
+    ):
+        training_serials({**logs, "c.parquet": {f"serial.{LEG}": "FT58-8"}}, [LEG], None)
+    unrecorded = tmp_path / "unrecorded.mcap"
+    write_log(unrecorded, SENSORS, 2.0)
+    assert main(_cli(setup, unrecorded, tmp_path / "out.mcap")) == 0
+    assert f"records no serial of {LEG}, {FRONT}, {REAR}: cannot check" in capsys.readouterr().err

@@ -36,6 +36,7 @@ from tests.test_train import FRONT, LEG, PAIR, REAR
 
 PUSH = {"force_n": 60.0, "duration_s": 0.8, "period_s": 2.0, "direction": [1.0, 0.3, 0.0]}
 LOGS = [
+    {"type": "poses", "duration_s": 9},  # on the pole, still 0-3 s and 4.5-7.5 s: the day's re-zeroing
     {"type": "standing", "duration_s": 10},  # Test A: quasi-static runs >= 1 s, 1 s from the ends
     {"type": "walking", "duration_s": 6},
     {"type": "pole", "duration_s": 5},
@@ -51,6 +52,8 @@ INTERACTION = {  # short: 1 s, 8 sites x 2 directions x 0.5 s, then 2 hands x (1
     "load_s": 1.0,
 }
 DEPLOYED = {LEG: "nn13", PAIR: "affine"}
+REZERO = {"duration_s": 2.0, "min_s": 1.5, "still_joint_rad_s": 0.02, "still_gyro_rad_s": 0.05,
+          "prior_force_n": 10.0, "prior_torque_nm": 0.5, "pose_limit": 2.0}  # fmt: skip
 LINEAR = {  # the hidden distortion without its temperature terms, nonlinearity and hysteresis
     "temperature_gain": 0.0,
     "offset_drift_force": 0.0,
@@ -102,6 +105,8 @@ def stage(trained_models: dict, tmp_path_factory: pytest.TempPathFactory) -> dic
     data["simulate"]["sensors"].update(LINEAR)
     (root / "real").mkdir()  # deploy.real_logs: a folder without logs yet
     data["deploy"].update(logs=LOGS, push=PUSH, interaction=INTERACTION, real_logs=str(root / "real"))
+    data["deploy"]["rezero"] = REZERO
+    data["simulate"]["motion"].update(pose_hold_s=3.0, pose_move_s=1.5)
     params = root / "params.yaml"
     params.write_text(yaml.safe_dump(data, sort_keys=False))
     day, tables = root / "later", root / "tables"
@@ -146,12 +151,19 @@ def test_stages_write_pages_metrics_details_and_figures(stage: dict[str, Any]) -
     assert sorted(p.name for p in (reports / "deployment" / "groups" / LEG).iterdir()) == [
         "later_hip_pitch.png",
         "later_interaction.png",
+        "later_rezeroed_hip_pitch.png",
+        "later_rezeroed_interaction.png",
+        "later_rezeroed_scales.png",
+        "later_rezeroed_walking.png",
         "later_scales.png",
         "later_walking.png",
         "result.json",
     ]
     assert sorted(p.name for p in (reports / "deployment" / "groups" / PAIR).iterdir()) == [
         "later_interaction.png",
+        "later_rezeroed_interaction.png",
+        "later_rezeroed_scales.png",
+        "later_rezeroed_walking.png",
         "later_scales.png",
         "later_walking.png",
         "result.json",
@@ -162,7 +174,9 @@ def test_stages_write_pages_metrics_details_and_figures(stage: dict[str, Any]) -
     ):
         assert f'src="{src}"' in page and (reports / src).is_file()
     later = stage["trained"]["details"]["later"]
-    assert later["logs"] == ["00_standing_test", "01_walking_test", "02_pole_test", "03_interaction_test"]
+    assert later["logs"] == [
+        "00_poses_test", "01_standing_test", "02_walking_test", "03_pole_test", "04_interaction_test"
+    ]  # fmt: skip
     assert {"test_a", "test_b", "test_c", "test_d"} <= set(later)
     assert "Test D: interaction fidelity" in page
     assert read_day(stage["tables"] / "real") == []  # a recorded-logs folder without logs: nothing tested
@@ -200,7 +214,7 @@ def test_a_margin_keeps_a_model_just_above_the_threshold(stage: dict[str, Any]) 
     """Between threshold and limit a model is not flagged (evaluate's rule): the threshold placed just below
     one model's measured ratio and the limit between it and the next, whatever the ratios are."""
     params = load_params(stage["params"])
-    (log,) = [g for g in read_day(stage["tables"] / "later") if g.name == "00_standing_test"]
+    (log,) = [g for g in read_day(stage["tables"] / "later") if g.name == "01_standing_test"]
     cfg = stage_section(params, "evaluate", EvaluateParams)
     measured = stage["trained"]["details"]["later"]["test_a"][LEG]["models"]
     ratios = sorted((r["worst"], m) for m, r in measured.items())
@@ -225,7 +239,7 @@ def test_b_raw_errors_match_the_simulators_summary(stage: dict[str, Any]) -> Non
     test_b = stage["trained"]["details"]["later"]["test_b"]
     assert set(test_b) == {LEG, FRONT, REAR, PAIR}
     summary = json.loads((stage["day"] / "summary.json").read_text())
-    (walk,) = [log for log in summary["logs"] if log["name"] == "01_walking_test"]
+    (walk,) = [log for log in summary["logs"] if log["name"] == "02_walking_test"]
     for name in (LEG, FRONT, REAR):
         sim = walk["raw_rmse"][name]
         pooled = math.sqrt((sim["force"] ** 2 + sim["torque"] ** 2) / 2.0)
@@ -242,7 +256,7 @@ def test_c_uses_the_push_window_of_the_params(stage: dict[str, Any]) -> None:
     assert sensor == LEG
     entry = later["test_c"][LEG]
     starts = [(k + 0.5) * PUSH["period_s"] for k in range(10)]
-    n_pushes = sum(t + PUSH["duration_s"] <= LOGS[2]["duration_s"] for t in starts)
+    n_pushes = sum(t + PUSH["duration_s"] <= LOGS[3]["duration_s"] for t in starts)
     assert n_pushes == 2
     expected = n_pushes * PUSH["duration_s"] * 100
     assert expected - 3 <= entry["samples_pushed"] <= expected + 1
@@ -284,7 +298,7 @@ def _rmse(a: np.ndarray, b: np.ndarray) -> float:
 
 def test_exact_calibration_passes_with_its_expected_ratios(stage: dict[str, Any]) -> None:
     later = stage["exact"]["details"]["later"]
-    table, truth, exact = _exact_wrenches(stage, "01_walking_test")
+    table, truth, exact = _exact_wrenches(stage, "02_walking_test")
     for s in (LEG, FRONT, REAR):
         true = truth[S.wrench_cols(S.TRUE, s)].to_numpy()
         raw = table[S.wrench_cols(S.FT, s)].to_numpy()
@@ -300,8 +314,8 @@ def test_exact_calibration_passes_with_its_expected_ratios(stage: dict[str, Any]
 
     params = load_params(stage["params"])
     robot, dp = load_nominal_robot(params), deploy_params(params)
-    table, _, exact = _exact_wrenches(stage, "02_pole_test")
-    (day_log,) = [g for g in read_day(stage["tables"] / "later") if g.name == "02_pole_test"]
+    table, _, exact = _exact_wrenches(stage, "03_pole_test")
+    (day_log,) = [g for g in read_day(stage["tables"] / "later") if g.name == "03_pole_test"]
     smooth = pd.read_parquet(day_log.smoothed)
     q, dq, ddq = (smooth[S.joint_cols(k, robot.joint_names)].to_numpy() for k in (S.QS, S.DQS, S.DDQS))
     joints = limb_joints(robot, "r_sole")
@@ -391,3 +405,53 @@ def test_each_test_decides_the_verdict() -> None:
         assert s["fit_to_deploy"] is False and not s[f"{case[0] if case != 'unmeasured' else 'a'}.passed"], (
             case
         )
+
+
+# --- after re-zeroing from the day's first still seconds ----------------------------------------
+
+
+def _first_still(stage: dict[str, Any], group: str, variant: str) -> tuple[dict[str, Any], pd.DataFrame]:
+    """(the group's re-zeroing on the day, the labelled rows of its stretch)."""
+    result = json.loads(
+        (stage[f"{variant}_reports"] / "deployment" / "groups" / group / "result.json").read_text()
+    )
+    rezero = result["rezeroed"]["later"]["rezero"]
+    (stretch,) = rezero["stretches"]
+    assert stretch["log"] == "00_poses_test" and stretch["seconds"] == pytest.approx(
+        REZERO["duration_s"], abs=0.02
+    )
+    (day_log,) = [g for g in read_day(stage["tables"] / "later") if g.name == stretch["log"]]
+    return rezero, pd.read_parquet(day_log.labelled).iloc[stretch["start"] : stretch["stop"]]
+
+
+def test_rezeroed_factory_map_removes_the_mean_reading_minus_label(stage: dict[str, Any]) -> None:
+    """The factory map re-zeroed from the robot still on the pole: each offset is the stretch's mean raw
+    minus exact label (numpy), and the day's Test B ratios, 1 as delivered, rise above it."""
+    for group, sensors in ((LEG, [LEG]), (PAIR, [FRONT, REAR])):
+        rezero, rows = _first_still(stage, group, "raw")
+        for s in sensors:
+            expected = (
+                rows[S.wrench_cols(S.FT, s)].to_numpy() - rows[S.wrench_cols(S.EXPECTED, s)].to_numpy()
+            ).mean(0)
+            np.testing.assert_allclose(rezero["offsets"][s], expected, rtol=0, atol=1e-5)
+            assert rezero["sensors"][s]["status"] == "all"
+    after = json.loads((stage["raw_reports"] / "deployment" / "details.json").read_text())["rezeroed"][
+        "later"
+    ]
+    for name in (LEG, FRONT, REAR, PAIR):
+        assert after["details"]["test_b"][name]["ratio_truth"] > 3.0, name
+    metrics = json.loads((stage["raw_reports"] / "deployment.json").read_text())["later"]
+    assert metrics["fit"] is False and metrics["rezeroed"]["b_min"] > 3.0 * metrics["b_min"]
+
+
+def test_rezeroed_exact_affine_map_solves_its_linear_equation(stage: dict[str, Any]) -> None:
+    """The exact affine inverse w = C^-1 (x - o): re-zeroed, C^-1 (raw - delta - o) = label on average, so
+    delta = mean(raw - C label) - o (numpy, truth.json): the labels' own model error, under a newton."""
+    rezero, rows = _first_still(stage, LEG, "exact")
+    d = stage["truth"]["distortions"][LEG]
+    raw, label = rows[S.wrench_cols(S.FT, LEG)].to_numpy(), rows[S.wrench_cols(S.EXPECTED, LEG)].to_numpy()
+    expected = (raw - label @ np.asarray(d["coupling"]).T).mean(0) - np.asarray(d["offset"])
+    np.testing.assert_allclose(rezero["offsets"][LEG], expected, rtol=0, atol=1e-5)
+    assert np.abs(expected[:3]).max() < 1.5
+    page = (stage["exact_reports"] / "deployment.html").read_text()
+    assert "<h2 id='later-rezeroed'>later, re-zeroed</h2>" in page and "re-zeroed from 00_poses_test" in page

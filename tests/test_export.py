@@ -112,6 +112,40 @@ def test_fused_graph_equals_groups_side_by_side(
         np.testing.assert_allclose(fused, separate, rtol=0, atol=1e-9 if dtype == "float64" else 2e-3)
 
 
+@pytest.mark.parametrize("name", MODELS)
+def test_offsets_input_is_subtracted_from_the_raw_inputs_and_defaults_to_zero(
+    trained_models: dict, name: str
+) -> None:
+    """The graphs' ``offsets`` input (a re-zeroing's): the graph fed (x, o) is the graph fed x - o (the same
+    subtraction in the graph's dtype: bit for bit), and fed x alone the graph as delivered, bit for bit."""
+    models = [
+        read_group(trained_models["models"] / LEG, name),
+        read_group(trained_models["models"] / PAIR, "nn7"),
+    ]
+    x = np.concatenate([_inputs(1, models[0].n_inputs, seed=3), _inputs(2, 7, seed=4)], axis=1)
+    offsets = np.zeros((1, x.shape[1]))
+    offsets[0, :6] = [5.0, -3.0, 12.0, 0.4, -0.2, 0.1]  # the leg sensor's wrench columns
+    offsets[0, models[0].n_inputs + 7 : models[0].n_inputs + 13] = [-8.0, 1.0, 2.0, 0.3, 0.0, -0.5]
+    for dtype in graph.DTYPES:
+        for per_sample in (False, True):
+            sess = session(graph.build(models, dtype, {}, "fused", per_sample=per_sample))
+            xd, od = x.astype(dtype), offsets.astype(dtype)
+            np.testing.assert_array_equal(run(sess, xd, od), run(sess, xd - od))
+            np.testing.assert_array_equal(run(sess, xd), run(sess, xd, np.zeros_like(od)))
+            assert not np.array_equal(run(sess, xd, od), run(sess, xd))
+
+
+def test_offsets_fill_the_wrench_columns_of_a_manifest_entry() -> None:
+    from pipeline.export.offsets import WRENCH_FIELDS, Offsets
+
+    inputs = [{"index": 7 * s + k, "sensor": name, "field": [*WRENCH_FIELDS, "temperature"][k]}
+              for s, name in enumerate(("a", "b")) for k in range(7)]  # fmt: skip
+    values = {"b": np.arange(1.0, 7.0)}
+    vector = Offsets(values).input_vector({"inputs": inputs})
+    np.testing.assert_array_equal(vector, [[0.0] * 7 + [1.0, 2.0, 3.0, 4.0, 5.0, 6.0, 0.0]])
+    assert Offsets({"c": np.ones(6)}).input_vector({"inputs": inputs}) is None
+
+
 def _numpy_network(part: Any, x: np.ndarray) -> np.ndarray:
     """One sensor's network in float64 numpy, as `pipeline.calib.models.SensorNet` writes it."""
     h = (x - part.in_offset) / part.in_scale

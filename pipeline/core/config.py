@@ -101,9 +101,15 @@ class RobotParams:
     gravity: float  # m/s^2, magnitude; world z is up, so gravity is (0, 0, -gravity)
     # the foot pairs as params name them; None: the feet derived from the URDF (pipeline.physics.feet)
     foot_pairs: tuple[FootPairParams, ...] | None = None
+    # FT sensor -> serial number of its board, where the logs do not record it (pipeline.export.identity)
+    serials: dict[str, str] | None = None
 
     def __post_init__(self) -> None:
         _check_name(self.urdf, "robot.urdf")
+        serials = _mapping(self.serials or {}, "robot.serials")
+        if any(type(v) not in (str, int) or not str(v).strip() for v in serials.values()):
+            raise ConfigError(f"robot.serials must map FT sensors to serial numbers, got {self.serials!r}")
+        object.__setattr__(self, "serials", {str(k): str(v).strip() for k, v in serials.items()} or None)
         g = self.gravity
         if isinstance(g, bool) or not isinstance(g, int | float) or not math.isfinite(g) or g <= 0:
             raise ConfigError(f"robot.gravity must be a positive number, got {g!r}")
@@ -396,7 +402,7 @@ def _parse(data: Any) -> Params:
     robot = _mapping(data["robot"], "robot")
     # foot_pairs is optional: absent (or null), the feet are derived from the URDF; a robot without foot
     # pairs may also say `foot_pairs: {}`.
-    _section({"foot_pairs": None, **robot}, "robot", {"urdf", "gravity", "foot_pairs"})
+    _section({"foot_pairs": None, "serials": None, **robot}, "robot", set(RobotParams.__dataclass_fields__))
     pairs = None
     if robot.get("foot_pairs") is not None:
         pairs = []
@@ -406,7 +412,7 @@ def _parse(data: Any) -> Params:
             _section(pair, key, {"front", "rear", "sole"})
             pairs.append(FootPairParams(name=name, front=pair["front"], rear=pair["rear"], sole=pair["sole"]))
     robot_params = RobotParams(
-        urdf=robot["urdf"], gravity=robot["gravity"], foot_pairs=None if pairs is None else tuple(pairs)
+        robot["urdf"], robot["gravity"], None if pairs is None else tuple(pairs), robot.get("serials")
     )
     if "topics" not in data:
         raise ConfigError("missing key topics")

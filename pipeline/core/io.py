@@ -82,6 +82,19 @@ def dumps_json(obj: Any, *, indent: int | None = 1) -> str:
     return json.dumps(jsonable(obj), indent=indent, allow_nan=False) + "\n"
 
 
+def read_json(path: str | Path, what: str, missing: str = "not found") -> Any:
+    """The JSON document of `path`. DataError ``<path>: <missing>`` if there is no such file,
+    ``<path>: not <what>: <why>`` if it cannot be read or parsed."""
+    from pipeline.core.errors import DataError
+
+    try:
+        return json.loads(Path(path).read_text(encoding="utf-8"))
+    except FileNotFoundError:
+        raise DataError(f"{path}: {missing}") from None
+    except (OSError, ValueError) as exc:
+        raise DataError(f"{path}: not {what}: {exc}") from None
+
+
 def write_json(path: str | Path, obj: Any, *, indent: int | None = 1) -> None:
     """Write `obj` as strict JSON (see :func:`dumps_json`), atomically."""
     write_text(path, dumps_json(obj, indent=indent))

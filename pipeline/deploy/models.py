@@ -18,6 +18,7 @@ import numpy as np
 import pandas as pd
 
 from pipeline.core.errors import DataError
+from pipeline.export.offsets import Offsets
 from pipeline.logs import schema as S
 
 Predictor = Callable[[pd.DataFrame], dict[str, np.ndarray]]  # table -> sensor -> (N, 6) N / Nm
@@ -81,20 +82,22 @@ def deployed_models(exported: Path) -> dict[str, str]:
     """group -> the exported (deployed) model, from the export manifest."""
     from pipeline.export.runtime import Deployment
 
-    deployment = Deployment.load(exported)
+    deployment = Deployment.load(exported, offsets=False)
     return {group: str(entry["models"][group]) for group, entry in deployment.groups().items()}
 
 
 def calibrated_wrenches(
-    exported: Path, log: Path, table: pd.DataFrame, topics: object
+    exported: Path, log: Path, table: pd.DataFrame, topics: object, offsets: Offsets | None = None
 ) -> dict[str, np.ndarray]:
     """Sensor -> (N, 6) calibrated wrench (N, Nm, sensor frame) at `table`'s stamps, for every sensor of
-    the log that the export models (module docstring). NaN where no calibrated message brackets a stamp."""
+    the log that the export models (module docstring), with a re-zeroing's `offsets` (None: as delivered,
+    whatever lies beside the export). NaN where no calibrated message brackets a stamp."""
     from pipeline.export.runtime import Deployment, calibrated_messages
     from pipeline.logs.rosmsg import LogReader
 
+    deployment = Deployment.load(exported, offsets=False).with_offsets(offsets or Offsets())
     with LogReader(log) as reader:
-        messages = calibrated_messages(Deployment.load(exported), reader, topics)
+        messages = calibrated_messages(deployment, reader, topics)
     stamps = table[S.STAMP].to_numpy(np.int64)
     out = {}
     for sensor, (t, w) in messages.items():

@@ -263,16 +263,75 @@ def scales_section(ds: Mapping[str, Any], tolerance: float, target: float) -> st
     return "\n".join(parts)
 
 
-def verdict_table(summary: Mapping[str, Mapping[str, Any]]) -> str:
-    """One row per day: each test's pass and the day's verdict."""
+def verdict_table(
+    summary: Mapping[str, Mapping[str, Any]], rezeroed: Mapping[str, Mapping[str, Any]] | None = None
+) -> str:
+    """One row per day, each test's pass and the day's verdict; beneath it the same after re-zeroing."""
     rows = []
     for day, s in summary.items():
-        passed = [bool(s.get(f"{t}.passed", True)) for t in ("a", "b", "c", "d", "ds")]
-        cells = "".join(f'<td class="{"ok" if p else "bad"}">{"pass" if p else "fail"}</td>' for p in passed)
-        verdict = "fit to deploy" if s["fit_to_deploy"] else "recalibrate"
-        rows.append(f"<tr><td><a href='#{esc(day)}'>{esc(day)}</a></td>{cells}<td><b>{verdict}</b></td></tr>")
+        variants = [(day, "", s)]
+        if (rezeroed or {}).get(day):
+            variants.append((f"{day}, re-zeroed", "-rezeroed", rezeroed[day]["summary"]))
+        for name, anchor, v in variants:
+            passed = [bool(v.get(f"{t}.passed", True)) for t in ("a", "b", "c", "d", "ds")]
+            cells = "".join(
+                f'<td class="{"ok" if p else "bad"}">{"pass" if p else "fail"}</td>' for p in passed
+            )
+            verdict = "fit to deploy" if v["fit_to_deploy"] else "recalibrate"
+            link = f"<a href='#{esc(day + anchor)}'>{esc(name)}</a>"
+            rows.append(f"<tr><td>{link}</td>{cells}<td><b>{verdict}</b></td></tr>")
     head = ["day", "Test A", "Test B", "Test C", "Test D", "Test D, every scale", "verdict"]
     return table(head, [], cls="num").replace("<tbody></tbody>", f"<tbody>{''.join(rows)}</tbody>")
+
+
+_REZERO_NOTE = (
+    "Each sensor's raw reading's offset change since training, solved so that the calibration of raw - "
+    "offset matches the exact labels of the day's first still seconds (ftcal rezero): <i>all</i>, every "
+    "axis fixed by the sensor's own label or its sums with others; <i>sums</i>, only through cut-set sums "
+    "(standing on both feet: how the legs' and feet's offsets split within their sums is not observable, "
+    "and stays nearest to the calibration as delivered); <i>none</i>, no exact label. Offsets N and Nm; "
+    "std: their uncertainty from the stretch's noise (worst force and torque axis); spread: the std of the "
+    "offsets re-zeroed from each still pose of the log alone (worst axes), and its ratio to the reading's "
+    "noise (worst axis): above the limit the calibration depends on the pose (the sensor's hysteresis, the "
+    "URDF's errors in the labels), which the noise does not show."
+)
+
+
+def _worst(values: list[Any]) -> float | None:
+    return None if any(v is None for v in values) else max(values)
+
+
+def rezero_table(records: Mapping[str, Mapping[str, Any]], limit: float) -> str:
+    """The re-zeroing of each group on a day: the stretch and per sensor status, offset, std, pose spread."""
+    parts, rows = [], []
+    for group, r in records.items():
+        if "error" in r:
+            parts.append(f"<p class='meta'>{esc(group)}: {esc(r['error'])}</p>")
+            continue
+        for st in r["stretches"]:
+            gyro = "n/a" if st["gyro_rad_s"] is None else f"{st['gyro_rad_s']:.3f}"
+            parts.append(
+                f"<p class='meta'>{esc(group)}: re-zeroed from {esc(st['name'])}; still: fastest joint "
+                f"{esc(st['joint'])} {st['joint_rad_s']:.4f} rad/s, FT boards {gyro} rad/s</p>"
+            )
+        poses = (r.get("pose_dependence") or {}).get("sensors", {})
+        for sensor, e in r["sensors"].items():
+            offset = (r["offsets"].get(sensor) or [None] * 6)[:6]
+            pose = poses.get(sensor, {})
+            depends = pose.get("depends")
+            spread = pose.get("spread") or [None] * 6
+            rows.append(
+                f"<tr><td>{esc(group)}</td><td>{esc(sensor)}</td><td>{esc(e['status'])}</td>"
+                + "".join(cell(v) for v in offset) + cell(max(e["std"][:3])) + cell(max(e["std"][3:]))
+                + cell(_worst(spread[:3])) + cell(_worst(spread[3:]))
+                + cell(pose.get("ratio"), None if depends is None else not depends)
+                + f"<td>{'POSE-DEPENDENT' if depends else ('ok' if depends is not None else '-')}</td></tr>"
+            )  # fmt: skip
+    header = ["group", "sensor", "re-zeroed", "fx", "fy", "fz", "tx", "ty", "tz", "std force", "std torque",
+              "spread force", "spread torque", f"spread / noise (<= {limit:g})", "pose"]  # fmt: skip
+    head = "".join(f"<th>{esc(h)}</th>" for h in header)
+    rows_html = f'<table class="num"><thead><tr>{head}</tr></thead><tbody>{"".join(rows)}</tbody></table>'
+    return "\n".join([f"<p class='note'>{_REZERO_NOTE}</p>", *parts, rows_html if rows else ""])
 
 
 def day_section(
@@ -304,26 +363,47 @@ def day_section(
     return "\n".join(parts)
 
 
+def _rezeroed_section(day: str, entry: Mapping[str, Any], targets: Mapping[str, Any]) -> str:
+    """A day's tests after re-zeroing: the re-zeroing, then tests B, C, D and their figures."""
+    tests = {k: v for k, v in entry["details"].items() if k != "test_a"}
+    section = day_section(day, tests, entry.get("figures", {}), targets)
+    head = f"<h2 id='{esc(day)}'>{esc(day)}</h2>"
+    return section.replace(
+        head,
+        f"<h2 id='{esc(day)}-rezeroed'>{esc(day)}, re-zeroed</h2>"
+        + rezero_table(entry.get("rezero", {}), targets.get("pose_limit", float("nan"))),
+        1,
+    )
+
+
 def render_page(
     days: Mapping[str, Mapping[str, Any]],
     summary: Mapping[str, Mapping[str, Any]],
     figures: Mapping[str, Mapping[str, str]],
     targets: Mapping[str, Any],
+    rezeroed: Mapping[str, Mapping[str, Any]] | None = None,
 ) -> str:
     """The deployment page: the verdict per day, then each day's tests (`targets`: b, c, joint, d_slope,
-    d_change)."""
+    d_change, pose_limit), each followed by its tests after re-zeroing (`rezeroed`: day -> summary, details,
+    figures and the groups' re-zeroing records)."""
     now = datetime.now(timezone.utc).strftime("%Y-%m-%d %H:%M UTC")
     nav = "".join(f"<a href='#{esc(d)}'>{esc(d)}</a>" for d in days)
     parts = [
         "<h1>FT sensor calibration: deployment tests</h1>",
         f"<p class='meta'>generated {now} · the thesis's tests A, B, C (chapter 6) and D (interaction "
-        "fidelity) on logs no model has seen, calibrated by the export as on the robot · N, Nm</p>",
+        "fidelity) on logs no model has seen, calibrated by the export as on the robot, as delivered and "
+        "re-zeroed from each day's first still seconds · N, Nm</p>",
         f"<nav><a href='{REPORT_FILE}'>Evaluation report (its own page)</a><a href='#verdict'>Verdict</a>"
         f"{nav}</nav>",
         "<h2 id='verdict'>Verdict</h2>",
-        verdict_table(summary) if days else f"<div class='flags'>{esc(targets.get('nothing', ''))}</div>",
+        verdict_table(summary, rezeroed)
+        if days
+        else f"<div class='flags'>{esc(targets.get('nothing', ''))}</div>",
     ]
-    parts += [day_section(d, r, figures.get(d, {}), targets) for d, r in days.items()]
+    for d, r in days.items():
+        parts.append(day_section(d, r, figures.get(d, {}), targets))
+        if (rezeroed or {}).get(d):
+            parts.append(_rezeroed_section(d, rezeroed[d], targets))
     return document("ftcal deployment tests", parts)
 
 

@@ -42,6 +42,22 @@ class ScaleParams:
 
 
 @dataclass(frozen=True)
+class RezeroParams:
+    """``deploy.rezero``: re-zeroing a calibration from a still stretch (`ftcal rezero`, and every
+    deployment day after its first still seconds)."""
+
+    duration_s: float  # s of a still stretch used: its first ones
+    min_s: float  # the shortest still stretch, s
+    still_joint_rad_s: float  # still: every joint slower than this, rad/s (smoothed velocities) ...
+    still_gyro_rad_s: float  # ... and every FT board slower than this, rad/s (low-passed gyroscope norm)
+    prior_force_n: float  # expected offset change per force axis (1 sigma), N: what the labels leave open
+    prior_torque_nm: float  # per torque axis, Nm
+    pose_limit: (
+        float  # offsets' spread over a log's still poses above this x the reading's noise: pose-dependent
+    )
+
+
+@dataclass(frozen=True)
 class DeployParams:
     """Section ``deploy``."""
 
@@ -58,6 +74,7 @@ class DeployParams:
     slope_tolerance: float  # Test D: per-axis slope error (vs 1) at most the oracle's + this
     push_rmse_target: float  # Test D: error of the pushes' reported change at most this x the oracle's
     scales: ScaleParams  # Test D from the noise level up
+    rezero: RezeroParams  # re-zeroing: every day is judged as delivered and after re-zeroing
 
 
 def _num(value: Any, key: str, lo: float, hi: float) -> float:
@@ -142,6 +159,7 @@ def deploy_params(params: Params) -> DeployParams:
         slope_tolerance=_num(raw["slope_tolerance"], "slope_tolerance", 0.0, 1.0),
         push_rmse_target=_num(raw["push_rmse_target"], "push_rmse_target", 1.0, math.inf),
         scales=_scales(raw["scales"]),
+        rezero=_rezero(raw["rezero"]),
     )
 
 
@@ -166,6 +184,20 @@ def _scales(raw: Any) -> ScaleParams:
         load_s=_num(raw["load_s"], "scales.load_s", 0.1, 60.0),
         pulses=pulses,
     )
+
+
+def _rezero(raw: Any) -> RezeroParams:
+    names = tuple(f.name for f in dataclasses.fields(RezeroParams))
+    raw = _mapping(raw, "rezero", names)
+    bounds = {
+        "duration_s": (0.1, 3600.0), "min_s": (0.1, 600.0), "still_joint_rad_s": (1e-6, 10.0),
+        "still_gyro_rad_s": (1e-6, 10.0), "prior_force_n": (1e-3, 1e4), "prior_torque_nm": (1e-4, 1e3),
+        "pose_limit": (0.0, 1e3),
+    }  # fmt: skip
+    values = {k: _num(raw[k], f"rezero.{k}", *bounds[k]) for k in names}
+    if values["min_s"] > values["duration_s"]:
+        raise ConfigError(f"deploy.rezero.min_s ({values['min_s']:g}) must not exceed duration_s")
+    return RezeroParams(**values)
 
 
 def _interaction(raw: Any) -> InteractionParams:

@@ -41,14 +41,24 @@ def load_nominal_robot(params: Params) -> RobotModel:
     return load_robot(resolve_urdf(params.robot.urdf, repo_root()))
 
 
+def robot_cuts(params: Params, robot: RobotModel) -> tuple[list[Any], list[Any], list[Any]]:
+    """(feet, foot pairs, cut sets) of the robot as the labeller finds them (``robot.foot_pairs``,
+    ``label.cut_max_sensors``): the exact sums of a labelled table."""
+    from pipeline.physics.cuts import find_cut_sets
+    from pipeline.physics.feet import robot_feet
+
+    feet = robot_feet(robot, params.robot.foot_pairs)
+    pairs = [f.pair for f in feet if f.pair is not None]
+    label_cfg = stage_section(params, "label", LabelParams)
+    return feet, pairs, find_cut_sets(robot, pairs, label_cfg.cut_max_sensors)
+
+
 def prepare_logs(
     params: Params, robot: RobotModel, logs: list[Path], source_dir: Path, work: Path
 ) -> list[DeployLog]:
     """Ingest, smooth and label every log of `logs` (under `source_dir`) into `work`/<step>/."""
     from pipeline.core.parallel import forked_map
     from pipeline.labels.table import Labeller
-    from pipeline.physics.cuts import find_cut_sets
-    from pipeline.physics.feet import robot_feet
     from pipeline.stages.ingest import IngestParams, RobotLogSpec, log_size, output_name
 
     spec = RobotLogSpec(
@@ -60,9 +70,7 @@ def prepare_logs(
     )
     smooth_cfg = stage_section(params, "smooth", SmoothParams)
     label_cfg = stage_section(params, "label", LabelParams)
-    feet = robot_feet(robot, params.robot.foot_pairs)
-    pairs = [f.pair for f in feet if f.pair is not None]
-    cuts = find_cut_sets(robot, pairs, label_cfg.cut_max_sensors)
+    feet, pairs, cuts = robot_cuts(params, robot)
     # one RNEA thread: the logs are labelled in forked processes, one per core
     lab = Labeller(robot, pairs, cuts, label_cfg, params.robot.gravity, feet, threads=1)
     dirs = {k: work / k for k in ("ingested", "smoothed", "labelled")}

@@ -16,6 +16,7 @@ from collections.abc import Mapping
 from typing import Any
 
 RESULT_FILE = "result.json"  # a group's results of every day (`pipeline.stages.deploy_test`)
+REZEROED = "rezeroed"  # a day's tests after re-zeroing from its first still seconds (its key in the results)
 
 
 def merge(groups: Mapping[str, Mapping[str, Any]]) -> dict[str, Any]:

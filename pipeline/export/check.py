@@ -44,10 +44,13 @@ def session(model: Any, threads: int = 1) -> Any:
     Every graph optimisation on (onnxruntime's default, stated: the graphs rely on its fusion of each
     layer's Conv with bias and activation into one kernel). Other options (denormals as zero, no thread
     spinning, memory arena and pattern, sequential execution) measured no difference on one thread.
+    Warnings are not logged: onnxruntime warns at every load that the ``offsets`` input has a default
+    (`pipeline.export.graph`), which is the point of it.
     """
     import onnxruntime as ort
 
     options = ort.SessionOptions()
+    options.log_severity_level = 3  # errors only
     options.graph_optimization_level = ort.GraphOptimizationLevel.ORT_ENABLE_ALL
     options.intra_op_num_threads = threads
     options.inter_op_num_threads = 1
@@ -57,10 +60,16 @@ def session(model: Any, threads: int = 1) -> Any:
     )
 
 
-def run(sess: Any, x: np.ndarray) -> np.ndarray:
-    """Outputs of a session on inputs x, cast to the graph's input type."""
+def run(sess: Any, x: np.ndarray, offsets: np.ndarray | None = None) -> np.ndarray:
+    """Outputs of a session on inputs x (N, K), cast to the graph's input type; `offsets` (1, K), in the
+    inputs' units, fed to the graph's ``offsets`` input (None: its default, zeros)."""
+    from pipeline.export.graph import OFFSETS
+
     dtype = np.float32 if sess.get_inputs()[0].type == "tensor(float)" else np.float64
-    return sess.run(None, {sess.get_inputs()[0].name: np.ascontiguousarray(x, dtype=dtype)})[0]
+    feed = {sess.get_inputs()[0].name: np.ascontiguousarray(x, dtype=dtype)}
+    if offsets is not None:
+        feed[OFFSETS] = np.ascontiguousarray(np.reshape(offsets, (1, -1)), dtype=dtype)
+    return sess.run(None, feed)[0]
 
 
 def load_samples(model_dir: Path, model: GroupModel, labelled_dir: Path) -> Samples:

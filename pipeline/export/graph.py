@@ -3,7 +3,12 @@
 A graph has one input ``inputs`` (N, K) and one output ``calibrated`` (N, 6 S): the raw inputs of its
 sensors side by side (each sensor's columns in the models' order: fx fy fz N, tx ty tz Nm, temperature
 degC, [accelerometer x y z m/s^2, gyroscope x y z rad/s]) and the calibrated wrenches (fx..tz per sensor,
-N and Nm, each in its sensor frame), sensor after sensor. N is dynamic (1 in a control loop).
+N and Nm, each in its sensor frame), sensor after sensor. N is dynamic (1 in a control loop). A second
+input ``offsets`` (1, K), in the units of the inputs' columns, is subtracted from ``inputs`` before
+anything else: the raw-side offset changes of a re-zeroing (`pipeline.export.offsets`; zero on the
+columns other than the wrench's). It defaults to zeros (an initializer of the same name, which a caller
+may override: onnxruntime's overridable initializers), so a caller that feeds ``inputs`` alone runs the
+calibration as delivered, bit for bit; a robot's loop binds it once at start-up.
 
 Per sensor, with x its columns (the forms of `pipeline.export.trained`):
 
@@ -44,6 +49,7 @@ from pipeline.export.trained import WRENCH, Dense, GroupModel, IdentityPart, Lin
 
 OPSET = 17
 INPUT, OUTPUT = "inputs", "calibrated"
+OFFSETS = "offsets"  # (1, K) subtracted from the inputs; default zeros (module docstring)
 DTYPES = ("float32", "float64")
 
 
@@ -300,12 +306,15 @@ def build(
     """The ONNX ModelProto of `models` (one group, or several fused) in `dtype` with `metadata` props;
     `per_sample`: float32 networks laid out for one sample per call (a control loop), else for batches
     (float64 graphs have one layout)."""
-    from onnx import TensorProto, checker, helper
+    from onnx import TensorProto, checker, helper, numpy_helper
 
     if dtype not in DTYPES:
         raise ValueError(f"dtype must be one of {DTYPES}, got {dtype!r}")
     b = _Builder(dtype)
-    out, start = _all(b, INPUT, models, per_sample)
+    n_in = sum(len(m.sensors) * m.n_inputs for m in models)
+    b.initializers.append(numpy_helper.from_array(np.zeros((1, n_in), dtype=b.dtype), OFFSETS))
+    shifted = b.op("Sub", [INPUT, OFFSETS], "rezeroed")
+    out, start = _all(b, shifted, models, per_sample)
     if b.nodes[-1].output[0] == out:  # name the last result the graph's output (no extra Identity)
         b.nodes[-1].output[0] = OUTPUT
     else:
@@ -315,7 +324,10 @@ def build(
     graph = helper.make_graph(
         b.nodes,
         name,
-        [helper.make_tensor_value_info(INPUT, elem, ["N", start])],
+        [
+            helper.make_tensor_value_info(INPUT, elem, ["N", start]),
+            helper.make_tensor_value_info(OFFSETS, elem, [1, start]),
+        ],
         [helper.make_tensor_value_info(OUTPUT, elem, ["N", n_out])],
         b.initializers,
     )

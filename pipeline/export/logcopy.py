@@ -28,6 +28,7 @@ class CalibrateResult:
     seconds: float
     uncalibrated: dict[str, int] = field(default_factory=dict)  # sensor -> wrench messages without inputs yet
     warnings: list[str] = field(default_factory=list)
+    offsets: str = ""  # which offsets the calibration ran with (`pipeline.export.offsets.summary`)
 
     @property
     def rate(self) -> float:

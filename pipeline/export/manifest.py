@@ -7,10 +7,14 @@ beside the files, which `ftcal calibrate` and a lab's own loader read:
     {"format": "ftcal-onnx", "version": 1, "robot": ..., "input": "inputs", "output": "calibrated",
      "fused": "all", "graphs": {"<group>" | "all": {"files": {"float32": ..., "float64": ...},
      "sha256": {...}, "groups": [...], "sensors": [...], "models": {group: name}, "inputs": [...],
-     "outputs": [...], "training": {group: {...}}, "check": {dtype: {max_abs_diff, samples}}}}}
+     "outputs": [...], "offsets": {...}, "serials": {sensor: serial | null},
+     "training": {group: {...}}, "check": {dtype: {max_abs_diff, samples}}}}}
 
 Each input/output entry: ``index`` (column of the tensor), ``column`` (labelled-table name), ``sensor``,
-``topic`` and ``field`` (where a ROS 2 log carries the value), ``unit``.
+``topic`` and ``field`` (where a ROS 2 log carries the value), ``unit``. ``offsets`` describes the graph's
+second input (`pipeline.export.graph`: subtracted from ``inputs``, default zeros) and the file a
+re-zeroing writes beside the manifest (`pipeline.export.offsets`); ``serials`` the sensor boards the
+calibration belongs to (`pipeline.export.identity`).
 """
 
 from __future__ import annotations
@@ -21,7 +25,7 @@ from collections.abc import Mapping, Sequence
 from pathlib import Path
 from typing import Any
 
-from pipeline.export.graph import INPUT, OPSET, OUTPUT
+from pipeline.export.graph import INPUT, OFFSETS, OPSET, OUTPUT
 from pipeline.export.trained import GroupModel
 
 FORMAT, VERSION = "ftcal-onnx", 1
@@ -84,13 +88,20 @@ def training(model: GroupModel, data_sha256: str, mlflow_run: str | None) -> dic
 
 
 def graph_entry(
-    models: Sequence[GroupModel], topics: Any, trainings: Mapping[str, Mapping[str, Any]]
+    models: Sequence[GroupModel],
+    topics: Any,
+    trainings: Mapping[str, Mapping[str, Any]],
+    serials: Mapping[str, str | None] | None = None,
 ) -> dict[str, Any]:
-    """A graph's manifest entry, without files and checks (added once written and checked)."""
+    """A graph's manifest entry, without files and checks (added once written and checked); `serials`:
+    sensor -> the serial of the board its calibration belongs to (None: not recorded)."""
+    from pipeline.export.offsets import FILE
+
     inputs, outputs = columns(models, topics)
+    sensors = [s for m in models for s in m.sensors]
     return {
         "groups": [m.group for m in models],
-        "sensors": [s for m in models for s in m.sensors],
+        "sensors": sensors,
         "models": {m.group: m.name for m in models},
         "input": INPUT,
         "output": OUTPUT,
@@ -98,6 +109,15 @@ def graph_entry(
         "output_shape": ["N", len(outputs)],
         "inputs": inputs,
         "outputs": outputs,
+        "offsets": {
+            "input": OFFSETS,
+            "shape": [1, len(inputs)],
+            "default": 0.0,
+            "file": FILE,
+            "meaning": "subtracted from inputs: per sensor its raw wrench's offset change since training "
+            "(N, Nm; zero on the other columns), from a re-zeroing (ftcal rezero)",
+        },
+        "serials": {s: (serials or {}).get(s) for s in sensors},
         "training": {m.group: dict(trainings[m.group]) for m in models},
     }
 
@@ -113,6 +133,8 @@ def metadata(entry: Mapping[str, Any], robot: str) -> dict[str, str]:
         "ftcal.sensors": ",".join(entry["sensors"]),
         "ftcal.models": json.dumps(entry["models"]),
         "ftcal.inputs": ",".join(f"{c['column']}[{c['unit']}]" for c in entry["inputs"]),
+        "ftcal.offsets": f"{OFFSETS}: (1, K) subtracted from {INPUT}, default zeros",
+        "ftcal.serials": json.dumps(entry.get("serials") or {}),
         "ftcal.outputs": ",".join(f"{c['column']}[{c['unit']}]" for c in entry["outputs"]),
         "ftcal.training_data_sha256": json.dumps(hashes),
         "ftcal.mlflow_runs": json.dumps(runs),
@@ -157,12 +179,13 @@ def build_graph(
     topics: Any,
     robot: str,
     trainings: Mapping[str, Mapping[str, Any]],
+    serials: Mapping[str, str | None] | None = None,
 ) -> tuple[dict[str, Any], dict[str, Any]]:
     """(manifest entry, {dtype: ONNX ModelProto}) of a group's graph, or of the fused graph of `models`
     (`name` FUSED: laid out for one sample per call)."""
     from pipeline.export import graph
 
-    entry = graph_entry(models, topics, trainings)
+    entry = graph_entry(models, topics, trainings, serials)
     props = metadata(entry, robot)
     graphs = {
         dtype: graph.build(models, dtype, props, f"ftcal_{name}", per_sample=name == FUSED)
@@ -189,14 +212,10 @@ def write_graphs(
 def read_manifest(path: Path) -> dict[str, Any]:
     """manifest.json of an export directory `path`; DataError naming the file if absent or not one."""
     from pipeline.core.errors import DataError
+    from pipeline.core.io import read_json
 
     file = path / MANIFEST_FILE
-    try:
-        doc = json.loads(file.read_text(encoding="utf-8"))
-    except FileNotFoundError:
-        raise DataError(f"{file}: not found (is {path} an export directory?)") from None
-    except (OSError, ValueError) as exc:
-        raise DataError(f"{file}: not a manifest: {exc}") from None
+    doc = read_json(file, "a manifest", f"not found (is {path} an export directory?)")
     if not isinstance(doc, dict) or doc.get("format") != FORMAT or "graphs" not in doc:
         raise DataError(f"{file}: not an ftcal export manifest (format {FORMAT!r})")
     return doc

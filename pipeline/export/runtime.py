@@ -1,13 +1,14 @@
 """Running an export on a log: the exported graphs, and causal inputs per raw wrench message.
 
 `Deployment.load(DIR)` reads ``manifest.json`` and opens each group's float64 graph with onnxruntime
-(files checked against their sha256). `CausalCalibrator` turns the decoded messages of a log, chunk by
-chunk, into calibrated wrenches: for every raw wrench message of a modelled sensor, the temperature (and
-IMU) are those of the latest message stamped at or before the wrench's header stamp, never a later one,
-as a robot's loop would have them. Messages may arrive out of stamp order (transport delays), so the
-wrenches of one chunk are calibrated once the next chunk has been read: a temperature delayed by less
-than a chunk (seconds) is still found. A wrench stamped before its sensor's first temperature (or IMU)
-message has no input yet and is counted as uncalibrated.
+(files checked against their sha256), with the offsets of a re-zeroing beside it (``offsets.json``,
+`pipeline.export.offsets`) fed to every graph's ``offsets`` input. `CausalCalibrator` turns the decoded
+messages of a log, chunk by chunk, into calibrated wrenches: for every raw wrench message of a modelled
+sensor, the temperature (and IMU) are those of the latest message stamped at or before the wrench's
+header stamp, never a later one, as a robot's loop would have them. Messages may arrive out of stamp
+order (transport delays), so the wrenches of one chunk are calibrated once the next chunk has been read:
+a temperature delayed by less than a chunk (seconds) is still found. A wrench stamped before its
+sensor's first temperature (or IMU) message has no input yet and is counted as uncalibrated.
 
 Each sensor's output depends on its own inputs only (``separable`` in the manifest; true of every model
 family here), so a group's graph is fed one sensor's messages in that sensor's slot (and the same rows
@@ -24,6 +25,7 @@ from typing import Any
 import numpy as np
 
 from pipeline.core.errors import DataError
+from pipeline.export.offsets import Offsets
 
 WRENCH_FIELDS = tuple(f"wrench.{k}.{a}" for k in ("force", "torque") for a in "xyz")
 IMU_FIELDS = tuple(f"linear_acceleration.{a}" for a in "xyz") + tuple(f"angular_velocity.{a}" for a in "xyz")
@@ -47,11 +49,14 @@ class SensorPlan:
 
 @dataclass
 class Deployment:
-    """An export directory: its manifest and one onnxruntime session (float64 graph) per group."""
+    """An export directory: its manifest, one onnxruntime session (float64 graph) per group, and the
+    offsets every graph runs with (none: the calibration as delivered)."""
 
     path: Path
     manifest: dict[str, Any]
     sessions: dict[str, Any] = field(repr=False)
+    offsets: Offsets = field(default_factory=Offsets)
+    manifest_sha256: str = ""
 
     @property
     def robot(self) -> str:
@@ -62,9 +67,29 @@ class Deployment:
         fused = self.manifest.get("fused")
         return {g: e for g, e in self.manifest["graphs"].items() if g != fused}
 
+    def sensors(self) -> list[str]:
+        """Every sensor the export models, in the groups' order."""
+        return [s for entry in self.groups().values() for s in entry["sensors"]]
+
+    def serials(self) -> dict[str, str | None]:
+        """Sensor -> the serial of the sensor its calibration was trained for (None: not recorded)."""
+        return {s: v for entry in self.groups().values() for s, v in (entry.get("serials") or {}).items()}
+
+    def with_offsets(self, offsets: Offsets) -> Deployment:
+        """The same export and sessions, run with `offsets` (an empty `Offsets`: as delivered)."""
+        from dataclasses import replace
+
+        unknown = sorted(set(offsets.values) - set(self.sensors()))
+        if unknown:
+            raise DataError(f"{self.path}: offsets of {unknown[0]}, a sensor the export does not model")
+        return replace(self, offsets=offsets)
+
     @classmethod
-    def load(cls, path: str | Path, threads: int = 1) -> Deployment:
-        """Read `path`/manifest.json and open the float64 graphs. Raises DataError naming the file."""
+    def load(cls, path: str | Path, threads: int = 1, offsets: Path | bool = True) -> Deployment:
+        """Read `path`/manifest.json and open the float64 graphs; `offsets`: True, those of
+        `path`/offsets.json if it exists; False, none; a path, that file's (it must exist). Raises DataError
+        naming the file."""
+        from pipeline.export import offsets as O
         from pipeline.export.check import session
         from pipeline.export.manifest import MANIFEST_FILE, read_manifest, sha256_file
 
@@ -73,8 +98,12 @@ class Deployment:
         if not path.is_dir():
             raise DataError(f"{path}: models directory not found (run `dvc repro`, or pass --models)")
         manifest = read_manifest(path)
-        sessions = {}
-        deployment = cls(path, manifest, sessions)
+        sessions: dict[str, Any] = {}
+        deployment = cls(path, manifest, sessions, manifest_sha256=sha256_file(file))
+        beside = path / O.FILE
+        chosen = offsets if isinstance(offsets, Path) else (beside if offsets and beside.is_file() else None)
+        if chosen is not None:
+            deployment.offsets = O.read_offsets(chosen, deployment.manifest_sha256, deployment.sensors())
         for group, entry in deployment.groups().items():
             graph = path / entry["files"]["float64"]
             if not graph.is_file():
@@ -127,7 +156,8 @@ class Deployment:
         none, repeats rows of another; separable models make their outputs irrelevant)."""
         from pipeline.export.check import run
 
-        n_slots = len(self.groups()[group]["sensors"])
+        entry = self.groups()[group]
+        n_slots = len(entry["sensors"])
         rows = max(len(x) for x in inputs.values())
         filler = next(x for x in inputs.values() if len(x))
         columns = []
@@ -135,7 +165,7 @@ class Deployment:
             x = inputs.get(slot)
             x = filler if x is None or not len(x) else x
             columns.append(x[np.arange(rows) % len(x)])
-        y = run(self.sessions[group], np.concatenate(columns, axis=1))
+        y = run(self.sessions[group], np.concatenate(columns, axis=1), self.offsets.input_vector(entry))
         return {
             slot: y[: len(x), slot * 6 : (slot + 1) * 6].astype(np.float64)
             for slot, x in inputs.items()
@@ -294,9 +324,11 @@ def check_robot(deployment: Deployment, metadata: Mapping[str, Mapping[str, str]
 def plan_log(reader: Any, deployment: Deployment, topics: Any) -> tuple[list[SensorPlan], list[str]]:
     """(the plans of the modelled sensors present in the log of `reader` (`LogReader`), warnings).
 
-    DataError if the log cannot be calibrated by these models: another robot's, or a modelled sensor's
+    DataError if the log cannot be calibrated by these models: another robot's, a modelled sensor of
+    another serial than its calibration's (`pipeline.export.identity`), or a modelled sensor's
     temperature or IMU topic (an input of its model) missing or of another type, or no modelled sensor.
     """
+    from pipeline.export.identity import check_serials
     from pipeline.logs.rosmsg import IMU, TEMPERATURE, WRENCH_STAMPED
 
     check_robot(deployment, reader.metadata, reader.path)
@@ -326,8 +358,13 @@ def plan_log(reader: Any, deployment: Deployment, topics: Any) -> tuple[list[Sen
             f"{reader.path}: none of the sensors of {deployment.path} ({', '.join(sorted(modelled))}) has "
             f"messages on {topics.ft_wrench} (models of another robot, or other topic names?)"
         )
+    serials = deployment.serials()
+    experiment = reader.metadata.get("experiment")
+    warnings = check_serials(
+        {p.sensor: serials.get(p.sensor) for p in plans}, experiment, reader.path, deployment.path
+    )
     others = sorted(set(sensors_in_topics(topics.ft_wrench, present)) - modelled)
-    warnings = [f"{reader.path}: no model for {s}: its wrenches pass through uncalibrated" for s in others]
+    warnings += [f"{reader.path}: no model for {s}: its wrenches pass through uncalibrated" for s in others]
     return plans, warnings
 
 

@@ -121,13 +121,10 @@ def prediction_columns(name: str, sensor: str) -> list[str]:
 
 def read_metrics(model_dir: Path) -> dict[str, Any]:
     """The group's ``metrics.json`` (validation/test errors, best_on_validation, sensors)."""
+    from pipeline.core.io import read_json
+
     path = model_dir / METRICS_FILE
-    try:
-        metrics = json.loads(path.read_text(encoding="utf-8"))
-    except FileNotFoundError:
-        raise DataError(f"{path}: not found (is {model_dir} a train@<group> output?)") from None
-    except (OSError, ValueError) as exc:
-        raise DataError(f"{path}: not a metrics file: {exc}") from None
+    metrics = read_json(path, "a metrics file", f"not found (is {model_dir} a train@<group> output?)")
     if not isinstance(metrics, dict) or not isinstance(metrics.get("sensors"), list):
         raise DataError(f"{path}: no 'sensors' list (not a train@<group> metrics file)")
     return metrics

@@ -17,6 +17,7 @@ import numpy as np
 from pipeline.core.errors import ConfigError
 from pipeline.core.io import atomic_path
 from pipeline.logs.imu_axes import to_board
+from pipeline.logs.serials import serial_record
 from pipeline.physics.loads import META_KEY as META_LOADS
 from pipeline.physics.loads import Load, loads_to_metadata, with_loads
 from pipeline.sim.distortion import distort, oracle_inverse
@@ -90,6 +91,8 @@ def make_motion(world: World, spec: LogSpec, rng: np.random.Generator) -> Motion
         return add_interaction(gen.kin, motion, events, world.params.robot.gravity, spec.duration_s)
     if spec.type == "standing":
         return gen.standing(rng, spec.duration_s, rate)
+    if spec.type == "poses":
+        return gen.poses(rng, spec.duration_s, rate)
     if spec.type == "balancing":
         return gen.balancing(rng, spec.duration_s, rate, spec.foot)
     if spec.type == "half_foot":
@@ -145,7 +148,7 @@ def log_metadata(
     world: World, spec: LogSpec, name: str, motion: Motion, loads: list[Load]
 ) -> dict[str, dict[str, str]]:
     """The MCAP metadata record ``experiment`` (contacts and fixed link only where constant; the loads of a
-    known-load log)."""
+    known-load log; the sensors' serials of ``robot.serials``, `pipeline.logs.serials`)."""
     robot_params = world.params.robot
     extra = {META_LOADS: loads_to_metadata(loads)} if loads else {}
     return {
@@ -163,6 +166,7 @@ def log_metadata(
             "log": name,
             "foot": spec.foot,
             "part": spec.part,
+            **serial_record(robot_params.serials),
             **extra,
         }
     }

@@ -252,6 +252,25 @@ class MotionGenerator:
             t, q, [frozenset({root})] * t.shape[0], fixed, np.tile(np.eye(4), (t.shape[0], 1, 1))
         )
 
+    def poses(self, rng: np.random.Generator, duration: float, rate: float) -> Motion:
+        """Robot clamped on the pole by root_link, held still in one pose after another (a lab re-zeroing
+        its sensors): the joints that swing on the pole go to postures drawn from the pole's motion, each
+        held `pose_hold_s`, the moves between them `pose_move_s` long (quintic smoothstep). Starts held."""
+        t = self._time(duration, rate)
+        free = _free_joint_motion(self.kin, rng, t, self.moving, self.p.pole_amplitude, self.p, self.home)
+        period = self.p.pose_hold_s + self.p.pose_move_s
+        k = np.floor(t / period).astype(np.intp)  # the pose each sample holds or leaves
+        targets = free[rng.integers(0, len(t), int(k.max()) + 2)]  # postures of the pole's swing
+        s = np.clip((t - k * period - self.p.pose_hold_s) / self.p.pose_move_s, 0.0, 1.0)
+        s = s**3 * (10.0 - 15.0 * s + 6.0 * s**2)  # 0 while held, 0 -> 1 during the move
+        q = np.tile(self.home, (t.shape[0], 1))
+        q[:, self.moving] = targets[k] + s[:, None] * (targets[k + 1] - targets[k])
+        root = self.robot.root_link
+        fixed = np.full(t.shape[0], root, dtype=object)
+        return self._finish(
+            t, q, [frozenset({root})] * t.shape[0], fixed, np.tile(np.eye(4), (t.shape[0], 1, 1))
+        )
+
     def _support(self, foot: Foot, part: str | None) -> tuple[frozenset[str], np.ndarray]:
         """Contact links and CoM target (x, y in the sole frame, m) of balancing on `foot` (or its part):
         the middle of the foot's two parts, or `com_margin_m` inside the outer edge of one part."""

@@ -16,17 +16,17 @@ from pipeline.core.config import Params, stage_section
 from pipeline.core.errors import ConfigError
 from pipeline.logs.imu_axes import parse_axis_maps
 
-EXPERIMENT_TYPES = ("pole", "balancing", "half_foot", "walking", "standing", "known_load", "interaction")
+EXPERIMENT_TYPES = (
+    "pole", "balancing", "half_foot", "walking", "standing", "known_load", "interaction", "poses"
+)  # fmt: skip
 
 
 def check_number(
     obj: Any, name: str, lo: float, hi: float, *, lo_open: bool = False, hi_open: bool = True
 ) -> None:
-    """Check field `name` of the params dataclass `obj` is a real number in the given interval.
-
-    Converts ints to float in place (the dataclasses are frozen) and raises ConfigError naming
-    ``<obj.SECTION>.<name>`` otherwise.
-    """
+    """Check field `name` of the params dataclass `obj` is a real number in the given interval; converts
+    ints to float in place (the dataclasses are frozen) and raises ConfigError naming ``<obj.SECTION>.<name>``
+    otherwise."""
     value = getattr(obj, name)
     left, right = "(" if lo_open else "[", ")" if hi_open else "]"
     key = f"{obj.SECTION}.{name}"
@@ -208,6 +208,8 @@ class MotionParams:
     double_support_s: float = 0.4  # walking: double-support duration, s
     steps_per_direction: int = 8  # walking: steps forward, then as many backward
     com_rate_hz: float = 10.0  # rate of the centre-of-mass correction (spline in between), Hz
+    pose_hold_s: float = 8.0  # poses (on the pole, still): each pose held this long, s
+    pose_move_s: float = 2.0  # poses: the move from one pose to the next, s
 
     SECTION = "simulate.motion"  # dotted params key, for error messages (a class attribute, not a field)
     DERIVED = (  # the fields None derives from the URDF
@@ -237,6 +239,8 @@ class MotionParams:
         check_number(self, "single_support_s", 0.1, 10.0)
         check_number(self, "double_support_s", 0.05, 10.0)
         check_number(self, "com_rate_hz", 0.5, 1000.0)
+        check_number(self, "pose_hold_s", 0.5, 600.0)
+        check_number(self, "pose_move_s", 0.1, 60.0)
         steps = self.steps_per_direction
         if isinstance(steps, bool) or not isinstance(steps, int) or not 1 <= steps <= 100:
             raise ConfigError(
@@ -300,7 +304,7 @@ class LoadSpec:
 class LogSpec:
     """One simulated log (an entry of ``simulate.logs``)."""
 
-    type: str  # pole | balancing | half_foot | walking | standing | known_load | interaction
+    type: str  # pole | balancing | half_foot | walking | standing | known_load | interaction | poses
     duration_s: float  # robot time, s
     role: str  # train | test (written into the log's metadata)
     foot: str = ""  # balancing / half_foot: the supporting foot (l_foot...: pipeline.physics.feet)

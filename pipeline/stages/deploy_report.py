@@ -3,10 +3,11 @@
 ``ftcal deploy-report GROUPS REPORTS``: reads GROUPS/<group>/result.json of every group of
 ``train.groups`` (the tests of `evaluate@<group>`), gathers each day's results
 (`pipeline.deploy.verdict`), and
-writes ``REPORTS/deployment.html`` (the verdict per day, then each day's tables and the groups' figures;
-linked with the report page), ``REPORTS/deployment.json`` (per day the verdict and the smallest Test B and
-C ratios: `dvc metrics show`) and ``REPORTS/deployment/details.json`` (every table). A light assembly: one
-group's change re-runs that group's tests and this page only. Logs one MLflow run.
+writes ``REPORTS/deployment.html`` (the verdict per day as delivered and after re-zeroing, then each day's
+tables and the groups' figures, the re-zeroing and its pose dependence; linked with the report page),
+``REPORTS/deployment.json`` (per day the verdict and the smallest Test B and C ratios, as delivered and
+under ``rezeroed``: `dvc metrics show`) and ``REPORTS/deployment/details.json`` (every table). A light
+assembly: one group's change re-runs that group's tests and this page only. Logs one MLflow run.
 """
 
 from __future__ import annotations
@@ -49,7 +50,7 @@ def run(params: Any, groups_dir: str | Path, reports: str | Path) -> dict[str, A
     from pipeline.core.tracking import stage_run
     from pipeline.deploy.page import write_page
     from pipeline.deploy.params import deploy_params
-    from pipeline.deploy.verdict import headline, merge, summarize
+    from pipeline.deploy.verdict import REZEROED, headline, merge, summarize
 
     dp, groups_dir, reports = deploy_params(params), Path(groups_dir), Path(reports)
     results = _group_results(groups_dir, [str(g) for g in params.raw["train"]["groups"]])
@@ -60,20 +61,18 @@ def run(params: Any, groups_dir: str | Path, reports: str | Path) -> dict[str, A
         "joint": dp.figure_joint,
         "d_slope": dp.slope_tolerance,
         "d_change": dp.push_rmse_target,
+        "pose_limit": dp.rezero.pose_limit,
     }
     days = list(dict.fromkeys(day for r in results.values() for day in r["days"]))
     details = {
         day: merge({g: r["days"][day] for g, r in results.items() if day in r["days"]}) for day in days
     }
-    figures = {  # caption -> path relative to the page
-        day: {
-            f"{group}: {kind}": Path(os.path.relpath(groups_dir / group / file, reports)).as_posix()
-            for group, r in results.items()
-            for kind, file in r["figures"].get(day, {}).items()
-        }
-        for day in days
-    }
+    figures = {day: _figures(results, "figures", day, groups_dir, reports) for day in days}
     summary = {day: summarize(d, dp, target_b, dp.figure_joint) for day, d in details.items()}
+    rezeroed = _rezeroed(results, days)
+    for day, entry in rezeroed.items():
+        entry["summary"] = summarize(entry["details"], dp, target_b, dp.figure_joint)
+        entry["figures"] = _figures(results, f"figures_{REZEROED}", day, groups_dir, reports)
     if not summary:
         uncalibrated = [g for g, r in results.items() if r.get("not_calibrated")]
         targets["nothing"] = nothing_to_test(
@@ -86,12 +85,52 @@ def run(params: Any, groups_dir: str | Path, reports: str | Path) -> dict[str, A
         for day, s in summary.items():
             mlflow.log_metrics({f"{day}.{k}": float(v) for k, v in s.items() if isinstance(v, int | float)})
         headlines = {day: headline(s) for day, s in summary.items()}
+        for day, entry in rezeroed.items():
+            headlines[day][REZEROED] = headline(entry["summary"])
+            mlflow.log_metrics(
+                {
+                    f"{day}.{REZEROED}.{k}": float(v)
+                    for k, v in headlines[day][REZEROED].items()
+                    if isinstance(v, int | float)
+                }
+            )
         write_json(reports / METRICS, headlines or {"nothing_to_test": True})
-        write_json(reports / DETAILS, {"summary": summary, "details": details})
-        write_page(reports / PAGE, details, summary, figures, targets)
+        kept = {day: {k: e[k] for k in ("summary", "details", "rezero")} for day, e in rezeroed.items()}
+        write_json(reports / DETAILS, {"summary": summary, "details": details, REZEROED: kept})
+        write_page(reports / PAGE, details, summary, figures, targets, rezeroed)
         for name in (PAGE, METRICS, DETAILS):
             mlflow.log_artifact(str(reports / name), "deployment" if name == DETAILS else None)
-    return {"summary": summary, "details": details, "nothing": targets.get("nothing")}
+    return {"summary": summary, "details": details, "nothing": targets.get("nothing"), REZEROED: rezeroed}
+
+
+def _figures(results: dict[str, Any], key: str, day: str, groups_dir: Path, reports: Path) -> dict[str, str]:
+    """A day's figures of every group under `key` of its result: caption -> path relative to the page."""
+    return {
+        f"{group}: {kind}": Path(os.path.relpath(groups_dir / group / file, reports)).as_posix()
+        for group, r in results.items()
+        for kind, file in r.get(key, {}).get(day, {}).items()
+    }
+
+
+def _rezeroed(results: dict[str, Any], days: list[str]) -> dict[str, dict[str, Any]]:
+    """Day -> its results after re-zeroing (``details``: every group's tests with its offsets, as delivered
+    where a group could not be re-zeroed; Test A is the delivered one's) and each group's re-zeroing
+    (``rezero``); only the days on which some group was re-zeroed."""
+    from pipeline.deploy.verdict import REZEROED, merge
+
+    out = {}
+    for day in days:
+        groups = {g: r.get(REZEROED, {}).get(day) for g, r in results.items() if day in r["days"]}
+        if not any(e and len(e) > 1 for e in groups.values()):
+            continue
+        tests = {}
+        for g, entry in groups.items():
+            delivered = results[g]["days"][day]
+            mine = {k: v for k, v in (entry or {}).items() if k != "rezero"}
+            tests[g] = {**delivered, **mine} if len(mine) else delivered
+        rezero = {g: e["rezero"] for g, e in groups.items() if e and "rezero" in e}
+        out[day] = {"details": merge(tests), "rezero": rezero}
+    return out
 
 
 def nothing_to_test(
@@ -124,7 +163,13 @@ def _cmd(args: argparse.Namespace) -> int:
 
     out = run(load_params(args.params), args.groups, args.reports)
     for day, s in out["summary"].items():
-        print(f"{day}: {'fit to deploy' if s['fit_to_deploy'] else 'recalibrate'}")
+        after = out["rezeroed"].get(day)
+        verdict = "fit to deploy" if s["fit_to_deploy"] else "recalibrate"
+        if after is not None:
+            verdict += (
+                f"; re-zeroed: {'fit to deploy' if after['summary']['fit_to_deploy'] else 'recalibrate'}"
+            )
+        print(f"{day}: {verdict}")
     if not out["summary"]:
         print(out["nothing"])
     return 0

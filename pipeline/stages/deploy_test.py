@@ -4,15 +4,18 @@ sensor group, on logs no model has seen.
 ``ftcal deploy-test GROUP MODELS EXPORTED TABLES OUT``: on every deployment day under TABLES (the tables of
 `deploy_prepare`, stage `deploy_days`: the simulated ``later`` day, the drift check's ``drifted`` day, the
 recorded logs of ``deploy.real_logs`` if it holds any), the group's tests of `pipeline.deploy.group`: A on
-the standing log
-(output noise of every model in MODELS vs raw), B on the walking log (error tables vs labels and truth), C
-on the pushed pole log (leg joint torques from raw vs calibrated leg sensors against the true torques). The
-calibration is the group's export (EXPORTED, an export directory) run causally on each log's raw messages,
-as on the robot. A group trained on recorded logs (train's ``data``) is tested on ``deploy.real_logs``
-only, never on the simulated days (another robot); simulated days that were not simulated (recorded logs
-only) are named with why in ``not_simulated``. Writes OUT/result.json (per day the results and
-figures) and OUT/<day>_*.png; logs one MLflow run. `deploy_report` gathers every group's into the
-deployment page and verdict.
+the standing log (output noise of every model in MODELS vs raw), B on the walking log (error tables vs
+labels and truth), C on the pushed pole log (leg joint torques from raw vs calibrated leg sensors against
+the true torques), D on the interaction log. The calibration is the group's export (EXPORTED, an export
+directory) run causally on each log's raw messages, as on the robot: as delivered, and re-zeroed from the
+day's first still seconds (`ftcal rezero`'s library, `pipeline.deploy.rezeroing`: the first still stretch
+of the day's logs, ``deploy.rezero``), tests B, C, D again with those offsets (Test A, every trained
+model's output noise, is the same). A group trained on recorded logs (train's ``data``) is tested on
+``deploy.real_logs`` only, never on the simulated days (another robot); simulated days that were not
+simulated (recorded logs only) are named with why in ``not_simulated``. Writes OUT/result.json (per day
+the results and figures, and under ``rezeroed`` the re-zeroing and the results after it) and
+OUT/<day>_*.png; logs one MLflow run. `deploy_report` gathers every group's into the deployment page and
+verdict.
 """
 
 from __future__ import annotations
@@ -44,7 +47,10 @@ def run(
     params: Any, group: str, models: str | Path, exported: str | Path, tables: str | Path, out: str | Path
 ) -> dict[str, Any]:
     """The group's tests on every prepared day (module docstring); what OUT/result.json holds."""
+    from dataclasses import replace
+
     import mlflow
+    import numpy as np
 
     from pipeline.calib.exact import NOT_CALIBRATED
     from pipeline.core.config import stage_section
@@ -54,9 +60,10 @@ def run(
     from pipeline.deploy.models import deployed_models, group_models
     from pipeline.deploy.params import deploy_params
     from pipeline.deploy.prepare import load_nominal_robot, not_simulated, read_day
-    from pipeline.deploy.verdict import RESULT_FILE
+    from pipeline.deploy.verdict import RESULT_FILE, REZEROED
     from pipeline.evaluation.params import EvaluateParams
     from pipeline.export.manifest import read_manifest
+    from pipeline.export.offsets import Offsets
     from pipeline.export.trained import read_metrics
 
     dp, cfg = deploy_params(params), stage_section(params, "evaluate", EvaluateParams)
@@ -80,20 +87,48 @@ def run(
         days = [d for d in days if d.name not in DAY_ORDER]
     sensors, robot = group_models(models)[0], load_nominal_robot(params)
     result: dict[str, Any] = {"group": group, "deployed": deployed[group], "days": {}, "figures": {}}
-    result["recorded"] = recorded
+    result |= {"recorded": recorded, REZEROED: {}, f"figures_{REZEROED}": {}}
     # the simulated days that were not simulated (recorded logs only), and why
     notes = {d.name: not_simulated(d) for d in sorted(Path(tables).iterdir()) if d.is_dir()}
     result["not_simulated"] = {day: note for day, note in notes.items() if note is not None}
     with stage_run(f"{STAGE}@{group}", {"group": group, "deployed": deployed[group]}), atomic_dir(out) as tmp:
-        planned = []
+        logs = {day.name: read_day(day) for day in days}
+        rezeros = _rezero_days(params, dp, exported, logs, sensors, robot)
+        planned, keys = [], []
         for day in days:
             args = (group, sensors, models, exported, deployed[group], params, dp, cfg, robot, day.name, tmp)
-            planned.append((GroupDay(*args, excitation=metrics.get("excitation")), read_day(day)))
-        for day, (tested, drawn) in zip(days, run_days(planned), strict=True):  # in parallel
-            result["days"][day.name], result["figures"][day.name] = tested, drawn
+            ctx = GroupDay(*args, excitation=metrics.get("excitation"))
+            planned.append((ctx, logs[day.name]))
+            keys.append((day.name, ""))
+            if "offsets" in rezeros[day.name]:
+                values = {s: np.asarray(v) for s, v in rezeros[day.name]["offsets"].items()}
+                planned.append((replace(ctx, offsets=Offsets(values), variant=REZEROED), logs[day.name]))
+                keys.append((day.name, REZEROED))
+        for (name, variant), (tested, drawn) in zip(keys, run_days(planned), strict=True):  # in parallel
+            if variant:
+                result[REZEROED][name] = {"rezero": rezeros[name], **tested}
+                result[f"figures_{REZEROED}"][name] = drawn
+            else:
+                result["days"][name], result["figures"][name] = tested, drawn
+        for name, rezero in rezeros.items():
+            result[REZEROED].setdefault(name, {"rezero": rezero})
         write_json(tmp / RESULT_FILE, result)
         mlflow.log_artifacts(str(tmp), f"deployment/{group}")
     return result
+
+
+def _rezero_days(
+    params: Any, dp: Any, exported: Path, logs: dict[str, list[Any]], sensors: list[str], robot: Any
+) -> dict[str, dict[str, Any]]:
+    """Day -> the group re-zeroed from its first still seconds (`pipeline.deploy.rezeroing.rezero_day`),
+    the days in forked processes."""
+    from pipeline.core.parallel import forked_map
+    from pipeline.deploy.prepare import robot_cuts
+    from pipeline.deploy.rezeroing import rezero_day
+
+    _, _, cuts = robot_cuts(params, robot)
+    jobs = [lambda d=d: rezero_day(exported, d, sensors, robot, cuts, dp.rezero) for d in logs.values()]
+    return dict(zip(logs, forked_map(jobs), strict=True))
 
 
 def _cmd(args: argparse.Namespace) -> int:

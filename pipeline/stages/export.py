@@ -99,10 +99,8 @@ def _config(params: Any) -> tuple[Any, dict[str, float]]:
     return cfg, {"float32": cfg.tolerance_float32_ulps, "float64": cfg.tolerance_float64}
 
 
-def _training(client: Any, model: Any, models_dir: Path, labelled: Path) -> dict[str, Any]:
-    """A group model's provenance for the manifest: its training logs' hash and its MLflow run."""
-    from pipeline.export import manifest
-    from pipeline.export.registry import train_run
+def _training_logs(model: Any, models_dir: Path, labelled: Path) -> list[Path]:
+    """The labelled tables a group model was trained on (train and validation logs of its metrics.json)."""
     from pipeline.export.trained import read_metrics
 
     metrics = read_metrics(models_dir)
@@ -111,7 +109,28 @@ def _training(client: Any, model: Any, models_dir: Path, labelled: Path) -> dict
     missing = [p for p in paths if not p.is_file()]
     if missing:
         raise DataError(f"{missing[0]}: training log of {model.group} not found (for the data hash)")
-    return manifest.training(model, manifest.data_sha256(paths), train_run(client, model.group, metrics))
+    return paths
+
+
+def _training(client: Any, model: Any, models_dir: Path, paths: list[Path]) -> dict[str, Any]:
+    """A group model's provenance for the manifest: its training logs' hash and its MLflow run."""
+    from pipeline.export import manifest
+    from pipeline.export.registry import train_run
+    from pipeline.export.trained import read_metrics
+
+    run = train_run(client, model.group, read_metrics(models_dir))
+    return manifest.training(model, manifest.data_sha256(paths), run)
+
+
+def _serials(params: Any, model: Any, paths: list[Path]) -> dict[str, str | None]:
+    """Sensor -> the serial its calibration belongs to: its training logs', else robot.serials
+    (`pipeline.export.identity`)."""
+    from pipeline.export.identity import training_serials
+    from pipeline.logs import schema as S
+    from pipeline.logs.tables import read_table_metadata
+
+    experiments = {str(p): read_table_metadata(p).get(S.META_EXPERIMENT.decode()) or {} for p in paths}
+    return training_serials(experiments, model.sensors, params.robot.serials)
 
 
 def _check_dirs(*paths: tuple[Path, str]) -> None:
@@ -157,9 +176,11 @@ def run_group(
     }
     with stage_run(f"{STAGE}@{group}", stage_params) as active:
         client = mlflow.MlflowClient()
-        training = _training(client, model, models_dir / group, labelled)
+        paths = _training_logs(model, models_dir / group, labelled)
+        training = _training(client, model, models_dir / group, paths)
+        serials = _serials(params, model, paths)
         entry, graphs = manifest.build_graph(
-            group, [model], params.topics, params.robot.urdf, {group: training}
+            group, [model], params.topics, params.robot.urdf, {group: training}, serials
         )
         entry["check"] = check.check_group(graphs, samples)
         check.assert_within(group, entry["check"], tolerance)
@@ -234,9 +255,10 @@ def run_fused(
     models = [read_group(models_dir / g, e["models"][g], g) for g, e in entries.items()]
     samples = [check.load_samples(models_dir / m.group, m, labelled) for m in models]
     trainings = {g: e["training"][g] for g, e in entries.items()}
+    serials = {s: v for e in entries.values() for s, v in (e.get("serials") or {}).items()}
     with stage_run(f"{STAGE}_fused", {"models": {g: e["models"][g] for g, e in entries.items()}}) as active:
         entry, graphs = manifest.build_graph(
-            manifest.FUSED, models, params.topics, params.robot.urdf, trainings
+            manifest.FUSED, models, params.topics, params.robot.urdf, trainings, serials
         )
         entry["check"] = check.check_fused(graphs, samples)
         check.assert_within(manifest.FUSED, entry["check"], tolerance)

@@ -5,14 +5,17 @@ relative paths under OUT). OUT is a copy in which every original record is kept 
 channels, chunks, log and publish times, sequence numbers, metadata) plus, per raw wrench message of a
 sensor the export models, one ``<wrench topic>_calibrated`` geometry_msgs/msg/WrenchStamped with the same
 header (stamp, frame_id), log time and publish time: the export's float64 graph on the raw wrench and the
-latest temperature (and IMU) stamped at or before it (`pipeline.export.runtime`, `pipeline.export.logcopy`).
+latest temperature (and IMU) stamped at or before it (`pipeline.export.runtime`, `pipeline.export.logcopy`),
+with the offsets of the export's latest re-zeroing (``offsets.json`` beside it, `ftcal rezero`; another
+file with ``--offsets``, none with ``--no-offsets``).
 The file is streamed chunk by chunk (memory flat in the log length) and written atomically; it opens in
 Foxglove as any log. A log without chunk indexes (a recorder that died before writing its summary, a writer
 without chunking) is read by scanning its data section, as `ftcal ingest` reads it, and copied the same way.
 
 Sensors with wrench messages but no model pass through uncalibrated (a warning). A log the models cannot
-calibrate (another robot's, a modelled sensor's temperature or IMU topic missing, a truncated file) is a
-one-line error and nothing is written; an existing OUT is refused unless ``--force``.
+calibrate (another robot's, a modelled sensor recorded with another board than its calibration's: its
+serial, `pipeline.export.identity`; a modelled sensor's temperature or IMU topic missing, a truncated
+file) is a one-line error and nothing is written; an existing OUT is refused unless ``--force``.
 """
 
 from __future__ import annotations
@@ -50,10 +53,13 @@ def _pairs(source: Path, out: Path) -> list[tuple[Path, Path]]:
 
 
 def run(
-    params: Any, source: str | Path, out: str | Path, models: str | Path, *, force: bool = False
-) -> list[CalibrateResult]:
-    """Calibrate one log or a directory of logs (module docstring); every input is checked first."""
+    params: Any, source: str | Path, out: str | Path, models: str | Path, *, force: bool = False,
+    offsets: Path | bool = True,
+) -> list[CalibrateResult]:  # fmt: skip
+    """Calibrate one log or a directory of logs (module docstring); every input is checked first.
+    `offsets`: True, the re-zeroing beside the export if any; False, none; a path, that file's."""
     from pipeline.export.logcopy import calibrate_log
+    from pipeline.export.offsets import summary
     from pipeline.export.runtime import Deployment, plan_log
     from pipeline.logs.rosmsg import LogReader
 
@@ -63,7 +69,7 @@ def run(
             raise DataError(f"{dst}: exists (use --force to replace it)")
         if dst.resolve() == src.resolve():
             raise DataError(f"{dst}: is the input log (write the copy elsewhere)")
-    deployment = Deployment.load(models)
+    deployment = Deployment.load(models, offsets=offsets)
     planned = []
     for src, dst in pairs:
         with LogReader(src) as reader:
@@ -72,6 +78,7 @@ def run(
     for src, dst, plans, warnings in planned:
         with LogReader(src) as reader:
             result = calibrate_log(reader, dst, deployment, plans)
+        result.offsets = summary(deployment.offsets)
         result.warnings = warnings + [
             f"{src}: {n} wrench messages of {s} precede its first temperature/IMU message: not calibrated"
             for s, n in result.uncalibrated.items()
@@ -85,7 +92,10 @@ def _cmd(args: argparse.Namespace) -> int:
 
     params = load_params(args.params)
     models = args.models if args.models is not None else repo_root() / DEFAULT_MODELS
-    results = run(params, args.source, args.out, models, force=args.force)
+    offsets = False if args.no_offsets else (args.offsets if args.offsets is not None else True)
+    results = run(params, args.source, args.out, models, force=args.force, offsets=offsets)
+    if results:
+        print(results[0].offsets)
     for r in results:
         for warning in r.warnings:
             print(f"ftcal: warning: {warning}", file=sys.stderr)
@@ -113,5 +123,11 @@ def add_cli(subparsers: Any) -> None:
         help=f"export directory with manifest.json (default: {DEFAULT_MODELS}/ at the repo root)",
     )
     parser.add_argument("--force", action="store_true", help="replace existing output logs")
+    which = parser.add_mutually_exclusive_group()
+    which.add_argument(
+        "--offsets", type=Path, default=None, metavar="FILE",
+        help="a re-zeroing's offsets (default: DIR/offsets.json if it exists; `ftcal rezero`)",
+    )  # fmt: skip
+    which.add_argument("--no-offsets", action="store_true", help="the calibration as delivered")
     add_params_option(parser, "topic names")
     parser.set_defaults(func=_cmd)
