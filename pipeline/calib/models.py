@@ -10,20 +10,28 @@ then FT-board accelerometer (3, m/s^2) and gyroscope (3, rad/s) [13 inputs]. Out
 wrench (6, N and Nm, sensor frame).
 
 Networks (`SensorNet`): the thesis's MLP, hidden layers of `hidden` neurons with one activation each
-(default LeakyReLU then ReLU), xavier_uniform weights, a linear output layer. Two choices of ours:
+(default LeakyReLU then ReLU), xavier_uniform weights, a linear output layer, as the correction of a map
+the physics justifies:
 
-- Inputs are normalised with constants from the training samples (``max``: divided by the largest
-  absolute value; ``standard``: minus the mean, divided by the standard deviation), stored as buffers so
-  that the saved model takes raw inputs.
 - The network learns a correction on top of the fitted affine map,
-  ``f_cal = f_raw + A [f_raw, T] + b + s * mlp(x_norm)``, with ``A`` (6, 7) and ``b`` (6,) the group's
-  affine baseline (a buffer, fitted before the network) and ``s`` the per-axis standard deviation of the
-  raw wrench in the training samples (a buffer too). The output layer starts at zero, so the untrained
-  network *is* the affine map: the network only has to learn what the affine map misses, and where the
-  training data say nothing (e.g. a leg in double support, where no single leg has a label) it stays
-  close to the affine map instead of extrapolating from ReLU pieces. ``s`` makes the last layer's output
-  O(1) in every axis (N and Nm differ by two orders of magnitude). The loss stays the thesis's: MSE of
-  the wrench in N and Nm (``switched_loss``).
+  ``f_cal = f_raw + A [f_raw, T] + b + c(x)``, with ``A`` (6, 7) and ``b`` (6,) the group's affine baseline
+  (a buffer, fitted before the network, faithful by its virtual pushes: `pipeline.calib.pushes`). The
+  output layer starts at zero, so the untrained network *is* the affine map, and where the training data
+  say nothing (a leg in double support) it stays close to it instead of extrapolating from ReLU pieces.
+- The correction ``c`` is Lipschitz with bound `slope` (``train.defaults.residual_slope``) in push units
+  (`pipeline.calib.pushes.residual_units`: a push's force on force axes, force x lever on torque axes; a
+  degree on the temperature; 10 m/s^2 and 2.5 rad/s on the IMU): its inputs are divided by those units
+  (after subtracting their training mean, ``standard``, or not, ``max``), its output is ``slope`` times
+  them, and every layer is 1-Lipschitz (`LipschitzLinear`: the weight divided by its spectral norm where
+  that exceeds 1; the activations are 1-Lipschitz). So a change ``d`` of the raw wrench changes the
+  correction by at most ``slope * |d|`` (push metric), at every scale: a push of 1 N and one of 40 N are
+  reported with the affine map's slope within ``slope``, and the IMU can stand in for at most ``slope`` x
+  20 N per 10 m/s^2 of the wrench. What the affine map misses and such a correction can hold is what the
+  physics of a strain-gauge sensor gives (gains drifting with temperature, a nonlinearity of a few % at full
+  scale); what it cannot is a projection of the reading onto the relation the training motions follow,
+  which answers a small push otherwise than a large one (a memoryless model that beats the sensor's noise
+  floor that way is reading a prior over the robot's motions, not the sensor). After training the layers
+  are baked into plain linear layers (`SensorNet.bake`): the saved and exported network is an ordinary MLP.
 
 Losses: `pipeline.calib.losses` (the thesis's switched losses, eqs. 5.4-5.12).
 
@@ -100,6 +108,7 @@ class NetConfig:
     n_inputs: int  # 7 (wrench + temperature) or 13 (+ accelerometer + gyroscope)
     hidden: int = 100  # neurons per hidden layer; 64-128 is plenty for a 7 -> 6 map
     activations: tuple[str, ...] = ("leaky_relu", "relu")  # one per hidden layer, so len = number of layers
+    slope: float = 0.0  # > 0: the correction's Lipschitz bound in push units (`SensorNet`); 0: unbounded
 
     def __post_init__(self) -> None:
         if self.n_inputs not in INPUT_SIZES:
@@ -110,6 +119,29 @@ class NetConfig:
         for name in self.activations:
             if name not in ACTIVATIONS:
                 raise ValueError(f"activation must be one of {sorted(ACTIVATIONS)}, got {name!r}")
+
+
+class LipschitzLinear(nn.Linear):
+    """A linear layer whose weight acts divided by its spectral norm where that exceeds 1: a 1-Lipschitz
+    map (in the 2-norm). `bake` stores the divided weight, after which the layer is a plain linear one."""
+
+    def effective_weight(self) -> torch.Tensor:
+        norm = torch.linalg.matrix_norm(self.weight, ord=2)
+        return self.weight / torch.clamp(norm, min=1.0)
+
+    def forward(self, x: torch.Tensor) -> torch.Tensor:
+        return nn.functional.linear(x, self.effective_weight(), self.bias)
+
+    def bake(self) -> nn.Linear:
+        """The plain layer this one acts as in training (the norm's last bits depend on whether autograd
+        records it: the weight is computed as a training step computes it)."""
+        plain = nn.Linear(self.in_features, self.out_features, dtype=self.weight.dtype)
+        with torch.enable_grad():
+            weight = self.effective_weight().detach()
+        with torch.no_grad():
+            plain.weight.copy_(weight)
+            plain.bias.copy_(self.bias)
+        return plain
 
 
 class SensorNet(nn.Module):
@@ -125,10 +157,11 @@ class SensorNet(nn.Module):
         self.config = config
         layers: list[nn.Module] = []
         width = config.n_inputs
+        linear = LipschitzLinear if config.slope > 0 else nn.Linear
         for name in config.activations:
-            layers += [nn.Linear(width, config.hidden), ACTIVATIONS[name]()]
+            layers += [linear(width, config.hidden), ACTIVATIONS[name]()]
             width = config.hidden
-        layers.append(nn.Linear(width, WRENCH))
+        layers.append(linear(width, WRENCH))
         self.mlp = nn.Sequential(*layers)
         self.register_buffer("in_offset", torch.zeros(config.n_inputs))
         self.register_buffer("in_scale", torch.ones(config.n_inputs))
@@ -154,6 +187,12 @@ class SensorNet(nn.Module):
             )
         self.affine_weight.copy_(torch.as_tensor(np.asarray(weight), dtype=self.affine_weight.dtype))
         self.affine_bias.copy_(torch.as_tensor(np.asarray(bias), dtype=self.affine_bias.dtype))
+
+    def bake(self) -> None:
+        """Replace every Lipschitz layer by the plain layer it acts as (for saving and export)."""
+        for k, module in enumerate(self.mlp):
+            if isinstance(module, LipschitzLinear):
+                self.mlp[k] = module.bake()
 
     def set_constants(self, in_offset: np.ndarray, in_scale: np.ndarray, out_scale: np.ndarray) -> None:
         for name, value in (("in_offset", in_offset), ("in_scale", in_scale), ("out_scale", out_scale)):
@@ -188,6 +227,10 @@ class GroupNet(nn.Module):
     def reset_parameters(self) -> None:
         for net in self.nets:
             net.reset_parameters()
+
+    def bake(self) -> None:
+        for net in self.nets:
+            net.bake()
 
     def forward(self, x: torch.Tensor) -> torch.Tensor:
         n = self.config.n_inputs
