@@ -19,7 +19,8 @@ import torch
 
 from pipeline.calib.data import Group, GroupData
 from pipeline.calib.fidelity import model_fidelity
-from pipeline.calib.models import GroupNet, LipschitzLinear, NetConfig, fit_linear_baseline
+from pipeline.calib.linear import fit_linear_baseline
+from pipeline.calib.models import GroupNet, LipschitzLinear, NetConfig
 from pipeline.calib.pushes import PushPrior, push_penalty, residual_units
 from pipeline.calib.training import (
     PUSHED_SHARE,

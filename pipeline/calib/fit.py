@@ -24,10 +24,7 @@ from pipeline.calib.data import (
     split_logs,
 )
 from pipeline.calib.imu_gate import refuse_flagged_imu
-from pipeline.calib.models import (
-    LinearBaseline,
-    fit_linear_baseline,
-)
+from pipeline.calib.linear import LinearBaseline, fit_linear_baseline
 from pipeline.calib.params import AFFINE, GroupParams, TrainParams, baseline_inputs, poly_name
 from pipeline.calib.records import flatten_metrics
 from pipeline.calib.search import NetResult

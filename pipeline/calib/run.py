@@ -18,7 +18,8 @@ from pipeline.calib.crossval import cross_validate
 from pipeline.calib.excitation import group_excitation
 from pipeline.calib.fidelity import group_fidelity
 from pipeline.calib.fit import Prepared, fit_beside, mlflow_metrics, network_info, prepare, score
-from pipeline.calib.models import WRENCH, LinearBaseline, save_model
+from pipeline.calib.linear import LinearBaseline
+from pipeline.calib.models import WRENCH, save_model
 from pipeline.calib.params import RAW, nn_name
 from pipeline.calib.records import TrainResult, log_network, log_trial_run, write_predictions
 from pipeline.calib.search import NetResult, code_digest, data_digest, search_network

@@ -14,14 +14,9 @@ import torch
 from pipeline.calib.cuts import cut_sums
 from pipeline.calib.data import Group, GroupData, group_errors
 from pipeline.calib.excitation import noise_std
+from pipeline.calib.linear import LinearBaseline
 from pipeline.calib.losses import switched_loss
-from pipeline.calib.models import (
-    WRENCH,
-    GroupNet,
-    LinearBaseline,
-    NetConfig,
-    normalisation_constants,
-)
+from pipeline.calib.models import WRENCH, GroupNet, NetConfig, normalisation_constants
 from pipeline.calib.params import GroupParams
 from pipeline.calib.pushes import PushPrior, output_weights, push_penalty, residual_units
 
