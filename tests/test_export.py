@@ -15,7 +15,8 @@ import pytest
 import torch
 import yaml
 
-from pipeline.calib.models import load_model, monomial_powers
+from pipeline.calib.linear import monomial_powers
+from pipeline.calib.models import load_model
 from pipeline.cli import main
 from pipeline.core.config import load_params
 from pipeline.core.errors import ConfigError, DataError

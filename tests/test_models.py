@@ -9,17 +9,9 @@ import numpy as np
 import pytest
 import torch
 
+from pipeline.calib.linear import _monomials, fit_linear_baseline, monomial_powers
 from pipeline.calib.losses import sum_in_sole, switched_loss
-from pipeline.calib.models import (
-    GroupNet,
-    NetConfig,
-    _monomials,
-    fit_linear_baseline,
-    load_model,
-    monomial_powers,
-    normalisation_constants,
-    save_model,
-)
+from pipeline.calib.models import GroupNet, NetConfig, load_model, normalisation_constants, save_model
 from pipeline.calib.scores import wrench_errors
 from pipeline.core.errors import DataError
 

@@ -16,7 +16,8 @@ import torch
 
 from pipeline.calib.excitation import OUTSIDE, WEAK, excitation, lever_relation, noise_std
 from pipeline.calib.fidelity import model_fidelity, worst_gap
-from pipeline.calib.models import GroupNet, NetConfig, fit_linear_baseline, monomial_powers
+from pipeline.calib.linear import fit_linear_baseline, monomial_powers
+from pipeline.calib.models import GroupNet, NetConfig
 from pipeline.calib.pushes import (
     IMU_STD,
     PushPrior,

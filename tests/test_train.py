@@ -70,6 +70,7 @@ TRAIN_PARAMS = {
         "lambda_push": 0.1,
         "push_force_n": 20.0,
         "push_lever_m": 0.2,
+        "residual_slope": 0.05,
         "n_trials": 3,
         "search": {"lr": {"low": 0.001, "high": 0.03, "log": True}, "hidden": [16, 32]},
         "tpe_startup_trials": 1,
@@ -137,6 +138,7 @@ def test_repo_params_resolve_every_group() -> None:
         ({"defaults": {"search": {"lr": {"low": 0.1, "high": 0.01}}}}, "search.lr needs low < high"),
         ({"defaults": {"inputs": [5]}}, "inputs must be a non-empty list of (6, 7, 13)"),
         ({"val_logs": 0}, "train.val_logs must be an integer >= 1"),
+        ({"defaults": {"residual_slope": 0.0}}, "train.groups.r_leg_ft.residual_slope must be a number in"),
         ({"folds": 0}, "train.folds must be an integer >= 1"),
     ],
 )

@@ -21,7 +21,8 @@ from typing import TYPE_CHECKING, Any
 import numpy as np
 
 from pipeline.calib.data import GroupData, group_errors
-from pipeline.calib.models import WRENCH, LinearBaseline
+from pipeline.calib.linear import LinearBaseline
+from pipeline.calib.models import WRENCH
 from pipeline.calib.params import RAW, complexity, fold_spread, select_by_folds
 from pipeline.calib.training import NetSetting, predict, train_network
 from pipeline.core.progress import ProgressLog

@@ -27,10 +27,7 @@ from pipeline.calib.data import (
 )
 from pipeline.calib.exact import LEFT_OUT, calibrable
 from pipeline.calib.imu_gate import refuse_flagged_imu
-from pipeline.calib.models import (
-    LinearBaseline,
-    fit_linear_baseline,
-)
+from pipeline.calib.linear import LinearBaseline, fit_linear_baseline
 from pipeline.calib.params import AFFINE, LS_AFFINE, GroupParams, TrainParams, baseline_inputs, poly_name
 from pipeline.calib.records import flatten_metrics
 from pipeline.calib.search import NetResult

@@ -140,6 +140,7 @@ class GroupParams:
     lambda_push: float  # weight of the virtual pushes' prior (pipeline.calib.pushes)
     push_force_n: float  # their force std, N
     push_lever_m: float  # and lever, m (torque std = force x lever)
+    residual_slope: float  # networks: the Lipschitz bound of their correction in push units (> 0)
     n_trials: int  # Optuna trials per network (the first: these params)
     search: Mapping[str, Any]  # key -> [choices] or {low, high, log}
     tpe_startup_trials: int  # random trials before TPE
@@ -215,6 +216,10 @@ class GroupParams:
                 raise ConfigError(f"{key}.{attr} must be a number >= 0, got {value!r}")
             object.__setattr__(self, attr, float(value))
         object.__setattr__(self, "lr", float(self.lr))
+        slope = self.residual_slope
+        if not _is_number(slope) or not 0 < slope <= 1:
+            raise ConfigError(f"{key}.residual_slope must be a number in (0, 1], got {slope!r}")
+        object.__setattr__(self, "residual_slope", float(slope))
         orders = self.poly_orders
         if not isinstance(orders, list | tuple) or any(not _is_int(o) or not 1 <= o <= 4 for o in orders):
             raise ConfigError(f"{key}.poly_orders must be a list of integers in [1, 4], got {orders!r}")

@@ -41,6 +41,20 @@ IMU_INPUTS = 13  # a sensor's inputs with its FT board's accelerometer and gyros
 IMU_STD = np.r_[np.full(3, 2.0), np.full(3, 0.5)]
 
 
+# the units in which a network's residual is Lipschitz-bounded (`pipeline.calib.models.SensorNet`), per input
+# beyond the wrench: temperature (deg C), accelerometer (m/s^2), gyroscope (rad/s)
+TEMPERATURE_UNIT = 1.0
+IMU_UNITS = np.r_[np.full(3, 10.0), np.full(3, 2.5)]
+
+
+def residual_units(force_n: float, lever_m: float, n_inputs: int) -> np.ndarray:
+    """(n_inputs,) the unit of each input (and, first 6, of each output) of a network's bounded residual:
+    a push of `force_n` on force axes, `force_n * lever_m` on torque axes, then `TEMPERATURE_UNIT` and
+    `IMU_UNITS`."""
+    units = np.r_[np.full(3, force_n), np.full(3, force_n * lever_m), TEMPERATURE_UNIT, IMU_UNITS]
+    return units[:n_inputs]
+
+
 @dataclass(frozen=True)
 class PushPrior:
     """The virtual pushes of a fit: weight of the term, force std (N) and lever (m)."""

@@ -17,9 +17,7 @@ import torch
 
 from pipeline.calib.cuts import cut_sums_np
 from pipeline.calib.data import Group, GroupData
-from pipeline.calib.models import (
-    GroupNet,
-)
+from pipeline.calib.models import GroupNet
 from pipeline.core.io import write_atomic
 from pipeline.logs import schema as S
 

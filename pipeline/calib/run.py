@@ -27,7 +27,8 @@ from pipeline.calib.fit import (
     prepare,
     score,
 )
-from pipeline.calib.models import WRENCH, LinearBaseline, save_model
+from pipeline.calib.linear import LinearBaseline
+from pipeline.calib.models import WRENCH, save_model
 from pipeline.calib.params import LS_AFFINE, RAW, nn_name
 from pipeline.calib.records import TrainResult, log_network, log_trial_run, write_predictions
 from pipeline.calib.search import NetResult, code_digest, data_digest, search_network

@@ -26,10 +26,8 @@ from typing import Any
 import numpy as np
 
 from pipeline.calib.data import Group, GroupData, derive_seed
-from pipeline.calib.models import (
-    GroupNet,
-    LinearBaseline,
-)
+from pipeline.calib.linear import LinearBaseline
+from pipeline.calib.models import GroupNet
 from pipeline.calib.params import SEARCHABLE, GroupParams, nn_name
 from pipeline.calib.studies import (
     finished_trials,

@@ -14,16 +14,11 @@ import torch
 from pipeline.calib.cuts import cut_sums
 from pipeline.calib.data import Group, GroupData, group_errors
 from pipeline.calib.excitation import noise_std
+from pipeline.calib.linear import LinearBaseline
 from pipeline.calib.losses import switched_loss
-from pipeline.calib.models import (
-    WRENCH,
-    GroupNet,
-    LinearBaseline,
-    NetConfig,
-    normalisation_constants,
-)
+from pipeline.calib.models import WRENCH, GroupNet, NetConfig, normalisation_constants
 from pipeline.calib.params import GroupParams
-from pipeline.calib.pushes import PushPrior, output_weights, push_penalty
+from pipeline.calib.pushes import PushPrior, output_weights, push_penalty, residual_units
 
 PUSHED_SHARE = 4  # one sample of a batch in this many gets a virtual push (pipeline.calib.pushes)
 
@@ -46,6 +41,7 @@ class NetSetting:
     lambda_cut: float  # each cut set's sum term (groups of several sensors)
     lambda_prior: float  # pull towards the affine map where a sensor has no exact label of its own
     push: PushPrior  # virtual pushes: the correction's response to them is penalised
+    slope: float = 0.0  # the residual's Lipschitz bound in push units (0: unbounded)
 
     @classmethod
     def of(cls, gp: GroupParams, n_inputs: int, values: Mapping[str, Any] | None = None) -> NetSetting:
@@ -71,6 +67,7 @@ class NetSetting:
             float(gp.lambda_cut),
             float(gp.lambda_prior),
             gp.push,
+            float(gp.residual_slope),
         )
 
 
@@ -227,12 +224,16 @@ def _new_network(
     group: Group, train: GroupData, setting: NetSetting, start: LinearBaseline | None
 ) -> GroupNet:
     """A freshly initialised network with the normalisation of `train`; equal to `start` if given."""
-    model = GroupNet(NetConfig(setting.n_inputs, setting.hidden, setting.activations), len(group.sensors))
+    config = NetConfig(setting.n_inputs, setting.hidden, setting.activations, setting.slope)
+    model = GroupNet(config, len(group.sensors))
     model.reset_parameters()
     for s, net in enumerate(model.nets):
         x = train.x[:, s, : setting.n_inputs]
         offset, scale = normalisation_constants(x, setting.normalisation)
         out_scale = normalisation_constants(x[:, :WRENCH], "standard")[1]
+        if setting.slope > 0:  # the residual's slope at most `slope` in push units (SensorNet)
+            scale = residual_units(setting.push.force_n, setting.push.lever_m, setting.n_inputs)
+            out_scale = setting.slope * scale[:WRENCH]
         net.set_constants(offset, scale, out_scale)
         if start is not None:
             net.set_affine(*start.affine_map(s))
@@ -304,4 +305,5 @@ def train_network(
             on_epoch(epoch, history[-1]["loss"], err)
     if best_state is not None:
         model.load_state_dict(best_state)
+    model.bake()
     return model.eval(), history

@@ -34,7 +34,8 @@ def _inputs(table: pd.DataFrame, sensors: list[str], n: int) -> np.ndarray:
 
 def group_models(model_dir: Path) -> tuple[list[str], dict[str, Predictor]]:
     """(the group's sensors, model name -> predictor) of a train output directory ``models/<group>``."""
-    from pipeline.calib.models import LinearBaseline, load_model
+    from pipeline.calib.linear import LinearBaseline
+    from pipeline.calib.models import load_model
 
     try:
         metrics = json.loads((model_dir / "metrics.json").read_text(encoding="utf-8"))

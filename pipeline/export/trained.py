@@ -193,7 +193,7 @@ def _network(model_dir: Path, name: str, group: str, sensors: tuple[str, ...]) -
 
 
 def _linear(model_dir: Path, name: str, group: str, sensors: tuple[str, ...]) -> GroupModel:
-    from pipeline.calib.models import LinearBaseline
+    from pipeline.calib.linear import LinearBaseline
 
     path = model_dir / BASELINES_FILE
     try:

@@ -1,0 +1,248 @@
+"""Linear baselines of a sensor group: the affine map the networks correct, and polynomials of order 1-4.
+
+Every model here is ``f = f_raw + W phi(x)``, linear in its parameters W, fitted in closed form on the same
+switched least-squares objective as the networks (`pipeline.calib.losses`, thesis eqs. 5.4-5.12), with the
+virtual pushes' prior (`pipeline.calib.pushes`): ``affine`` (phi = [f, T, 1], least squares,
+the in-situ affine calibration with temperature) and ``poly<n>`` (phi = every monomial up to order n of
+the 7 standardised inputs, ridge; Mohamed et al. 2023 with na = nb = 0).
+Arrays are (N, S, ...) over N samples and S sensors; wrenches N and Nm.
+"""
+
+from __future__ import annotations
+
+import itertools
+from collections.abc import Sequence
+from dataclasses import dataclass
+from functools import partial
+from typing import Any
+
+import numpy as np
+
+from pipeline.calib.pushes import PushPrior, linear_push_gram
+from pipeline.calib.scores import WRENCH
+from pipeline.core.errors import DataError
+
+AFFINE_INPUTS = 7  # raw wrench + temperature: the inputs of the affine map and the polynomials (6 where
+# a group trains on the wrench alone: `fit_linear_baseline(n_inputs=6)`, the networks' affine map then 6 wide)
+TINY_SCALE = 1e-9  # a normalisation scale below this (a constant input) is replaced by 1
+
+
+# --- linear baselines ----------------------------------------------------------------------------
+
+
+def monomial_powers(n_vars: int, order: int) -> np.ndarray:
+    """(P, n_vars) exponents of every monomial of total degree <= order, constant first, by degree."""
+    rows = [np.zeros(n_vars, dtype=np.int64)]
+    for degree in range(1, order + 1):
+        for combo in itertools.combinations_with_replacement(range(n_vars), degree):
+            row = np.zeros(n_vars, dtype=np.int64)
+            np.add.at(row, list(combo), 1)
+            rows.append(row)
+    return np.array(rows)
+
+
+def _monomials(z: np.ndarray, powers: np.ndarray, chunk: int = 2048) -> np.ndarray:
+    """(N, P) products z^powers for z (N, V) and powers (P, V), by repeated multiplication (exact).
+
+    Each product is ``1 * z_0 ... z_0 * z_1 ...`` in ascending variable order, one factor at a time;
+    a monomial is computed as the one of its powers less the last factor times that factor (the same
+    products, each computed once instead of once per monomial containing it), `chunk` samples at a time.
+    """
+    z = np.asarray(z, dtype=np.float64)
+    plan = _monomial_plan(powers)
+    out = np.empty((len(z), len(powers)))
+    rows = np.empty((len(plan), min(chunk, len(z))))  # one monomial per row: contiguous products
+    for first in range(0, len(z), chunk):
+        part = z[first : first + chunk].T
+        m = part.shape[1]
+        for j, base, v in plan:
+            if v < 0:
+                rows[j, :m] = 1.0
+            else:
+                np.multiply(rows[base, :m] if base >= 0 else 1.0, part[v], out=rows[j, :m])
+        out[first : first + m] = rows[: len(powers), :m].T
+    return out
+
+
+def _monomial_plan(powers: np.ndarray) -> list[tuple[int, int, int]]:
+    """How `_monomials` builds each product: (row, row of the powers less the last factor or -1 for the
+    constant 1, that factor's variable or -1 for the constant itself), in an order where every base comes
+    first; prefixes that are not among `powers` get rows after them."""
+    index = {tuple(int(k) for k in p): j for j, p in enumerate(powers)}
+    plan: list[tuple[int, int, int]] = []
+    done: set[tuple[int, ...]] = set()
+
+    def build(p: tuple[int, ...]) -> int:
+        if p not in index:
+            index[p] = len(index)
+        if p not in done:
+            nonzero = [v for v, k in enumerate(p) if k]
+            if not nonzero:
+                plan.append((index[p], -1, -1))
+            else:
+                last = nonzero[-1]
+                less = p[:last] + (p[last] - 1,) + p[last + 1 :]
+                base = -1 if not any(less) else build(less)
+                plan.append((index[p], base, last))
+            done.add(p)
+        return index[p]
+
+    for p in powers:
+        build(tuple(int(k) for k in p))
+    return plan
+
+
+@dataclass
+class LinearBaseline:
+    """``f_s = f_raw,s + W_s phi(x_s)`` per sensor s, phi = monomials of the standardised 7 inputs.
+
+    `offset`/`scale` (S, 7) standardise each sensor's inputs; `powers` (P, 7) are the monomial
+    exponents (order 1: [1, f, T], the affine model); `weights` (S, 6, P) the fitted W_s.
+    """
+
+    name: str
+    offset: np.ndarray
+    scale: np.ndarray
+    powers: np.ndarray
+    weights: np.ndarray
+
+    def features(self, x: np.ndarray, s: int) -> np.ndarray:
+        """(N, P) features of sensor s from its raw inputs x (N, >= 7; >= 6 for a wrench-only model)."""
+        k = self.offset.shape[1]  # 7, or 6 without temperature
+        return _monomials((x[:, :k] - self.offset[s]) / self.scale[s], self.powers)
+
+    def predict(self, x: np.ndarray) -> np.ndarray:
+        """(N, S, 6) calibrated wrenches from raw inputs x (N, S, >= 7)."""
+        return np.stack(
+            [x[:, s, :WRENCH] + self.features(x[:, s], s) @ self.weights[s].T for s in range(x.shape[1])],
+            axis=1,
+        )
+
+    def affine_map(self, s: int) -> tuple[np.ndarray, np.ndarray]:
+        """Sensor s's model as ``f_raw + weight @ x[:7] + bias``: (weight (6, 7), bias (6,)); order 1 only."""
+        k = self.offset.shape[1]
+        if len(self.powers) != k + 1 or self.powers.sum(axis=1).max() > 1:
+            raise ValueError(f"{self.name}: not an affine model (monomials of order > 1)")
+        w = self.weights[s]  # columns: constant, then z_v = (x_v - offset_v) / scale_v in input order
+        order = np.argmax(self.powers[1:], axis=1)  # which input each linear column multiplies
+        weight = np.zeros((WRENCH, k))
+        weight[:, order] = w[:, 1:] / self.scale[s][order]
+        bias = w[:, 0] - weight @ self.offset[s]
+        return weight, bias
+
+    def to_dict(self) -> dict[str, Any]:
+        return {
+            "name": self.name,
+            "model": "f = f_raw + W phi((x[:k] - offset) / scale), k = len(offset), phi = monomials (powers)",
+            "offset": self.offset.tolist(),
+            "scale": self.scale.tolist(),
+            "powers": self.powers.tolist(),
+            "weights": self.weights.tolist(),
+        }
+
+
+def fit_linear_baseline(
+    name: str,
+    x: np.ndarray,
+    labels: np.ndarray,
+    switches: np.ndarray,
+    order: int,
+    ridge: float,
+    lambdas: Sequence[float],
+    sum_label: np.ndarray | None = None,
+    alpha_sum: np.ndarray | None = None,
+    transforms: np.ndarray | None = None,
+    lambda_sum: float = 1.0,
+    n_inputs: int = AFFINE_INPUTS,
+    push: PushPrior | None = None,
+    seed: int = 0,
+) -> LinearBaseline:
+    """Minimise the switched loss of `switched_loss` over W in closed form (normal equations).
+
+        J(W) = sum_i [sum_s alpha_si lambda_s |r_si - W_s phi_si|^2 + alpha_sum,i lambda_sum
+               |r_sum,i - sum_s X_s W_s phi_si|^2] + ridge N sum_s |W_s without its constant column|^2
+               + push.weight sum_i sum_s E_delta |W_s (phi(x_si + delta) - phi(x_si))|^2
+
+    with r = label - raw (residuals, so ridge shrinks towards the primary calibration). Sum samples
+    couple the sensors of a foot through X_s; the normal equations are then solved jointly. The last
+    term is the virtual pushes' prior (`pipeline.calib.pushes`): exact for the affine model, sampled
+    (seeded by `seed`) for the polynomials.
+
+    Args:
+        x: (N, S, >= 7) raw inputs; labels (N, S, 6); switches (N, S) bool; other arrays as in
+            `switched_loss` (numpy). `ridge` is per sample, on standardised features.
+        n_inputs: the inputs the model reads, 7 (wrench and temperature) or 6 (the wrench alone).
+
+    Raises:
+        DataError: no sample has a switch set.
+    """
+    x = np.asarray(x, dtype=np.float64)
+    n, n_sensors = x.shape[:2]
+    use_sum = sum_label is not None and alpha_sum is not None and transforms is not None and alpha_sum.any()
+    if not switches.any() and not use_sum:
+        raise DataError(f"{name}: no training sample with an exact label")
+    inputs = x[:, :, :n_inputs]
+    offset = inputs.mean(axis=0)
+    scale = np.where(inputs.std(axis=0) > TINY_SCALE, inputs.std(axis=0), 1.0)
+    powers = monomial_powers(n_inputs, order)
+    model = LinearBaseline(name, offset, scale, powers, np.zeros((n_sensors, WRENCH, len(powers))))
+    phis = [model.features(x[:, s], s) for s in range(n_sensors)]
+    p = len(powers)
+    k = WRENCH * p  # unknowns per sensor: W_s flattened row-major (output axis, feature)
+    normal = np.zeros((n_sensors * k, n_sensors * k))
+    rhs = np.zeros(n_sensors * k)
+    eye = np.eye(WRENCH)
+    for s in range(n_sensors):
+        rows = switches[:, s]
+        if rows.any():
+            phi, r = phis[s][rows], (labels[rows, s] - x[rows, s, :WRENCH])
+            # row-major vec: W phi = (I6 kron phi^T) vec(W)
+            normal[s * k : (s + 1) * k, s * k : (s + 1) * k] += lambdas[s] * np.kron(eye, phi.T @ phi)
+            rhs[s * k : (s + 1) * k] += lambdas[s] * (r.T @ phi).reshape(-1)
+    if use_sum:
+        _add_sum_term(normal, rhs, phis, x, sum_label, alpha_sum.astype(bool), transforms, lambda_sum)
+    penalty = np.tile(np.r_[0.0, np.ones(p - 1)], WRENCH * n_sensors) * ridge * n
+    normal[np.diag_indices_from(normal)] += penalty
+    if push is not None and push.active:
+        rng = np.random.default_rng(seed)
+        for s in range(n_sensors):
+            features = partial(model.features, s=s)
+            gram = linear_push_gram(features, model.powers, model.scale[s], x[:, s], push, rng)
+            normal[s * k : (s + 1) * k, s * k : (s + 1) * k] += push.weight * np.kron(eye, gram)
+    model.weights = _solve_informed(normal, rhs).reshape(n_sensors, WRENCH, p)
+    return model
+
+
+def _add_sum_term(
+    normal: np.ndarray,
+    rhs: np.ndarray,
+    phis: Sequence[np.ndarray],
+    x: np.ndarray,
+    sum_label: np.ndarray,
+    rows: np.ndarray,
+    transforms: np.ndarray,
+    lambda_sum: float,
+) -> None:
+    """Add the sum term of `fit_linear_baseline` (samples `rows`) to its normal equations, in place."""
+    k = len(rhs) // len(phis)
+    r = sum_label[rows] - np.einsum("sij,nsj->ni", transforms, x[rows, :, :WRENCH])
+    phis = [phi[rows] for phi in phis]
+    for s, phi_s in enumerate(phis):
+        # X_s W_s phi = (X_s kron phi^T) vec(W_s)
+        rhs[s * k : (s + 1) * k] += lambda_sum * (transforms[s].T @ r.T @ phi_s).reshape(-1)
+        for t, phi_t in enumerate(phis):
+            block = np.kron(transforms[s].T @ transforms[t], phi_s.T @ phi_t)
+            normal[s * k : (s + 1) * k, t * k : (t + 1) * k] += lambda_sum * block
+
+
+def _solve_informed(normal: np.ndarray, rhs: np.ndarray) -> np.ndarray:
+    """The normal equations' solution; unknowns that no sample informs (e.g. a foot sensor with neither
+    part nor sum labels) stay 0."""
+    informed = np.abs(normal).sum(axis=1) > 0
+    solution = np.zeros(len(rhs))
+    sub = normal[np.ix_(informed, informed)]
+    try:
+        solution[informed] = np.linalg.solve(sub, rhs[informed])
+    except np.linalg.LinAlgError:
+        solution[informed] = np.linalg.lstsq(sub, rhs[informed], rcond=None)[0]
+    return solution
