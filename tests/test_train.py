@@ -75,6 +75,7 @@ TRAIN_PARAMS = {
         "tpe_startup_trials": 1,
         "prune_startup_trials": 1,
         "prune_warmup_epochs": 1,
+        "prune_margin": 0.1,
         "poly_orders": [1, 2],
         "ridge": 1.0e-6,
     },
@@ -529,7 +530,7 @@ def test_several_sensors_group_trains_with_its_cut_sets(
     pred = pd.read_parquet(tmp_path / "out" / "predictions.parquet")
     test = pd.concat([pd.read_parquet(p).assign(**{LOG: p.stem}) for p in labelled.glob("*test.parquet")])
     test = pred[[LOG, S.STAMP]].merge(test, on=[LOG, S.STAMP], how="left")
-    poses = test[S.cut_pose_cols(SHANK, LEG)].to_numpy()
+    poses = test[S.cut_pose_cols(SHANK, LEG)].to_numpy().astype(np.float32)  # as the stage reads them
     leg, front, rear = (pred[prediction_cols("nn7", s)].to_numpy() for s in (LEG, FRONT, REAR))
     want = map_wrenches(poses, leg) - front @ TRANSFORMS[0].T - rear @ TRANSFORMS[1].T
     # the shank's score is the cut-set sum of the sensors' predictions written, against its label

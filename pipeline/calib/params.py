@@ -140,8 +140,9 @@ class GroupParams:
     n_trials: int  # Optuna trials per network (the first: these params)
     search: Mapping[str, Any]  # key -> [choices] or {low, high, log}
     tpe_startup_trials: int  # random trials before TPE
-    prune_startup_trials: int  # MedianPruner: complete trials before pruning
-    prune_warmup_epochs: int  # MedianPruner: epochs never pruned
+    prune_startup_trials: int  # slots never pruned (pipeline.calib.pruning)
+    prune_warmup_epochs: int  # epochs of a trial never pruned
+    prune_margin: float  # a trial is pruned when its error exceeds the earlier slots' median by more
     poly_orders: tuple[int, ...]  # polynomial baselines
     ridge: float  # ridge penalty per sample (standardised features)
 
@@ -205,6 +206,7 @@ class GroupParams:
             "lambda_push",
             "push_force_n",
             "push_lever_m",
+            "prune_margin",
             "ridge",
         ):
             value = getattr(self, attr)
