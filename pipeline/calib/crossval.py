@@ -23,7 +23,7 @@ import numpy as np
 from pipeline.calib.data import GroupData, group_errors
 from pipeline.calib.models import WRENCH, LinearBaseline
 from pipeline.calib.params import RAW, complexity, fold_spread, select_by_folds
-from pipeline.calib.training import NetSetting, predict, train_network
+from pipeline.calib.training import NetSetting, predict, train_network, use_threads
 from pipeline.core.progress import ProgressLog
 
 if TYPE_CHECKING:
@@ -42,6 +42,7 @@ def _fold_predictions(
 
     def fit(name: str, start: LinearBaseline) -> tuple[np.ndarray, list[dict[str, float]], float]:
         r, t = nets[name], time.perf_counter()
+        use_threads(prep.cfg.threads)
         setting = NetSetting.of(gp, r.model.config.n_inputs, r.values)
         model, history = train_network(group, train, val, setting, r.seed, None, start)
         return predict(model, val), history, time.perf_counter() - t

@@ -24,6 +24,7 @@ from __future__ import annotations
 
 import math
 import time
+import warnings
 from typing import Any
 
 import numpy as np
@@ -83,5 +84,7 @@ class SlotPruner:
                 return float(t.intermediate_values[step])
             if t.state != TrialState.RUNNING or not shared:  # ended before `step` (or a journal's leftover)
                 return None
-            fail_stale_trials(study)  # a dead process's slot stops being waited for
+            with warnings.catch_warnings():  # Optuna calls heartbeats experimental
+                warnings.simplefilter("ignore")
+                fail_stale_trials(study)  # a dead process's slot stops being waited for
             time.sleep(self.poll)

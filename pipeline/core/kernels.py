@@ -12,7 +12,9 @@ nn7 on an AVX-512 one). `pin` makes each library take its AVX2 kernels on every 
 
 - numpy's ufuncs: ``NPY_DISABLE_CPU_FEATURES`` lists the AVX-512 dispatch targets (numpy 2.4's names and the
   older ones: numpy ignores the names it does not know, with a hidden ImportWarning);
-- OpenBLAS, numpy's linear algebra: ``OPENBLAS_CORETYPE=Haswell``;
+- OpenBLAS, numpy's linear algebra: ``OPENBLAS_CORETYPE=Haswell``, and ``OPENBLAS_NUM_THREADS=1`` (its
+  matrix products split the work by the number of cores and round by the split: the stages run their
+  parallel work in processes, `pipeline.core.parallel`);
 - MKL, torch's matrix products on a CPU: ``MKL_CBWR=AVX2,STRICT`` (MKL's conditional numerical
   reproducibility; STRICT: the same bits whatever the number of threads).
 
@@ -40,6 +42,7 @@ NUMPY_AVX512 = (
 PINS = {
     "NPY_DISABLE_CPU_FEATURES": NUMPY_AVX512,
     "OPENBLAS_CORETYPE": "Haswell",
+    "OPENBLAS_NUM_THREADS": "1",
     "MKL_CBWR": "AVX2,STRICT",
 }
 
