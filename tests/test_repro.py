@@ -27,7 +27,7 @@ import pytest
 from pipeline.calib.pruning import SlotPruner
 from pipeline.core import kernels
 from pipeline.logs import schema as S
-from tests.factories import LEG, LOGS, write_labelled_log
+from tests.factories import LEG, write_labelled_logs
 from tests.searchrun import decisions
 from tests.test_train import TRAIN_PARAMS, write_params
 
@@ -44,10 +44,7 @@ AVX2_MACHINE = {
 
 @pytest.fixture(scope="module")
 def labelled(tmp_path_factory: pytest.TempPathFactory) -> Path:
-    out = tmp_path_factory.mktemp("labelled")
-    for i, (name, kind, role) in enumerate(LOGS):
-        write_labelled_log(out / f"{name}_{role}.parquet", kind, role, n=400, seed=i)
-    return out
+    return write_labelled_logs(tmp_path_factory.mktemp("labelled"), n=400)
 
 
 def search_params(tmp_path: Path, threads: int = 1) -> Path:

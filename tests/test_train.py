@@ -30,7 +30,7 @@ from pipeline.logs import schema as S
 from pipeline.logs.schema import LOG, prediction_cols
 from pipeline.physics.cuts import map_wrenches, pose_wrench_transforms
 from pipeline.stages.train import train_group  # the stage entry (default studies dir)
-from tests.factories import FRONT, LEG, LOGS, PAIR, REAR, SHANK, write_labelled_log
+from tests.factories import FRONT, LEG, PAIR, REAR, SHANK, write_labelled_log, write_labelled_logs
 from tests.test_models import TRANSFORMS
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -38,10 +38,7 @@ ROOT = Path(__file__).resolve().parents[1]
 
 @pytest.fixture(scope="module")
 def labelled(tmp_path_factory: pytest.TempPathFactory) -> Path:
-    out = tmp_path_factory.mktemp("labelled")
-    for i, (name, kind, role) in enumerate(LOGS):
-        write_labelled_log(out / f"{name}_{role}.parquet", kind, role, n=500, seed=i)
-    return out
+    return write_labelled_logs(tmp_path_factory.mktemp("labelled"), n=500)
 
 
 TRAIN_PARAMS = {
