@@ -24,6 +24,8 @@ import pyarrow as pa
 import pyarrow.parquet as pq
 import pytest
 
+from pipeline.calib.crossval import close_steps
+from pipeline.calib.params import select_by_folds, selection_steps
 from pipeline.calib.pruning import SlotPruner
 from pipeline.core import kernels
 from pipeline.logs import schema as S
@@ -115,6 +117,21 @@ def test_inputs_changed_in_their_last_bits_train_the_same(tmp_path: Path, labell
     a = decisions(params, LEG, labelled, tmp_path / "studies_a")
     b = decisions(params, LEG, tmp_path / "changed", tmp_path / "studies_b")
     assert a == b
+
+
+def test_selection_records_its_steps_and_those_close_to_the_margin() -> None:
+    # nn13 is 9.6 % better than nn7 on both folds: short of the 10 % margin by less than CLOSE
+    scores = {"raw": [10.0, 10.2], "affine": [1.0, 1.1], "nn7": [0.5, 0.52], "nn13": [0.452, 0.47]}
+    steps = selection_steps(scores, 0.1)
+    assert [(s["model"], s["against"], s["won"]) for s in steps] == [
+        ("affine", "raw", True),
+        ("nn7", "affine", True),
+        ("nn13", "nn7", False),
+    ]
+    assert steps[2]["gain"] == pytest.approx(1 - 0.461 / 0.51)
+    assert select_by_folds(scores, 0.1) == "nn7"
+    assert [s["model"] for s in close_steps(steps, 0.1)] == ["nn13"]
+    assert close_steps(selection_steps(scores, 0.2), 0.2) == []  # 9.6 % is far from 20 %
 
 
 # --- pruning ---------------------------------------------------------------------------------------
