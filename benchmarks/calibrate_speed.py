@@ -13,6 +13,7 @@ Targets: >= 200k messages/s, peak RSS < 1 GiB. Also the same figures for a log o
 to show that the memory does not grow with the log. The last line is the rate relative to the target.
 
     python benchmarks/calibrate_speed.py [--seconds 570] [--keep DIR]
+    python benchmarks/calibrate_speed.py --quick    # logs of 0.5 and 5 s: for the test suite
 """
 
 from __future__ import annotations
@@ -29,6 +30,7 @@ from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
+from benchmarks import QUICK  # noqa: E402
 from benchmarks.export_fixture import GROUPS, synthetic_export, synthetic_models  # noqa: E402
 from tests.mcap_factory import write_log  # noqa: E402
 
@@ -68,7 +70,10 @@ def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--seconds", type=float, default=570.0, help="robot time of the log, s (1780 messages/s)")
     ap.add_argument("--keep", type=Path, default=None, help="keep the files in this directory")
+    ap.add_argument("--quick", action="store_true", help=f"{QUICK}: logs of 0.5 and 5 s")
     args = ap.parse_args()
+    if args.quick:
+        args.seconds = 5.0
     with tempfile.TemporaryDirectory() as tmp:
         work = args.keep or Path(tmp)
         work.mkdir(parents=True, exist_ok=True)

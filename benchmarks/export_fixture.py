@@ -20,8 +20,10 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from pipeline.calib.models import GroupNet, NetConfig, save_model  # noqa: E402
 from pipeline.core.config import load_params  # noqa: E402
+from pipeline.core.io import write_json  # noqa: E402
 from pipeline.export import manifest  # noqa: E402
 from pipeline.export.trained import GroupModel, read_group  # noqa: E402
+from pipeline.stages.export import GROUPS_DIR  # noqa: E402
 
 ROOT = Path(__file__).resolve().parents[1]
 GROUPS = {
@@ -56,12 +58,26 @@ def synthetic_models(
 
 
 def synthetic_export(out_dir: Path, models: list[GroupModel]) -> dict:
-    """Export `models` into `out_dir` (graphs of every group, fused graph, manifest); the manifest."""
+    """Export `models` into `out_dir` as the export steps lay an export out (`pipeline.stages.export`): each
+    group's graphs and manifest in ``groups/<group>/``, the fused graph and ``manifest.json`` at the top;
+    returns that manifest. No check against stored predictions (there are none)."""
     params = load_params(ROOT / "params.yaml")
+    robot, topics = params.robot.urdf, params.topics
     trainings = {m.group: manifest.training(m, "synthetic", None) for m in models}
-    built = manifest.build_graphs(models, params.topics, params.robot.urdf, trainings)
-    out_dir.mkdir(parents=True, exist_ok=True)
-    return manifest.write_export(out_dir, params.robot.urdf, built)
+    entries = {}
+    for m in models:
+        where = out_dir / GROUPS_DIR / m.group
+        where.mkdir(parents=True, exist_ok=True)
+        entry, graphs = manifest.build_graph(m.group, [m], topics, robot, {m.group: trainings[m.group]})
+        entry = manifest.write_graphs(where, m.group, entry, graphs)
+        write_json(where / manifest.MANIFEST_FILE, manifest.document(robot, {m.group: entry}, fused=None))
+        entry["files"] = {d: f"{GROUPS_DIR}/{m.group}/{f}" for d, f in entry["files"].items()}
+        entries[m.group] = entry
+    entry, graphs = manifest.build_graph(manifest.FUSED, models, topics, robot, trainings)
+    entries[manifest.FUSED] = manifest.write_graphs(out_dir, manifest.FUSED, entry, graphs)
+    doc = manifest.document(robot, entries)
+    write_json(out_dir / manifest.MANIFEST_FILE, doc)
+    return doc
 
 
 def random_inputs(n: int, n_inputs: int = 13, seed: int = 1) -> np.ndarray:

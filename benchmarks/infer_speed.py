@@ -26,6 +26,7 @@ depend on what else runs; the p99 most). The last line is the ratio torch / onnx
 export's p50 latencies, both called from Python (onnxruntime float32 bound).
 
     python benchmarks/infer_speed.py [--calls 20000] [--rows 1000] [--hidden 100] [--export exported]
+    python benchmarks/infer_speed.py --quick    # 100 calls, batches of 500, no export: for the test suite
 """
 
 from __future__ import annotations
@@ -46,6 +47,7 @@ import torch
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
+from benchmarks import QUICK  # noqa: E402
 from benchmarks.export_fixture import SCALE, random_inputs, synthetic_export, synthetic_models  # noqa: E402
 from pipeline.export.check import run, session  # noqa: E402
 
@@ -207,7 +209,14 @@ def main() -> None:
         help="an export directory whose fused graph is measured too (default exported/ if present; '' none)",
     )
     ap.add_argument("--hidden", type=int, default=100, help="hidden units of the synthetic networks")
+    ap.add_argument("--batch", type=int, default=10000, help="samples per batch of the throughput lines")
+    ap.add_argument(
+        "--quick", action="store_true", help=f"{QUICK}: 100 calls of 20 rows, batches of 500, no --export"
+    )
     args = ap.parse_args()
+    if args.quick:
+        args.calls, args.rows, args.batch = 100, 20, 500
+        args.export = args.export if "--export" in sys.argv else ""
     print(f"load average {os.getloadavg()[0]:.2f} on {os.cpu_count()} cores at the start")
     torch.set_num_threads(1)
     with tempfile.TemporaryDirectory() as tmp:
@@ -230,7 +239,7 @@ def _measure(args: argparse.Namespace, work: Path) -> None:
         with torch.no_grad():
             return [net(x[:, bounds[g] : bounds[g + 1]]) for g, net in enumerate(nets)]
 
-    batch = random_inputs(10000, seed=2)
+    batch = random_inputs(args.batch, seed=2)
     y_ort = run(sessions["float32"], batch)
     y_torch = torch.cat(torch_all(torch.tensor(batch, dtype=torch.float32)), dim=1).numpy()
     print(f"agreement onnxruntime float32 vs torch: max |diff| {np.abs(y_ort - y_torch).max():.2g} N/Nm")

@@ -14,6 +14,7 @@ Both decoders are first checked to agree on a sample of messages. The last line 
 ingest / mcap_ros2 decoding (target >= 3).
 
     python benchmarks/ingest_speed.py [--seconds 250] [--keep DIR]
+    python benchmarks/ingest_speed.py --quick    # a log of 3 s: for the test suite
 """
 
 from __future__ import annotations
@@ -31,6 +32,7 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
+from benchmarks import QUICK  # noqa: E402
 from pipeline.core.config import load_params, stage_section  # noqa: E402
 from pipeline.logs.mcap_table import ingest_log  # noqa: E402
 from pipeline.logs.rosmsg import LogReader, LogWriter  # noqa: E402
@@ -160,10 +162,13 @@ def main() -> None:
     parser.add_argument("--seconds", type=float, default=250.0, help="log duration (250 s: ~1.05M messages)")
     parser.add_argument("--keep", type=Path, default=None, help="write the log here and keep it")
     parser.add_argument("--child", nargs=2, type=Path, metavar=("LOG", "OUT"), help=argparse.SUPPRESS)
+    parser.add_argument("--quick", action="store_true", help=f"{QUICK}: a log of 3 s")
     args = parser.parse_args()
     if args.child:
         child_ingest(*args.child)
         return
+    if args.quick:
+        args.seconds = 3.0
 
     with tempfile.TemporaryDirectory() as tmp:
         folder = args.keep or Path(tmp)

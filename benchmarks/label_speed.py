@@ -9,6 +9,7 @@ cut set, double support) relative to the expected wrenches themselves.
 The last line is the ratio ours / iDynTree (>= 1.0 required, >= 2.0 aimed for).
 
     python benchmarks/label_speed.py [--samples 5000] [--repeats 3]
+    python benchmarks/label_speed.py --quick    # 50 samples, once: for the test suite
 """
 
 from __future__ import annotations
@@ -24,6 +25,7 @@ import pinocchio as pin
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
+from benchmarks import QUICK  # noqa: E402
 from pipeline.physics.cuts import cut_poses, cut_sums, find_cut_sets  # noqa: E402
 from pipeline.physics.dynamics import ContactCase, expected_wrenches  # noqa: E402
 from pipeline.physics.robot import load_robot  # noqa: E402
@@ -46,7 +48,10 @@ def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--samples", type=int, default=5000)
     parser.add_argument("--repeats", type=int, default=3)
+    parser.add_argument("--quick", action="store_true", help=f"{QUICK}: 50 samples, once")
     args = parser.parse_args()
+    if args.quick:
+        args.samples, args.repeats = 50, 1
 
     robot = load_robot("iCubGenova09")
     q, dq, ddq = random_in_limits(robot.urdf_path, robot.joint_names, args.samples, np.random.default_rng(0))

@@ -11,6 +11,9 @@ Starts its own PostgreSQL server (`pipeline.tools.db`, throwaway cluster, fsync 
 
     python benchmarks/search_scaling.py [--labelled /work/main/data/labelled] [--group r_leg_ft]
         [--trials 8] [--workers 4] [--load-workers 16] [--load-trials 50] [--empty-trials 200]
+    python benchmarks/search_scaling.py --quick   # a few trials of tiny networks on synthetic labelled logs
+
+``--group`` is a key of ``train.groups``, or an FT sensor trained alone (its group is added to the params).
 """
 
 from __future__ import annotations
@@ -30,8 +33,10 @@ import yaml
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
+from benchmarks import QUICK  # noqa: E402
 from pipeline.calib import studies  # noqa: E402
 from pipeline.tools import db  # noqa: E402
+from tests.factories import LEG, write_labelled_logs  # noqa: E402
 from tests.pgserver import create_database, free_port  # noqa: E402
 
 _LOAD_WORKER = """
@@ -92,17 +97,22 @@ def load(url: str, workers: int, trials: int) -> dict[str, float]:
     return {"trials": n, "wall_s": wall, "trials_per_s": n / wall, "max_connections_used": workers * 3}
 
 
-def _params(tmp: Path, trials: int) -> Path:
+def _params(tmp: Path, trials: int, group: str, quick: bool) -> Path:
     data = yaml.safe_load((ROOT / "params.yaml").read_text())
-    data["train"]["defaults"].update(inputs=[7], n_trials=trials)
+    data["train"]["defaults"].update(inputs=[7], n_trials=trials, tpe_startup_trials=trials)
+    if quick:
+        data["train"]["defaults"].update(hidden=16, epochs=2, batch_size=128, search={})
+    data["train"]["groups"].setdefault(group, {"sensor": group})
     path = tmp / "params.yaml"
     path.write_text(yaml.safe_dump(data, sort_keys=False))
     return path
 
 
-def search(url: str, tmp: Path, labelled: Path, group: str, trials: int, workers: int) -> dict[str, float]:
+def search(
+    url: str, tmp: Path, labelled: Path, group: str, trials: int, workers: int, quick: bool = False
+) -> dict[str, float]:
     """Wall time of one group's nn7 search: 1 process (journal) vs stage + `workers` workers (database)."""
-    params = _params(tmp, trials)
+    params = _params(tmp, trials, group, quick)
     mlflow_url = create_database(url, "mlflow").replace("postgresql://", "postgresql+psycopg://")
     base = {**os.environ, "PYTHONPATH": str(ROOT), "MLFLOW_TRACKING_URI": mlflow_url}
     base.pop(studies.ENV_STORAGE, None)
@@ -145,10 +155,16 @@ def main() -> None:
     parser.add_argument("--empty-trials", type=int, default=200)
     parser.add_argument("--skip-search", action="store_true", help="only the coordination and load figures")
     parser.add_argument("--only-search", action="store_true", help="only the search wall times")
+    parser.add_argument(
+        "--quick", action="store_true", help=f"{QUICK}: tiny networks on synthetic labelled logs"
+    )
     args = parser.parse_args()
 
     tmp = Path(tempfile.mkdtemp(prefix="ftcal-bench-"))
     tmp.chmod(0o755)
+    if args.quick:
+        args.trials, args.workers, args.load_workers, args.load_trials, args.empty_trials = 2, 1, 2, 3, 5
+        args.group, args.labelled = LEG, write_labelled_logs(tmp / "labelled", n=300)
     data = tmp / "pgdata"
     print(f"machine: {os.cpu_count()} cores; PostgreSQL cluster in {data}")
     pg = db.start(data, free_port(), {"fsync": "off", "synchronous_commit": "off"})
@@ -166,7 +182,7 @@ def main() -> None:
                 f"trials, each run once, in {r['wall_s']:.1f} s: {r['trials_per_s']:.1f} trials/s"
             )
         if not args.skip_search:
-            s = search(pg, tmp, args.labelled, args.group, args.trials, args.workers)
+            s = search(pg, tmp, args.labelled, args.group, args.trials, args.workers, args.quick)
             print(f"one group's search ({args.group}, nn7, {args.trials} trials), launch to stage end:")
             for k, v in s.items():
                 print(f"  {k:<40} {v:8.3f}")

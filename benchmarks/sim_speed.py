@@ -4,6 +4,7 @@ Runs the default params' logs (or a fraction of their durations) through `pipeli
 temporary directory, with a throwaway MLflow store, and prints robot seconds per wall second last.
 
     python benchmarks/sim_speed.py [--scale 1.0] [--workers 0] [--urdf PATH]   (PATH: e.g. an ergoCub URDF)
+    python benchmarks/sim_speed.py --quick     # one log of each type, 2 s each: for the test suite
 """
 
 from __future__ import annotations
@@ -20,6 +21,7 @@ import yaml
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
+from benchmarks import QUICK  # noqa: E402
 from pipeline.core.config import load_params  # noqa: E402
 from pipeline.stages.simulate import run  # noqa: E402
 
@@ -31,12 +33,15 @@ def main() -> None:
     parser.add_argument("--scale", type=float, default=1.0, help="fraction of every log's duration")
     parser.add_argument("--workers", type=int, default=0, help="processes (0: one per core)")
     parser.add_argument("--urdf", default=None, help="robot.urdf instead of the params' (e.g. ergoCub's)")
+    parser.add_argument("--quick", action="store_true", help=f"{QUICK}: one log of each type, 2 s each")
     args = parser.parse_args()
     with tempfile.TemporaryDirectory() as tmp:
         data = yaml.safe_load((REPO / "params.yaml").read_text())
         sim = copy.deepcopy(data["simulate"])
+        if args.quick:
+            sim["logs"] = list({log["type"]: log for log in reversed(sim["logs"])}.values())
         for log in sim["logs"]:
-            log["duration_s"] = max(2.0, log["duration_s"] * args.scale)
+            log["duration_s"] = 2.0 if args.quick else max(2.0, log["duration_s"] * args.scale)
         sim.update({"workers": args.workers, "plots": False})
         data["simulate"] = sim
         if args.urdf:

@@ -1,15 +1,21 @@
-"""Stability of training: two trainings whose labelled inputs differ by 1e-12 relative.
+"""Stability of training: two trainings whose labelled inputs differ by a relative amount.
 
 Copies the labelled tables twice into a work directory, the second with every floating-point column but
 time multiplied by (1 + rel * u), u uniform in [-1, 1] (seeded), trains the groups on both (separate
 Optuna studies, the same params) and evaluates them (against truth when --truth is given). Prints per
 group and headline the recommended model and its test RMSE in both runs (against the labels, and the
 truth), their relative difference, and whether the recommendation is the same. The last line: the
-largest relative difference of the recommended models' RMSEs (<= 5 % aimed for) and whether every
-recommendation agrees.
+largest relative difference of the recommended models' RMSEs and whether every recommendation agrees.
+
+Training reads the labelled values as float32 (`pipeline.calib.data`): a difference of a few float64 steps
+(another machine's smoothing and labelling, --rel 1e-15) changes nothing, unless a value lies that close to
+a float32 rounding boundary. The default --rel 1e-6 changes every value by about ten float32 steps, as another
+simulation or recording of the same experiments would, far below the sensors' noise: the networks then
+train differently, and what stays the same is what does not hang on their last digits.
 
     python benchmarks/stability.py LABELLED WORK [--truth INGESTED] [--params params.yaml]
-        [--groups legs r_arm_ft] [--rel 1e-12]
+        [--groups legs r_arm_ft] [--rel 1e-6]
+    python benchmarks/stability.py --quick    # tiny networks on synthetic labelled logs
 """
 
 from __future__ import annotations
@@ -17,15 +23,20 @@ from __future__ import annotations
 import argparse
 import os
 import sys
+import tempfile
 from pathlib import Path
 
 import numpy as np
 import pyarrow as pa
 import pyarrow.parquet as pq
+import yaml
 
-sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT))
 
+from benchmarks import QUICK  # noqa: E402
 from pipeline.logs import schema as S  # noqa: E402
+from tests.factories import LEG, write_labelled_logs  # noqa: E402
 
 
 def perturb(src: Path, dst: Path, rel: float, seed: int) -> None:
@@ -44,15 +55,38 @@ def perturb(src: Path, dst: Path, rel: float, seed: int) -> None:
         pq.write_table(pa.Table.from_arrays(columns, schema=table.schema), dst / path.name)
 
 
+def quick_params(work: Path) -> Path:
+    """params.yaml with one group of `tests.factories`' leg sensor and tiny networks, in `work`."""
+    data = yaml.safe_load((ROOT / "params.yaml").read_text())
+    data["train"]["defaults"].update(
+        hidden=16, epochs=2, batch_size=128, n_trials=2, tpe_startup_trials=2, search={}
+    )
+    data["train"]["groups"] = {LEG: {"sensor": LEG}}
+    path = work / "params.yaml"
+    path.write_text(yaml.safe_dump(data, sort_keys=False))
+    return path
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("labelled", type=Path)
-    parser.add_argument("work", type=Path, help="work directory (tables, models, studies, reports)")
+    parser.add_argument("labelled", type=Path, nargs="?", help="labelled tables (not with --quick)")
+    parser.add_argument(
+        "work", type=Path, nargs="?", help="work directory (tables, models, studies, reports)"
+    )
     parser.add_argument("--truth", type=Path, default=None, help="ingested directory with the truth tables")
-    parser.add_argument("--params", type=Path, default=Path(__file__).resolve().parents[1] / "params.yaml")
+    parser.add_argument("--params", type=Path, default=ROOT / "params.yaml")
     parser.add_argument("--groups", nargs="*", default=None, help="default: every group of train.groups")
-    parser.add_argument("--rel", type=float, default=1e-12)
+    parser.add_argument("--rel", type=float, default=1e-6)
+    parser.add_argument(
+        "--quick", action="store_true", help=f"{QUICK}: tiny networks on synthetic labelled logs"
+    )
     args = parser.parse_args()
+    if args.quick:
+        args.work = args.work or Path(tempfile.mkdtemp(prefix="ftcal-stability-"))
+        args.labelled = write_labelled_logs(args.work / "source", n=300)
+        args.params, args.groups = quick_params(args.work), [LEG]
+    elif args.labelled is None or args.work is None:
+        parser.error("LABELLED and WORK are required (or --quick)")
     os.environ.setdefault("MLFLOW_TRACKING_URI", f"sqlite:///{(args.work / 'mlflow.db').resolve()}")
 
     from pipeline.calib.run import train_group
@@ -93,7 +127,7 @@ def main() -> None:
                 f"({'same' if agree else 'DIFFERENT'}); {'; '.join(parts)}"
             )
     print(
-        f"largest relative difference of the recommended RMSEs: {worst:.2%} (<= 5% aimed for); "
+        f"largest relative difference of the recommended RMSEs: {worst:.2%} (<= 2% aimed for); "
         f"recommendations {'all the same' if same else 'DIFFER'}"
     )
 

@@ -67,12 +67,11 @@ def trained_models(tmp_path_factory: pytest.TempPathFactory) -> dict:
 
     from pipeline.core.config import load_params
     from pipeline.stages import train as T
-    from tests.test_train import LEG, LOGS, PAIR, write_labelled_log, write_params
+    from tests.factories import LEG, PAIR, write_labelled_logs
+    from tests.test_train import write_params
 
     root = tmp_path_factory.mktemp("trained")
-    labelled = root / "labelled"
-    for i, (name, kind, role) in enumerate(LOGS):
-        write_labelled_log(labelled / f"{name}_{role}.parquet", kind, role, n=400, seed=i)
+    labelled = write_labelled_logs(root / "labelled", n=400)
     params_path = write_params(root, n_trials=1, epochs=2)
     data = yaml.safe_load(params_path.read_text())
     data["export"] = yaml.safe_load((REPO / "params.yaml").read_text())["export"]

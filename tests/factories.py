@@ -117,6 +117,13 @@ LOGS = [
 ]
 
 
+def write_labelled_logs(out: Path, n: int) -> Path:
+    """Every log of `LOGS` as a labelled table of `n` samples in `out` (each log its own seed)."""
+    for i, (name, kind, role) in enumerate(LOGS):
+        write_labelled_log(out / f"{name}_{role}.parquet", kind, role, n=n, seed=i)
+    return out
+
+
 def labelled_metadata(kind: str, role: str, log: str) -> dict[bytes, Any]:
     """The Parquet metadata of a labelled table: its experiment and the r_foot pair's transforms."""
     return {

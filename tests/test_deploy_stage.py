@@ -362,7 +362,8 @@ def test_factory_calibration_fails_with_every_ratio_one(stage: dict[str, Any]) -
     # Test D: the factory map reports a push with its own gain and coupling errors, the day's drifted
     # offsets aside (a change): slopes near 1, and a reading whose error is the offsets'
     for d in later["test_d"].values():
-        assert d["pushes"]["raw"]["slopes"] == d["pushes"]["calibrated"]["slopes"]
+        # the same numbers up to the last bit (the export's output is interpolated to the table's stamps)
+        assert d["pushes"]["calibrated"]["slopes"] == pytest.approx(d["pushes"]["raw"]["slopes"], rel=1e-12)
         assert d["pushes"]["calibrated"]["rmse_force"] > 10 * d["pushes"]["oracle"]["rmse_force"]
     assert summary["fit_to_deploy"] is False
     assert json.loads((stage["raw_reports"] / "deployment.json").read_text())["later"]["fit"] is False

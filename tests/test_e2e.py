@@ -12,6 +12,9 @@ wrench as the README says.
 from __future__ import annotations
 
 import json
+import re
+import subprocess
+import sys
 from pathlib import Path
 from typing import Any
 
@@ -127,6 +130,26 @@ def test_exported_files_compute_the_stored_predictions(pipeline_run: dict[str, A
             session = ort.InferenceSession(str(path), providers=["CPUExecutionProvider"])
             (y,) = session.run(None, {"inputs": x.astype(np.float32 if dtype == "float32" else np.float64)})
             np.testing.assert_allclose(y, expected, rtol=0, atol=5e-4, err_msg=f"{name} {dtype}")
+
+
+def test_calibrate_agreement_benchmark_runs_on_the_outputs(pipeline_run: dict[str, Any]) -> None:
+    """README's `benchmarks/calibrate_agreement.py` on this run's outputs (a pipeline's, as it needs): the
+    calibrated copy keeps every message, and the exported graph computes the stored test predictions."""
+    d = pipeline_run["dirs"]
+    log = sorted(d["sim"].glob("*walking_test.mcap"))[0]
+    args = [str(log), "--models", str(d["exported"]), "--trained", str(d["models"])]
+    args += ["--labelled", str(d["labelled"]), "--params", str(pipeline_run["tmp"] / "params.yaml")]
+    proc = subprocess.run(
+        [sys.executable, "benchmarks/calibrate_agreement.py", *args],
+        cwd=REPO,
+        capture_output=True,
+        text=True,
+        timeout=300,
+    )
+    assert proc.returncode == 0, proc.stderr[-2000:]
+    assert "byte-identical in the copy: True" in proc.stdout, proc.stdout
+    diff = re.search(r"max \|diff\| (\S+) N/Nm", proc.stdout)
+    assert diff is not None and float(diff.group(1)) < 1e-3, proc.stdout
 
 
 def test_labelled_sensor_errors_against_truth_are_small(pipeline_run: dict[str, Any]) -> None:

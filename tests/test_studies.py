@@ -15,9 +15,11 @@ import time
 from pathlib import Path
 from typing import Any
 
+import numpy as np
 import pytest
 
 from pipeline.calib import studies
+from pipeline.calib.pruning import SlotPruner
 from pipeline.core.config import load_params
 from pipeline.core.errors import ConfigError
 from tests.factories import LEG, LOGS, write_labelled_log
@@ -115,9 +117,28 @@ def _train_params(tmp_path: Path) -> Path:
     train = copy.deepcopy(TRAIN_PARAMS)
     train["heartbeat"] = 2
     train["groups"] = {LEG: {"sensor": LEG}}
-    # trials long enough (a few s) that the workers, which start in a few s, take part under load
-    train["defaults"].update(n_trials=8, epochs=40, tpe_startup_trials=3, prune_startup_trials=3)
+    # trials long enough (a few s) that the workers, which start in a few s, take part under load; random
+    # trials only (params.yaml's policy: tpe_startup_trials = n_trials)
+    train["defaults"].update(n_trials=8, epochs=40, tpe_startup_trials=8, prune_startup_trials=3)
     return write_params(tmp_path, train)
+
+
+def _pruned_in_order(study: Any, pruner: SlotPruner) -> dict[int, int | None]:
+    """Slot -> the epoch one process running the slots in order prunes it at (None: run to the end), from
+    the epochs' errors the study holds (a slot's errors do not depend on which process ran it)."""
+    out: dict[int, int | None] = {}
+    for t in sorted(study.get_trials(deepcopy=False), key=studies.trial_index):
+        slot, errors = studies.trial_index(t), t.intermediate_values
+        out[slot] = None
+        for epoch in sorted(errors):
+            if epoch < pruner.warmup or slot < pruner.startup:
+                continue
+            reference = pruner.reference(study, slot, epoch)
+            best = min(v for e, v in errors.items() if e <= epoch)
+            if reference and best > (1 + pruner.margin) * float(np.median(reference)):
+                out[slot] = epoch
+                break
+    return out
 
 
 def test_stage_and_four_workers_share_a_study(
@@ -168,6 +189,11 @@ def test_stage_and_four_workers_share_a_study(
         by_workers = sum(int(line.split(f" {name} ")[1].split(" ")[0]) for line in summaries)
         assert net["trials_run"] + by_workers == n and net["trials_reused"] == 0
         processes |= {t.user_attrs[studies.WORKER] for t in trials}
+        # pruned as one process running the slots in order would, whichever process finished first
+        pruned = {studies.trial_index(t): t.last_step if t.state.name == "PRUNED" else None for t in trials}
+        gp = params.raw["train"]["defaults"]
+        pruner = SlotPruner(gp["prune_startup_trials"], gp["prune_warmup_epochs"], gp["prune_margin"])
+        assert pruned == _pruned_in_order(study, pruner)
     assert len(processes) >= 3, processes  # the stage's trials and at least two workers'
 
     client = MlflowClient(mlflow_server)

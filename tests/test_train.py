@@ -30,7 +30,7 @@ from pipeline.logs import schema as S
 from pipeline.logs.schema import LOG, prediction_cols
 from pipeline.physics.cuts import map_wrenches, pose_wrench_transforms
 from pipeline.stages.train import train_group  # the stage entry (default studies dir)
-from tests.factories import FRONT, LEG, LOGS, PAIR, REAR, SHANK, write_labelled_log
+from tests.factories import FRONT, LEG, PAIR, REAR, SHANK, write_labelled_log, write_labelled_logs
 from tests.test_models import TRANSFORMS
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -38,10 +38,7 @@ ROOT = Path(__file__).resolve().parents[1]
 
 @pytest.fixture(scope="module")
 def labelled(tmp_path_factory: pytest.TempPathFactory) -> Path:
-    out = tmp_path_factory.mktemp("labelled")
-    for i, (name, kind, role) in enumerate(LOGS):
-        write_labelled_log(out / f"{name}_{role}.parquet", kind, role, n=500, seed=i)
-    return out
+    return write_labelled_logs(tmp_path_factory.mktemp("labelled"), n=500)
 
 
 TRAIN_PARAMS = {
@@ -76,6 +73,7 @@ TRAIN_PARAMS = {
         "tpe_startup_trials": 1,
         "prune_startup_trials": 1,
         "prune_warmup_epochs": 1,
+        "prune_margin": 0.1,
         "poly_orders": [1, 2],
         "ridge": 1.0e-6,
     },
@@ -536,7 +534,7 @@ def test_several_sensors_group_trains_with_its_cut_sets(
     pred = pd.read_parquet(tmp_path / "out" / "predictions.parquet")
     test = pd.concat([pd.read_parquet(p).assign(**{LOG: p.stem}) for p in labelled.glob("*test.parquet")])
     test = pred[[LOG, S.STAMP]].merge(test, on=[LOG, S.STAMP], how="left")
-    poses = test[S.cut_pose_cols(SHANK, LEG)].to_numpy()
+    poses = test[S.cut_pose_cols(SHANK, LEG)].to_numpy().astype(np.float32)  # as the stage reads them
     leg, front, rear = (pred[prediction_cols("nn7", s)].to_numpy() for s in (LEG, FRONT, REAR))
     want = map_wrenches(poses, leg) - front @ TRANSFORMS[0].T - rear @ TRANSFORMS[1].T
     # the shank's score is the cut-set sum of the sensors' predictions written, against its label

@@ -84,12 +84,23 @@ def select_by_folds(scores: Mapping[str, Sequence[float]], margin: float) -> str
     """The model to deploy from per-fold validation errors {model: [rmse per fold]}: walking from the
     simplest model to the most complex, a model replaces the current choice only if it `beats` it.
     `scores` must not be empty."""
+    won = [step["model"] for step in selection_steps(scores, margin) if step["won"]]
+    return won[-1] if won else min(scores, key=complexity)
+
+
+def selection_steps(scores: Mapping[str, Sequence[float]], margin: float) -> list[dict[str, Any]]:
+    """The walk of `select_by_folds`, one step per model but the simplest: the choice it was compared with
+    (``against``), its ``gain`` (1 - its mean error / that choice's; None if either is not finite), and
+    whether it ``won`` (replaced that choice)."""
     ordered = sorted(scores, key=complexity)
-    choice = ordered[0]
+    choice, steps = ordered[0], []
     for model in ordered[1:]:
-        if beats(scores[choice], scores[model], margin):
-            choice = model
-    return choice
+        a, b = (sum(scores[m]) / len(scores[m]) for m in (choice, model))
+        gain = 1.0 - b / a if math.isfinite(a) and math.isfinite(b) and a > 0 else None
+        won = beats(scores[choice], scores[model], margin)
+        steps.append({"model": model, "against": choice, "gain": gain, "won": won})
+        choice = model if won else choice
+    return steps
 
 
 # Keys an Optuna search may vary (their type), and which group params are integers.
@@ -144,8 +155,9 @@ class GroupParams:
     n_trials: int  # Optuna trials per network (the first: these params)
     search: Mapping[str, Any]  # key -> [choices] or {low, high, log}
     tpe_startup_trials: int  # random trials before TPE
-    prune_startup_trials: int  # MedianPruner: complete trials before pruning
-    prune_warmup_epochs: int  # MedianPruner: epochs never pruned
+    prune_startup_trials: int  # slots never pruned (pipeline.calib.pruning)
+    prune_warmup_epochs: int  # epochs of a trial never pruned
+    prune_margin: float  # a trial is pruned when its error exceeds the earlier slots' median by more
     poly_orders: tuple[int, ...]  # polynomial baselines
     ridge: float  # ridge penalty per sample (standardised features)
 
@@ -209,6 +221,7 @@ class GroupParams:
             "lambda_push",
             "push_force_n",
             "push_lever_m",
+            "prune_margin",
             "ridge",
         ):
             value = getattr(self, attr)

@@ -33,7 +33,7 @@ from pipeline.calib.params import LS_AFFINE, RAW, nn_name
 from pipeline.calib.records import TrainResult, log_network, log_trial_run, write_predictions
 from pipeline.calib.search import NetResult, code_digest, data_digest, search_network
 from pipeline.calib.studies import open_storage, storage_url
-from pipeline.calib.training import flat_inputs, predict, predict_inputs
+from pipeline.calib.training import flat_inputs, predict, predict_inputs, use_threads
 from pipeline.core.config import Params
 from pipeline.core.io import write_json
 from pipeline.core.progress import ProgressLog
@@ -65,8 +65,9 @@ def study_identity(params: Params, prep: Prepared) -> dict[str, Any]:
 
 
 def fit_models(params: Params, prep: Prepared, studies: Path, ui: ProgressLog) -> Fitted:
-    """The baselines and the Optuna search of every network size of the group (studies in a journal under
-    `studies`, or in the database of ``train.storage``)."""
+    """The baselines, the Optuna search of every network size of the group (studies in a journal under
+    `studies`, or in the database of ``train.storage``) and the cross-validation; nothing logged (the
+    trials are logged to MLflow by `write_outputs`)."""
     gp, group = prep.gp, prep.group
     data = {"val": prep.val, "test": prep.test}
     fitted = Fitted({}, {}, {k: {RAW: d.x[:, :, :WRENCH].copy()} for k, d in data.items()})
@@ -74,10 +75,11 @@ def fit_models(params: Params, prep: Prepared, studies: Path, ui: ProgressLog) -
     url = storage_url(prep.cfg.storage)
     # the networks' searches are independent: one forked process per core (`forked_map`, the same bits as
     # one after the other), each with its own connection to the studies, the polynomial baselines fitted
-    # beside them; their trials are logged here
+    # beside them
     quiet = ProgressLog(ui.enabled)  # lines, no bars, from a forked search
 
     def search(n_inputs: int, start: LinearBaseline) -> NetResult:
+        use_threads(prep.cfg.threads)
         storage = open_storage(url, studies, prep.cfg.heartbeat)
         return search_network(
             gp, group, prep.train, prep.val, n_inputs, params.seed, storage, identity, quiet, None, start
@@ -95,9 +97,6 @@ def fit_models(params: Params, prep: Prepared, studies: Path, ui: ProgressLog) -
     for n_inputs, result in zip(gp.inputs, searches, strict=True):
         name = nn_name(n_inputs)
         t = time.perf_counter()
-        log = log_trial_run(group.name, name)
-        for record in result.trials:
-            log(*record)
         fitted.nets[name] = result
         for k, d in data.items():
             fitted.preds[k][name] = predict(result.model, d)
@@ -137,6 +136,9 @@ def write_outputs(prep: Prepared, fitted: Fitted, out: Path, run_id: str, t0: fl
         save_model(out / name, r.model, info)
         files += [f"{name}.json", f"{name}.pt"]
         t = time.perf_counter()
+        log = log_trial_run(group.name, name)
+        for record in r.trials:
+            log(*record)
         columns = {k: info[k] for k in ("group", "sensors", "input_columns", "output_columns")}
         x = flat_inputs(example, r.model.config.n_inputs)
         versions[name] = log_network(group, name, r.model, x, columns)
@@ -193,8 +195,7 @@ def train_group(
         prep = prepare(params, group_name, src)
     except NotCalibrated as exc:
         return write_not_calibrated(group_name, exc, out, t0)
-    torch.set_num_threads(prep.cfg.threads)
-    torch.use_deterministic_algorithms(True)
+    use_threads(1)  # this process forks the trainings, each of which takes train.threads (`use_threads`)
     ui = ProgressLog(progress)
     own = {k: v for k, v in asdict(prep.gp).items() if k != "name"}
     stage_params = {

@@ -5,11 +5,13 @@ One study per network size, stored in a journal file under ``--studies`` (or, wi
 `pipeline.calib.studies`) and named after a hash of everything that determines its result (group params except
 n_trials, seed, threads, validation logs, data, this code): a rerun after an interruption resumes it, a rerun
 with more trials extends it. Trial k is seeded from (seed, group, inputs, k) and its sampler is a TPE sampler
-seeded the same way, so a search run by one process is reproducible whether or not it was resumed (run by
-several, it depends on which trials finish first). The first trial is the group's own params (the thesis's
-defaults); a MedianPruner stops trials whose validation error lags. When the search ends, the stage logs each
-of its trials to MLflow once, as a child of the stage's run, from the record each trial left in the study,
-whichever process ran it.
+seeded the same way. The first trial is the group's own params (the thesis's defaults); a `SlotPruner`
+stops a trial whose validation error lags the slots before it by more than ``prune_margin``. With
+``tpe_startup_trials`` = n_trials (the default) a search gives the same trials, the same pruned ones and the
+same best whether one process ran it or several, in whatever order they finished, and whether or not it was
+resumed (with fewer random trials, TPE's later draws depend on the trials finished when they are drawn).
+When the search ends, the stage logs each of its trials to MLflow once, as a child of the stage's run, from
+the record each trial left in the study, whichever process ran it.
 """
 
 from __future__ import annotations
@@ -29,6 +31,7 @@ from pipeline.calib.data import Group, GroupData, derive_seed
 from pipeline.calib.linear import LinearBaseline
 from pipeline.calib.models import GroupNet
 from pipeline.calib.params import SEARCHABLE, GroupParams, nn_name
+from pipeline.calib.pruning import SlotPruner
 from pipeline.calib.studies import (
     finished_trials,
     join_study,
@@ -121,14 +124,10 @@ class _Search:
         digest = json.dumps({**identity, "inputs": n_inputs}, sort_keys=True).encode()
         self.study_name = f"{group.name}-{self.name}-{hashlib.sha256(digest).hexdigest()[:16]}"
 
-    def pruner(self) -> Any:
-        """The MedianPruner of the study (every process running its trials uses the same)."""
-        import optuna
-
+    def pruner(self) -> SlotPruner:
+        """The pruner of the study (every process running its trials uses the same)."""
         gp = self.gp
-        return optuna.pruners.MedianPruner(
-            n_startup_trials=gp.prune_startup_trials, n_warmup_steps=gp.prune_warmup_epochs
-        )
+        return SlotPruner(gp.prune_startup_trials, gp.prune_warmup_epochs, gp.prune_margin)
 
     def sampler(self, index: int) -> Any:
         """The TPE sampler of trial `index`, seeded from (seed, group, inputs, index); constant_liar: a
@@ -161,6 +160,11 @@ class _Search:
     def finished(self) -> list[Any]:
         """Complete and pruned trials, in the order they were created."""
         return finished_trials(self.study)
+
+    def considered(self) -> list[Any]:
+        """The finished trials of the first n_trials slots, by slot (whichever process ran them first)."""
+        by_slot = sorted(self.finished(), key=lambda t: (trial_index(t), t.number))
+        return by_slot[: self.gp.n_trials]
 
     def objective(self, trial: Any) -> float:
         """Train one trial's network; its validation error (the best epoch's)."""
@@ -226,9 +230,8 @@ class _Search:
         """The `TrialLog` arguments of each of the first n_trials finished trials once, by slot, wherever it
         ran: a worker's trial is in the study (`record_trial`) when the search ends, whatever the worker's
         view of MLflow."""
-        considered = self.finished()[: self.gp.n_trials]
         records = []
-        for t in sorted(considered, key=lambda t: (trial_index(t), t.number)):
+        for t in self.considered():
             record = trial_record(t)
             records.append(
                 (trial_index(t), record["values"], record["history"], t.state.name, record["seconds"])
@@ -236,10 +239,11 @@ class _Search:
         return records
 
     def best(self, run: int, reused: int) -> NetResult:
-        """The lowest-validation-error complete trial among the first n_trials, with its model."""
-        considered = self.finished()[: self.gp.n_trials]
+        """The lowest-validation-error complete trial among the first n_trials slots (a tie: the first
+        slot), with its model."""
+        considered = self.considered()
         complete = [t for t in considered if t.state.name == "COMPLETE"]
-        best = min(complete, key=lambda t: (t.value, t.number))
+        best = min(complete, key=lambda t: (t.value, trial_index(t)))
         model, info = load_trial_model(best)
         return NetResult(
             model=model,

@@ -85,6 +85,16 @@ class Tensors:
     push_weights: torch.Tensor | None = None  # (S, 6) the push response's weight per output axis
 
 
+def use_threads(threads: int) -> None:
+    """Torch's CPU threads in this process (a network's training: ``train.threads``), deterministic
+    algorithms only. With MKL in its STRICT mode (`pipeline.core.kernels`) a network is the same whatever
+    the number. A process that forks trainings (`pipeline.core.parallel`) keeps 1 for itself: GNU OpenMP's
+    threads do not survive a fork, and a child of a parent that computed with several waits for them
+    forever; each forked training then takes its own."""
+    torch.set_num_threads(threads)
+    torch.use_deterministic_algorithms(True)
+
+
 def flat_inputs(data: GroupData, n_inputs: int) -> np.ndarray:
     return data.x[:, :, :n_inputs].reshape(len(data), -1)
 

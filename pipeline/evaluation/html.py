@@ -55,16 +55,19 @@ def img(src: str, alt: str) -> str:
     )
 
 
+# Laid out for a laptop's window (1366-1440 px) and wider: the widest table (the summary, 24 columns) fits
+# 1366 px; a table wider than its window (a narrower one) scrolls in its own box instead of being cut off.
 CSS = """
 body{font-family:system-ui,-apple-system,Segoe UI,Roboto,sans-serif;margin:0 auto;max-width:1500px;
- padding:0 24px 60px;color:#222}
+ padding:0 20px 60px;color:#222}
 h1{margin-bottom:4px} h2{border-bottom:2px solid #ddd;padding-bottom:4px;margin-top:48px}
 h3{margin-top:28px} h4{margin:18px 0 6px}
 .meta{color:#666;font-size:13px}
-table{border-collapse:collapse;margin:6px 0 14px;font-size:13px}
-th,td{border:1px solid #ccc;padding:3px 8px;text-align:right;white-space:nowrap}
+table{border-collapse:collapse;margin:6px 0 14px;font-size:13px;display:block;max-width:100%;overflow-x:auto}
+th,td{border:1px solid #ccc;padding:3px 7px;text-align:right;white-space:nowrap}
 th{background:#f2f2f2;white-space:normal;text-align:center}
-td:first-child,th:first-child{text-align:left} td.deploy{text-align:left}
+td:first-child,th:first-child{text-align:left} td.deploy{text-align:left;white-space:normal;min-width:5em}
+table.summary{font-size:12.5px} table.summary th,table.summary td{padding:2px 5px}
 table.num td{font-variant-numeric:tabular-nums}
 .ok{background:#e3f4e3} .bad{background:#fbe0e0}
 .flags{border:2px solid #c62828;background:#fdecea;padding:10px 16px;border-radius:6px;margin:14px 0}

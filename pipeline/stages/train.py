@@ -37,9 +37,10 @@ or ``$FTCAL_OPTUNA_STORAGE``, in a database shared with ``ftcal worker GROUP`` p
 `pipeline.calib.studies`) and named after a hash of everything that determines its result (group params
 except n_trials, seed, threads, validation logs, data, this code): a rerun after an interruption resumes it,
 a rerun with more trials extends it. Trial k is seeded from (seed, group, inputs, k) and its sampler is a TPE
-sampler seeded the same way, so a search run by one process is reproducible whether or not it was resumed
-(run by several, it depends on which trials finish first). The first trial is the group's own params (the
-thesis's defaults); a MedianPruner stops trials whose validation error lags. Every trial is a nested MLflow
+sampler seeded the same way; the first trial is the group's own params (the thesis's defaults), and a trial
+whose validation error lags the earlier trials' median by more than ``prune_margin`` is pruned
+(`pipeline.calib.pruning`): a search is reproducible whether or not it was resumed, and whether one process
+ran it or several (`pipeline.calib.search`). Every trial is a nested MLflow
 run of the stage's run; the best networks are logged with `mlflow.pytorch.log_model` in MLflow's ``pt2``
 format (`torch.export`, loadable without unpickling) and registered as ``ftcal-<group>-<7|13>``.
 """

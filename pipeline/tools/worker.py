@@ -31,13 +31,11 @@ def run_worker_group(
         ConfigError: no database storage is configured (a journal file is not shared).
         StudyError: the stage did not open a study within `wait` s, or the database is unreachable.
     """
-
-    import torch
-
     from pipeline.calib import studies
     from pipeline.calib.fit import fit_affine, prepare
     from pipeline.calib.run import study_identity
     from pipeline.calib.search import _Search  # the stage's search of one network, joined here
+    from pipeline.calib.training import use_threads
     from pipeline.core.config import load_params
     from pipeline.core.progress import ProgressLog
 
@@ -49,8 +47,7 @@ def run_worker_group(
             f"ftcal worker needs a shared study: set train.storage or ${studies.ENV_STORAGE} to a database "
             "URL"
         )
-    torch.set_num_threads(prep.cfg.threads)
-    torch.use_deterministic_algorithms(True)
+    use_threads(prep.cfg.threads)
     storage = studies.open_storage(url, Path(), prep.cfg.heartbeat)
     identity = study_identity(params, prep)
     ui = ProgressLog()
