@@ -17,7 +17,6 @@ from pipeline.sim.distortion import (
     draw_distortion,
     hysteresis_term,
     oracle_inverse,
-    play_operator,
     static_distortion,
 )
 from pipeline.sim.params import DistortionRanges, ImuNoiseParams, ThermalParams
@@ -43,15 +42,6 @@ def leg_like_wrench(n: int, dt: float = 0.01) -> np.ndarray:
             3 * np.sin(0.7 * t),
         ]
     )
-
-
-def play_reference(x: np.ndarray, width: np.ndarray, z0: float = 0.0) -> np.ndarray:
-    """The play operator's defining recursion, one sample at a time."""
-    z = np.empty_like(x)
-    z[0] = z0
-    for k in range(1, len(x)):
-        z[k] = np.clip(z[k - 1] + (x[k] - x[k - 1]) / width, -1.0, 1.0)
-    return z
 
 
 # --- FT distortion -------------------------------------------------------------------------------
@@ -210,28 +200,6 @@ def test_distortion_ranges_reject_bad_values(field: str, value: object, message:
 
 def test_params_keep_ints_as_floats() -> None:
     assert isinstance(DistortionRanges(full_scale_force=1500).full_scale_force, float)
-
-
-# --- play operator -------------------------------------------------------------------------------
-
-
-def test_play_operator_hand_example() -> None:
-    # width 2: steps +1, +2, -1, -4, +1 move z by half of that, clipped to [-1, 1].
-    x = np.array([0.0, 1.0, 3.0, 2.0, -2.0, -1.0])[:, None]
-    np.testing.assert_allclose(play_operator(x, 2.0)[:, 0], [0.0, 0.5, 1.0, 0.5, -1.0, -0.5], atol=1e-15)
-    np.testing.assert_allclose(
-        play_operator(x, 2.0, initial=-1.0)[:, 0], [-1.0, -0.5, 0.5, 0.0, -1.0, -0.5], atol=1e-15
-    )
-
-
-@pytest.mark.parametrize("n", [0, 1, 2, 31, 32, 33, 64, 1025, 5000])
-def test_play_operator_matches_recursion(n: int) -> None:
-    rng = np.random.default_rng(n)
-    x = np.cumsum(rng.normal(size=(n, 3)), axis=0)
-    width = np.array([0.5, 3.0, 20.0])
-    np.testing.assert_allclose(play_operator(x, width), play_reference(x, width) if n else x, atol=1e-12)
-    if n:
-        np.testing.assert_allclose(play_operator(x, width, 0.3), play_reference(x, width, 0.3), atol=1e-12)
 
 
 # --- temperature ---------------------------------------------------------------------------------

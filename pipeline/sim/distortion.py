@@ -21,11 +21,11 @@ from typing import Any
 
 import numpy as np
 
+from pipeline.core.play import play_operator
 from pipeline.sim.params import DistortionRanges
 
 FORCE = slice(0, 3)  # force axes of a wrench (N)
 TORQUE = slice(3, 6)  # torque axes of a wrench (Nm)
-_SCAN_BLOCK = 32  # block length of the play-operator scan (fastest of 8..64 for 1e5 x 6 samples)
 
 
 def _as_samples(array: Any, width: int, name: str) -> np.ndarray:
@@ -161,80 +161,6 @@ def static_distortion(d: SensorDistortion, wrench: np.ndarray, temperature: np.n
         + d.offset
         + d.offset_drift * (t - d.temperature_ref)
     )
-
-
-def play_operator(x: np.ndarray, width: np.ndarray | float, initial: np.ndarray | float = 0.0) -> np.ndarray:
-    """Play (backlash) operator per column: ``z_k = clip(z_{k-1} + (x_k - x_{k-1}) / width, -1, 1)``.
-
-    x: (N, m) input signal; width: scalar or (m,), same unit as x, > 0; initial: z_0, scalar or (m,)
-    in [-1, 1]. Returns z, (N, m), dimensionless in [-1, 1].
-
-    Method: each step is the map ``z -> clamp(z + a, lo, hi)``, and such maps are closed under
-    composition, so z is a prefix scan of maps. The scan runs in blocks (a Hillis-Steele scan inside
-    blocks of `_SCAN_BLOCK` samples, the same scan recursively over the block totals): ~5 vectorised
-    passes over the data instead of a Python loop over samples. Equal to the loop to ~1e-15.
-    """
-    x = np.asarray(x, dtype=float)
-    if x.ndim != 2:
-        raise ValueError(f"x must have shape (N, m), got {x.shape}")
-    z0 = np.broadcast_to(np.asarray(initial, dtype=float), x.shape[1:])
-    z = np.empty_like(x)
-    if len(x) == 0:
-        return z
-    a = np.diff(x, axis=0) / width
-    a, lo, hi = _scan_clamps(a, np.full_like(a, -1.0), np.full_like(a, 1.0))
-    z[0] = z0
-    z[1:] = np.minimum(np.maximum(z0 + a, lo), hi)
-    return z
-
-
-def _compose_scan_inplace(a: np.ndarray, lo: np.ndarray, hi: np.ndarray) -> None:
-    """Inclusive Hillis-Steele scan along axis 1 of maps ``z -> clamp(z + a, lo, hi)``, in place.
-
-    Arrays are (blocks, k, ...); element k of each block becomes map_k o ... o map_0 of that block.
-    Composition rule: ``clamp(clamp(z + a1, l1, h1) + a2, l2, h2)
-    = clamp(z + a1 + a2, clamp(l1 + a2, l2, h2), clamp(h1 + a2, l2, h2))``.
-    """
-    s = 1
-    while s < a.shape[1]:
-        a2, l2, h2 = a[:, s:], lo[:, s:], hi[:, s:]
-        new_lo = lo[:, :-s] + a2
-        np.minimum(np.maximum(new_lo, l2, out=new_lo), h2, out=new_lo)
-        new_hi = hi[:, :-s] + a2
-        np.minimum(np.maximum(new_hi, l2, out=new_hi), h2, out=new_hi)
-        new_a = a[:, :-s] + a2
-        a[:, s:], lo[:, s:], hi[:, s:] = new_a, new_lo, new_hi
-        s *= 2
-
-
-def _scan_clamps(a: np.ndarray, lo: np.ndarray, hi: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Inclusive scan (along axis 0) of maps ``z -> clamp(z + a, lo, hi)``; returns new arrays."""
-    k, rest = len(a), a.shape[1:]
-    if k <= _SCAN_BLOCK:
-        a, lo, hi = a[None].copy(), lo[None].copy(), hi[None].copy()
-        _compose_scan_inplace(a, lo, hi)
-        return a[0], lo[0], hi[0]
-    nb = -(-k // _SCAN_BLOCK)
-    pad = nb * _SCAN_BLOCK - k  # padded with identity maps (a = 0, no clamp)
-
-    def blocks(y: np.ndarray, fill: float) -> np.ndarray:  # (k, ...) -> (nb, block length, ...), a copy
-        return np.concatenate([y, np.full((pad, *rest), fill)]).reshape(nb, _SCAN_BLOCK, *rest)
-
-    a, lo, hi = blocks(a, 0.0), blocks(lo, -np.inf), blocks(hi, np.inf)
-    _compose_scan_inplace(a, lo, hi)
-    ta, tl, th = _scan_clamps(a[:, -1], lo[:, -1], hi[:, -1])  # maps up to the end of each block
-    # Exclusive prefix of each block (identity before the first), composed under the in-block maps.
-    pa = np.concatenate([np.zeros((1, *rest)), ta[:-1]])[:, None]
-    pl = np.concatenate([np.full((1, *rest), -np.inf), tl[:-1]])[:, None]
-    ph = np.concatenate([np.full((1, *rest), np.inf), th[:-1]])[:, None]
-    new_lo = np.minimum(np.maximum(pl + a, lo), hi)
-    new_hi = np.minimum(np.maximum(ph + a, lo), hi)
-    a += pa
-
-    def unblock(y: np.ndarray) -> np.ndarray:
-        return y.reshape(nb * _SCAN_BLOCK, *rest)[:k]
-
-    return unblock(a), unblock(new_lo), unblock(new_hi)
 
 
 def hysteresis_term(d: SensorDistortion, wrench: np.ndarray) -> np.ndarray:
