@@ -23,7 +23,8 @@ import numpy as np
 from pipeline.calib.data import GroupData, group_errors
 from pipeline.calib.linear import LinearBaseline
 from pipeline.calib.models import WRENCH
-from pipeline.calib.params import RAW, complexity, fold_spread, select_by_folds, selection_steps
+from pipeline.calib.params import fold_spread, select_by_folds, selection_steps
+from pipeline.calib.registry import RAW, complexity
 from pipeline.calib.training import NetSetting, predict, train_network, use_threads
 from pipeline.core.progress import ProgressLog
 
@@ -59,7 +60,7 @@ def _fold_predictions(
     jobs, labels = [partial(fit, n) for n in names], [f"{n} fold {k + 1}" for n in names]
     baselines, fits, _ = fit_beside(gp, group, train, prep.seed, jobs, labels)
     preds = {RAW: val.x[:, :, :WRENCH].copy()}
-    preds.update({name: model.predict(val.x) for name, model in baselines.items()})
+    preds.update({name: model.predict(val.x, val.memory) for name, model in baselines.items()})
     for name, (pred, history, seconds) in zip(names, fits, strict=True):
         preds[name] = pred
         best = min(history, key=lambda h: h["val_rmse"])

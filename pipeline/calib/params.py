@@ -12,44 +12,22 @@ from dataclasses import dataclass, fields, replace
 from typing import Any
 
 from pipeline.calib.pushes import PushPrior
+from pipeline.calib.registry import complexity
 from pipeline.core.errors import ConfigError
 
 INPUT_SIZES = (6, 7, 13)  # raw wrench (+ temperature (+ accelerometer + gyroscope))
 NORMALISATIONS = ("max", "standard")
 ACTIVATION_NAMES = ("relu", "leaky_relu", "tanh", "elu")
-RAW, AFFINE = "raw", "affine"
 # recorded logs: the plain least-squares affine map (no virtual pushes), the in-situ reference any lab can
 # compute, scored beside the models (never a candidate to deploy)
 LS_AFFINE = "affine_ls"
 STORAGE_SCHEMES = ("postgresql", "sqlite", "mysql")  # SQLAlchemy dialects Optuna's RDB storage supports
 
 
-def nn_name(n_inputs: int) -> str:
-    """Model name of the network with `n_inputs` inputs per sensor: nn7, nn13."""
-    return f"nn{n_inputs}"
-
-
 def baseline_inputs(inputs: Sequence[int]) -> int:
     """Inputs of a group's affine and polynomial baselines: the wrench alone (6) where the group trains a
     wrench-only network (a log without temperature), else wrench and temperature (7)."""
     return 6 if 6 in inputs else 7
-
-
-def poly_name(order: int) -> str:
-    """Model name of the polynomial baseline of `order`: poly2, ..."""
-    return f"poly{order}"
-
-
-def complexity(model: str) -> tuple[int, int]:
-    """Sort key, simplest first: raw < affine < poly<n> (by n) < nn<n> (by n)."""
-    if model == RAW:
-        return (0, 0)
-    if model == AFFINE:
-        return (1, 0)
-    for rank, prefix in ((2, "poly"), (3, "nn")):
-        if model.startswith(prefix) and model[len(prefix) :].isdigit():
-            return (rank, int(model[len(prefix) :]))
-    return (4, 0)
 
 
 def select_simplest(errors: Mapping[str, float], margin: float) -> str:
@@ -160,6 +138,8 @@ class GroupParams:
     prune_margin: float  # a trial is pruned when its error exceeds the earlier slots' median by more
     poly_orders: tuple[int, ...]  # polynomial baselines
     ridge: float  # ridge penalty per sample (standardised features)
+    play_widths_n: tuple[float, ...]  # the play model's widths on force axes, N (empty: no play model) ...
+    play_widths_nm: tuple[float, ...]  # ... and on torque axes, Nm (as many)
 
     def __post_init__(self) -> None:
         key = f"train.groups.{self.name}"
@@ -237,7 +217,24 @@ class GroupParams:
         if not isinstance(orders, list | tuple) or any(not _is_int(o) or not 1 <= o <= 4 for o in orders):
             raise ConfigError(f"{key}.poly_orders must be a list of integers in [1, 4], got {orders!r}")
         object.__setattr__(self, "poly_orders", tuple(sorted(set(orders))))
+        self._check_widths(key)
         self._check_search(key)
+
+    def _check_widths(self, key: str) -> None:
+        for attr in ("play_widths_n", "play_widths_nm"):
+            value = getattr(self, attr)
+            if (
+                not isinstance(value, list | tuple)
+                or any(not _is_number(v) or v <= 0 for v in value)
+                or len(set(value)) != len(value)
+            ):
+                raise ConfigError(f"{key}.{attr} must be a list of distinct positive numbers, got {value!r}")
+            object.__setattr__(self, attr, tuple(float(v) for v in value))
+        if len(self.play_widths_n) != len(self.play_widths_nm):
+            raise ConfigError(
+                f"{key}.play_widths_nm must have as many widths as play_widths_n "
+                f"({len(self.play_widths_n)}), got {list(self.play_widths_nm)!r}"
+            )
 
     def _check_search(self, key: str) -> None:
         if not isinstance(self.search, Mapping):
@@ -283,6 +280,13 @@ class GroupParams:
     def push(self) -> PushPrior:
         """The virtual pushes every model of the group is fitted with."""
         return PushPrior(self.lambda_push, self.push_force_n, self.push_lever_m)
+
+    def play_widths(self) -> tuple[tuple[float, ...], ...] | None:
+        """The play model's widths, one row per operator (K, 6: force axes N, torque axes Nm); None: the
+        group trains no play model."""
+        if not self.play_widths_n:
+            return None
+        return tuple((f, f, f, t, t, t) for f, t in zip(self.play_widths_n, self.play_widths_nm, strict=True))
 
     def hyperparameters(self) -> dict[str, Any]:
         """The searchable values of these params."""

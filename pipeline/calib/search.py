@@ -30,8 +30,9 @@ import numpy as np
 from pipeline.calib.data import Group, GroupData, derive_seed
 from pipeline.calib.linear import LinearBaseline
 from pipeline.calib.models import GroupNet
-from pipeline.calib.params import SEARCHABLE, GroupParams, nn_name
+from pipeline.calib.params import SEARCHABLE, GroupParams
 from pipeline.calib.pruning import SlotPruner
+from pipeline.calib.registry import nn_name
 from pipeline.calib.studies import (
     finished_trials,
     join_study,

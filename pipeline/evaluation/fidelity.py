@@ -13,23 +13,35 @@
 
 from __future__ import annotations
 
+import math
 from collections.abc import Mapping
 from typing import Any
 
 import numpy as np
 
 from pipeline.calib.excitation import OUTSIDE, Excitation
-from pipeline.calib.fidelity import entry_slopes
+from pipeline.calib.fidelity import entry_slopes, memory_gaps
 
 AXES = ("fx", "fy", "fz", "tx", "ty", "tz")
 NEVER_FLAGGED = ("raw", "oracle")  # the factory map and the simulator's exact inverse are references
 
 
-def unfaithful(fidelity: Mapping[str, Mapping[str, Any]], tolerance: float) -> dict[str, str]:
+def unfaithful(
+    fidelity: Mapping[str, Mapping[str, Any]], tolerance: float, memory_tolerance: float = math.inf
+) -> dict[str, str]:
     """model -> why it is unfaithful ("r_arm_ft fx slope 0.31 at 1 N"), for the models of `fidelity` (model
-    -> sensor -> {slopes, scales}) with a slope farther than `tolerance` from 1 at any scale."""
+    -> sensor -> {slopes, scales}) with a slope farther than `tolerance` from 1 at any scale, or (a model with
+    memory) whose slope at a push's onset differs from its held one by more than `memory_tolerance`."""
     out = {}
     for model, sensors in fidelity.items():
+        gap = max(
+            ((abs(d), s, a, d, scale) for s, e in sensors.items() for scale, a, d in memory_gaps(e)),
+            default=None,
+        )
+        if gap is not None and gap[0] > memory_tolerance:
+            at = f" at {gap[4]}" if gap[4] else ""
+            out[model] = f"{gap[1]} {AXES[gap[2]]} memory adds {gap[3]:+.2f} to the slope of a fresh push{at}"
+            continue
         if model in NEVER_FLAGGED:
             continue
         worst = max(

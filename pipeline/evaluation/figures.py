@@ -18,12 +18,15 @@ from typing import TYPE_CHECKING, Any
 import numpy as np
 
 from pipeline.calib.params import LS_AFFINE
+from pipeline.calib.registry import RAW, colour
 from pipeline.core.io import write_atomic, write_csv
 from pipeline.evaluation.noise import highpass
 from pipeline.evaluation.params import (
     EXPERIMENT,
     GROUPS_DIR,
     LABELS,
+    NN7,
+    NN13,
     ORACLE,
     PLOTS_DATA_DIR,
     PLOTS_DIR,
@@ -41,16 +44,8 @@ if TYPE_CHECKING:
 AXIS_UNITS = {"fx": "N", "fy": "N", "fz": "N", "tx": "Nm", "ty": "Nm", "tz": "Nm"}
 _GAP_S = 3.0  # s of blank between consecutive logs in the whole-test-set plots
 _DPI = 90
-# Fixed colours so that a model looks the same in every figure.
+# Fixed colours so that a model looks the same in every figure: a family's from the registry, and these.
 COLORS = {
-    "raw": "#8c8c8c",
-    "affine": "#bcbd22",
-    "poly1": "#d9b36c",
-    "poly2": "#e0894a",
-    "poly3": "#c8553d",
-    "poly4": "#8c2d04",
-    "nn7": "#1f77b4",
-    "nn13": "#d62728",
     "oracle": "#2ca02c",
     LS_AFFINE: "#17becf",  # recorded logs: the plain least-squares affine map, the lab's reference
     "expected": "#000000",
@@ -59,7 +54,7 @@ COLORS = {
 
 
 def _color(model: str) -> str:
-    return COLORS.get(model, "#9467bd")
+    return COLORS.get(model) or colour(model)
 
 
 def pyplot() -> Any:
@@ -116,7 +111,7 @@ def _broken(x: np.ndarray, y: np.ndarray, segments: np.ndarray) -> tuple[np.ndar
 
 def _shown_models(r: GroupResult) -> list[str]:
     """The models drawn in the time-series figures: NN7 and the recommended model (thesis figs 5.3, 5.6)."""
-    shown = [m for m in ("nn7",) if m in r.inputs.models]
+    shown = [m for m in (NN7,) if m in r.inputs.models]
     if r.recommended and r.recommended not in shown and r.recommended != "raw":
         shown.append(r.recommended)
     return shown
@@ -322,7 +317,7 @@ def plot_noise_example(r: GroupResult, cfg: EvaluateParams, path: Path) -> None:
     f = r.inputs.frame
     rows = slice(start, stop)
     t = f[S.TIME].to_numpy()[rows]
-    shown = list(dict.fromkeys(["raw", "nn7", "nn13", model, r.recommended or "raw"]))
+    shown = list(dict.fromkeys([RAW, NN7, NN13, model, r.recommended or RAW]))
     shown = [m for m in shown if m in r.inputs.models]
     seg = r.inputs.segments
     for m in shown:

@@ -18,7 +18,7 @@ import pandas as pd
 import pyarrow as pa
 import pyarrow.parquet as pq
 
-from pipeline.calib.params import RAW
+from pipeline.calib.registry import RAW
 from pipeline.core.errors import DataError
 from pipeline.evaluation.noise import board_speed, segment_ids
 from pipeline.evaluation.params import (

@@ -5,7 +5,7 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass
 
-from pipeline.calib.params import nn_name
+from pipeline.calib.registry import nn_name
 from pipeline.core.errors import ConfigError
 
 STAGE = "evaluate"
@@ -56,6 +56,8 @@ class EvaluateParams:
     target_nn7_over_oracle: float  # acceptance: NN7 RMSE / oracle RMSE at most this
     fidelity_tolerance: float  # a model whose virtual-push slope (pipeline.calib.fidelity) on any axis is
     # farther than this from 1 is flagged unfaithful and not recommended
+    memory_tolerance: float = 0.2  # a model with memory whose slope at a push's onset differs from its held
+    # one by more than this (any axis, any scale) is flagged unfaithful: its memory stands in for the wrench
 
     def __post_init__(self) -> None:
         for name in (
@@ -68,6 +70,7 @@ class EvaluateParams:
             "target_raw_over_nn7",
             "target_nn7_over_oracle",
             "fidelity_tolerance",
+            "memory_tolerance",
         ):
             value = getattr(self, name)
             if (

@@ -25,6 +25,9 @@ from typing import Any
 
 import numpy as np
 
+from pipeline.calib.registry import AFFINE, NN, PLAY, POLY, RAW, complexity, in_family
+from pipeline.evaluation.params import ORACLE
+
 SINGLE, DOUBLE, POLE, AIR, OTHER = "single", "double", "pole", "air", "other"
 PHASES = (SINGLE, DOUBLE, POLE, AIR)  # always in the tables (0 samples where none); OTHER only if present
 PHASE_TITLES = {
@@ -102,9 +105,11 @@ def phases_of(contacts: np.ndarray, feet: Mapping[str, Foot]) -> np.ndarray:
 
 def phase_models(models: Sequence[str], ranking: Sequence[str], recommended: str | None) -> list[str]:
     """The models of the phase tables, in order: raw, affine, the polynomial ranked best on validation,
-    the networks (6, 7, 13 inputs), the recommended model, the oracle (those the group has, each once)."""
-    polys = [m for m in ranking if m.startswith("poly") and m in models]
-    wanted = ["raw", "affine", *polys[:1], "nn6", "nn7", "nn13", recommended or "", "oracle"]
+    play (memory), the networks (6, 7, 13 inputs), the recommended model, the oracle (those the group has,
+    each once)."""
+    polys = [m for m in ranking if in_family(m, POLY) and m in models]
+    nets = sorted((m for m in models if in_family(m, NN)), key=complexity)
+    wanted = [RAW, AFFINE, *polys[:1], PLAY, *nets, recommended or "", ORACLE]
     return [m for m in dict.fromkeys(wanted) if m in models]
 
 

@@ -10,7 +10,8 @@ from typing import Any
 import numpy as np
 
 from pipeline.calib.exact import LEFT_OUT, NOT_CALIBRATED, not_calibrated
-from pipeline.calib.params import LS_AFFINE, RAW
+from pipeline.calib.params import LS_AFFINE
+from pipeline.calib.registry import PLAY, RAW
 from pipeline.calib.scores import wrench_errors
 from pipeline.evaluation.fidelity import outside_stats, unfaithful
 from pipeline.evaluation.floors import noise_floor
@@ -341,7 +342,7 @@ def evaluate_group(g: GroupInputs, cfg: EvaluateParams) -> GroupResult:
     if best is not None and best not in ranking:
         ranking.insert(0, str(best))
     fidelity = dict(g.train.get("fidelity") or {})
-    unfaithful_models = unfaithful(fidelity, cfg.fidelity_tolerance)
+    unfaithful_models = unfaithful(fidelity, cfg.fidelity_tolerance, cfg.memory_tolerance)
     recommended = recommend(ranking, [*noise.flagged, *unfaithful_models], g.models)
     shown = phase_models(g.models, ranking, recommended)
     cv = g.train.get("cv")
@@ -384,18 +385,24 @@ def group_metrics(r: GroupReport, name: str | None = None) -> dict[str, Any]:
     reports/metrics/<group>/<name>.json, one row of `dvc metrics show` (short keys, so the table fits).
 
     ``labels``/``truth``: the headline's RMSE (global, N and Nm pooled) of raw, the recommended model
-    (``rec``), NN7, NN13 and the oracle against the labels and, on simulated logs, the truth on every test
-    sample; ``recommended``: the group's model to deploy; ``noise``: its networks' noise ratios;
-    ``flagged``: how many of its models are flagged (noise or fidelity).
+    (``rec``), play, NN7, NN13 and the oracle against the labels and, on simulated logs, the truth on every
+    test sample with the noise floor (``floor``, `pipeline.evaluation.floors`); ``recommended``: the group's
+    model to deploy; ``noise``: its networks' noise ratios; ``flagged``: how many of its models are flagged
+    (noise or fidelity).
     """
     if r.not_calibrated is not None:
         return {NOT_CALIBRATED: r.not_calibrated}
-    shown = {"raw": RAW, "rec": r.recommended, "nn6": NN6, "nn7": NN7, "nn13": NN13, "oracle": ORACLE}
+    shown = {
+        "raw": RAW, "rec": r.recommended, PLAY: PLAY, "nn6": NN6, "nn7": NN7, "nn13": NN13, "oracle": ORACLE
+    }  # fmt: skip
     shown[LS_AFFINE] = LS_AFFINE  # recorded logs: the plain least-squares affine map, the lab's reference
     out: dict[str, Any] = {"recommended": r.recommended or "none"}
     for ref in (LABELS, TRUTH):
         row = {k: r.headline_rmse(ref, m, name=name) for k, m in shown.items() if m is not None}
         row = {k: round(v, 4) for k, v in row.items() if v is not None}
+        floor = r.floor.get(name or r.headline)
+        if ref == TRUTH and row and floor is not None:  # what no calibration, with memory or not, can beat
+            row["floor"] = round(floor, 4)
         if row:
             out[ref] = row
     if TRUTH not in out:  # recorded test logs: said plainly in `dvc metrics show`

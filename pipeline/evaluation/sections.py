@@ -7,6 +7,7 @@ import math
 from collections.abc import Mapping, Sequence
 from typing import TYPE_CHECKING, Any
 
+from pipeline.calib.registry import POLY, in_family
 from pipeline.evaluation.availability import CUT, PAIR, SENSOR
 from pipeline.evaluation.html import esc, fmt, table
 from pipeline.evaluation.params import LABELS, ORACLE, TRUTH
@@ -34,7 +35,7 @@ def _bold_min(values: Sequence[Any], models: Sequence[str]) -> list[str]:
 def _model_title(model: str, recommended: str | None) -> str:
     if model == recommended:
         return f"{model} (deploy)"
-    return f"{model} (best polynomial on val.)" if model.startswith("poly") else model
+    return f"{model} (best polynomial on val.)" if in_family(model, POLY) else model
 
 
 def phase_section(r: GroupReport, name: str) -> str:

@@ -132,7 +132,7 @@ def _fmt(v: float | None, digits: int = 3) -> str:
 
 
 def _cmd(args: argparse.Namespace) -> int:
-    from pipeline.calib.params import RAW
+    from pipeline.calib.registry import RAW
     from pipeline.core.config import load_params
     from pipeline.evaluation.params import LABELS, NN6, NN7, NO_TRUTH, TRUTH
 
