@@ -76,6 +76,8 @@ TRAIN_PARAMS = {
         "prune_margin": 0.1,
         "poly_orders": [1, 2],
         "ridge": 1.0e-6,
+        "play_widths_n": [10.0, 30.0],
+        "play_widths_nm": [0.5, 1.5],
     },
     "groups": {LEG: {"sensor": LEG}, PAIR: {"pair": PAIR, "normalisation": "standard"}},
 }

@@ -27,6 +27,7 @@ import pyarrow as pa
 import pyarrow.parquet as pq
 
 from pipeline.calib.cuts import CutTerm, cut_sums_np
+from pipeline.calib.linear import play_memory
 from pipeline.calib.params import GroupParams
 from pipeline.calib.scores import wrench_errors
 from pipeline.core.config import Params
@@ -51,6 +52,7 @@ class Group:
     n_inputs: int = 13  # inputs per sensor of the group's largest network: 7 needs no IMU
     tested: tuple[str, ...] | None = None  # the sensors with exact labels of their own on the test logs
     left_out: tuple[tuple[str, str], ...] = ()  # (sensor, why) of the sensors without any exact label
+    widths: tuple[tuple[float, ...], ...] | None = None  # the play model's widths (K, 6), None: no play model
 
     @property
     def headlines(self) -> tuple[str, ...]:
@@ -104,6 +106,9 @@ class GroupData:
     cut_labels: np.ndarray | None = None  # (N, C, 6) cut-set sums, NaN where the switch is 0
     cut_switches: np.ndarray | None = None  # (N, C) bool
     poses: np.ndarray | None = None  # (N, P, 12) the cut sets' moving members' poses (CutTerm)
+    # (N, S, 6 K) the play outputs before each sample over its log (`pipeline.calib.linear.play_memory`),
+    # for a group with a play model (`Group.widths`), else None
+    memory: np.ndarray | None = None
 
     def __len__(self) -> int:
         return len(self.log)
@@ -199,7 +204,7 @@ def expand_feet(gp: GroupParams, logs: Sequence[LogInfo]) -> GroupParams:
 
 def resolve_group(gp: GroupParams, params: Params, logs: Sequence[LogInfo]) -> Group:
     """The group `gp` trains, checked against the labelled tables (see `_resolve_group`)."""
-    return replace(_resolve_group(gp, params, logs), n_inputs=max(gp.inputs))
+    return replace(_resolve_group(gp, params, logs), n_inputs=max(gp.inputs), widths=gp.play_widths())
 
 
 def _resolve_group(gp: GroupParams, params: Params, logs: Sequence[LogInfo]) -> Group:
@@ -376,6 +381,8 @@ def _read_log(log: LogInfo, group: Group, index: int) -> GroupData:
                 data.cut_switches[:, c] &= np.isfinite(data.poses[:, p]).all(axis=1)
                 p += 1
         data.poses = np.nan_to_num(data.poses)
+    if group.widths is not None:  # over every reading of the log, before the samples are picked
+        data.memory = play_memory(data.x, np.asarray(group.widths))
     ok &= np.isfinite(data.x[:, :, : group.n_inputs]).all(axis=(1, 2))
     data = data.subset(ok)
     for s, sensor in enumerate(group.sensors):

@@ -15,6 +15,17 @@ cancel noise) reports a 1 N push with a slope far below 1, while the larger prio
 
 For a network with the FT board's IMU among its inputs, ``imu_kg`` is the largest mean derivative of a
 force output with respect to an accelerometer input (kg): how much of the wrench it reads off the IMU.
+
+A model with memory (the ``play`` family: its state, the play outputs of the sample before, is wrench-valued,
+column c on raw axis c mod 6) is pushed twice. Held: the push has been there long enough for the state to
+carry it (the state moves with the push; a play operator's state then moves with its input, z unchanged),
+so the slopes above are those of its static part, judged as any model's. At its onset (``instant``: the
+state held): the slopes of the same pushes the moment they start, where the memory answers too. A sensor's
+hysteresis makes its reading of a fresh push larger (smaller) than of a held one by its minor-loop gain
+(h / width: up to 0.15 on the simulated sensors); a memory model undoes that, and the gap between its two
+slopes is what its memory adds to the present wrench, which must stay small (`pipeline.evaluation
+.fidelity`): a memory that stands in for the present wrench (a play of a width near the noise, cancelling
+the reading) answers a fresh push with a slope far from its held one.
 """
 
 from __future__ import annotations
@@ -35,13 +46,36 @@ DEFAULT_LEVER_M = 0.2  # lever of the torque pushes when the fit has no push pri
 Predict = Callable[[np.ndarray], np.ndarray]  # (N, S, 13) raw inputs -> (N, S, 6) calibrated
 
 
-def model_fidelity(predict: Predict, x: np.ndarray, push: PushPrior, n_inputs: int) -> list[dict[str, Any]]:
+def model_fidelity(
+    predict: Callable[..., np.ndarray],
+    x: np.ndarray,
+    push: PushPrior,
+    n_inputs: int,
+    memory: np.ndarray | None = None,
+) -> list[dict[str, Any]]:
     """Per sensor (in the group's order): {"slopes": 6 floats, "scales": {"1": 6 floats, ...}, "imu_kg":
-    float or None} (module docstring)."""
+    float or None} (module docstring); with `memory` (N, S, 6 K: the state before each sample of x, read by
+    ``predict(x, memory)``), those of a held push and ``"instant"``: {"slopes", "scales"} at its onset."""
     pick = np.unique(np.linspace(0, len(x) - 1, min(SAMPLES, len(x))).astype(int)) if len(x) else []
     x = np.asarray(x[pick], dtype=np.float64)
     if not len(x):
         return []
+    if memory is None:
+        return _slopes(predict, x, push, n_inputs)
+    state = np.asarray(memory[pick], dtype=np.float64)
+    repeat = state.shape[2] // WRENCH
+
+    def held(z: np.ndarray) -> np.ndarray:  # the state moved by the push z - x on its wrench
+        return predict(z, state + np.tile(z[:, :, :WRENCH] - x[:, :, :WRENCH], (1, 1, repeat)))
+
+    out = _slopes(held, x, push, n_inputs)
+    for entry, onset in zip(out, _slopes(lambda z: predict(z, state), x, push, n_inputs), strict=True):
+        entry["instant"] = {"slopes": onset["slopes"], "scales": onset["scales"]}
+    return out
+
+
+def _slopes(predict: Predict, x: np.ndarray, push: PushPrior, n_inputs: int) -> list[dict[str, Any]]:
+    """`model_fidelity` of a memoryless predictor on the picked samples x (N, S, k)."""
     base = predict(x)
     size = np.sqrt(push.variances()) if push.force_n > 0 else np.r_[np.full(3, 20.0), np.full(3, 4.0)]
     out: list[dict[str, Any]] = [{"slopes": [], "imu_kg": None} for _ in range(x.shape[1])]
@@ -81,14 +115,34 @@ def scale_slopes(predict: Predict, x: np.ndarray, lever_m: float) -> list[dict[s
 
 
 def group_fidelity(
-    predictors: Mapping[str, tuple[Predict, int]], x: np.ndarray, sensors: list[str], push: PushPrior
+    predictors: Mapping[str, tuple[Callable[..., np.ndarray], int]],
+    x: np.ndarray,
+    sensors: list[str],
+    push: PushPrior,
+    memory: Mapping[str, np.ndarray] | None = None,
 ) -> dict[str, dict[str, dict[str, Any]]]:
-    """model -> sensor -> `model_fidelity` entry, for `predictors` (model -> (predict, inputs per sensor))."""
+    """model -> sensor -> `model_fidelity` entry, for `predictors` (model -> (predict, inputs per sensor));
+    `memory`: model -> the state before each sample of x of the models with memory."""
     out: dict[str, dict[str, dict[str, Any]]] = {}
     for name, (predict, n_inputs) in predictors.items():
-        rows = model_fidelity(predict, x, push, n_inputs)
+        rows = model_fidelity(predict, x, push, n_inputs, (memory or {}).get(name))
         out[name] = dict(zip(sensors, rows, strict=True))
     return out
+
+
+def memory_gaps(entry: Mapping[str, Any]) -> list[tuple[str, int, float]]:
+    """[(scale as in `entry_slopes`, axis, instant slope - held slope)] of a memory model's sensor entry
+    (empty for a memoryless model's)."""
+    instant = entry.get("instant")
+    if not instant:
+        return []
+    held = dict(entry_slopes(entry))
+    return [
+        (scale, a, float(v - held[scale][a]))
+        for scale, slopes in entry_slopes(instant)
+        if scale in held
+        for a, v in enumerate(slopes)
+    ]
 
 
 def worst_gap(entry: Mapping[str, Any]) -> float:

@@ -28,8 +28,9 @@ from pipeline.calib.data import (
 from pipeline.calib.exact import LEFT_OUT, calibrable
 from pipeline.calib.imu_gate import refuse_flagged_imu
 from pipeline.calib.linear import LinearBaseline, fit_linear_baseline
-from pipeline.calib.params import AFFINE, LS_AFFINE, GroupParams, TrainParams, baseline_inputs, poly_name
+from pipeline.calib.params import LS_AFFINE, GroupParams, TrainParams, baseline_inputs
 from pipeline.calib.records import flatten_metrics
+from pipeline.calib.registry import AFFINE, PLAY, poly_name
 from pipeline.calib.search import NetResult
 from pipeline.calib.training import NetSetting
 from pipeline.core.config import Params, stage_section
@@ -140,7 +141,8 @@ def fit_baselines(
 
 def fit_affine(gp: GroupParams, group: Group, train: GroupData, seed: int) -> LinearBaseline:
     """The affine baseline of `fit_baselines` alone: the map the group's networks correct."""
-    return fit_baselines(replace(gp, poly_orders=()), group, train, seed)[AFFINE]
+    alone = replace(gp, poly_orders=(), play_widths_n=(), play_widths_nm=())
+    return fit_baselines(alone, group, train, seed)[AFFINE]
 
 
 def fit_plain_affine(gp: GroupParams, group: Group, train: GroupData, seed: int) -> LinearBaseline:
@@ -158,8 +160,9 @@ def fit_beside(
     labels: Sequence[str],
 ) -> tuple[dict[str, LinearBaseline], list[Any], float]:
     """`fit_baselines`, and the results of `jobs` (each given the affine map the networks start from), with
-    the polynomials fitted in a forked process beside the jobs (`forked_map`: the same numbers as one after
-    the other, the polynomials in the time the jobs leave a core idle; `labels` name the jobs in an error).
+    the polynomials and the play model fitted in a forked process beside the jobs (`forked_map`: the same
+    numbers as one after the other, the polynomials in the time the jobs leave a core idle; `labels` name
+    the jobs in an error).
     Returns (baselines, the jobs' results, seconds of the baselines' own fits)."""
     t = time.perf_counter()
     start = fit_affine(gp, group, train, seed)
@@ -185,7 +188,7 @@ def _fit_group_baselines(
     affine: bool = True,
 ) -> dict[str, LinearBaseline]:
     """The baselines of a group of one sensor or one foot pair (its sum term with `lambda_sum`); without
-    `affine`, the polynomials only."""
+    `affine`, the polynomials and the play model only."""
     args = {
         "push": gp.push,
         "seed": seed,
@@ -202,6 +205,9 @@ def _fit_group_baselines(
     out = {AFFINE: fit_linear_baseline(AFFINE, order=1, ridge=0.0, **args)} if affine else {}
     for order in gp.poly_orders:
         out[poly_name(order)] = fit_linear_baseline(poly_name(order), order=order, ridge=gp.ridge, **args)
+    if group.widths is not None:
+        widths, memory = np.asarray(group.widths), train.memory
+        out[PLAY] = fit_linear_baseline(PLAY, order=1, ridge=0.0, widths=widths, memory=memory, **args)
     return out
 
 
@@ -218,7 +224,7 @@ def _fit_baselines_by_part(
     parts += [([s], None) for s in range(len(group.sensors)) if s not in taken]
     fitted: list[tuple[list[int], dict[str, LinearBaseline]]] = []
     for members, c in parts:
-        sub = Group(group.name, tuple(group.sensors[s] for s in members))
+        sub = Group(group.name, tuple(group.sensors[s] for s in members), widths=group.widths)
         part = GroupData(
             train.log,
             train.stamp,
@@ -226,9 +232,10 @@ def _fit_baselines_by_part(
             train.x[:, members],
             train.labels[:, members],
             train.switches[:, members],
+            memory=None if train.memory is None else train.memory[:, members],
         )
         if c is not None:
-            sub = Group(group.name, sub.sensors, group.cuts[c].label, group.cuts[c].fixed)
+            sub = replace(sub, pair=group.cuts[c].label, transforms=group.cuts[c].fixed)
             part.sum_label, part.sum_switch = train.cut_labels[:, c], train.cut_switches[:, c]
         lambdas = (gp.lambda_expected,) * len(members)
         fitted.append(
@@ -256,6 +263,7 @@ def _fit_baselines_by_part(
             np.stack([b.scale[k] for _, b, k in stack]),
             stack[0][1].powers,
             np.stack([b.weights[k] for _, b, k in stack]),
+            stack[0][1].widths,
         )
     return out
 

@@ -1,30 +1,69 @@
-"""Linear baselines of a sensor group: the affine map the networks correct, and polynomials of order 1-4.
+"""Linear models of a sensor group: the affine map the networks correct, polynomials of order 1-4, and the
+affine map with play operators (memory).
 
 Every model here is ``f = f_raw + W phi(x)``, linear in its parameters W, fitted in closed form on the same
 switched least-squares objective as the networks (`pipeline.calib.losses`, thesis eqs. 5.4-5.12), with the
 virtual pushes' prior (`pipeline.calib.pushes`): ``affine`` (phi = [f, T, 1], least squares,
-the in-situ affine calibration with temperature) and ``poly<n>`` (phi = every monomial up to order n of
-the 7 standardised inputs, ridge; Mohamed et al. 2023 with na = nb = 0).
+the in-situ affine calibration with temperature), ``poly<n>`` (phi = every monomial up to order n of
+the 7 standardised inputs, ridge; Mohamed et al. 2023 with na = nb = 0) and ``play`` (phi = the affine
+features and, per raw wrench axis and play width r, the play operator's state ``z = (f_a - y) / r`` in
+[-1, 1], `pipeline.core.play`: a Prandtl-Ishlinskii model of the sensor's hysteresis, least squares).
+
+The play model has memory: a sample's features depend on the play outputs y of the sample before
+(``memory``, (N, S, 6 K): per width k and axis a, column ``6 k + a``, in the wrench's unit; NaN at a fresh
+start, where y starts at the sample's own reading). `play_memory` computes it over one log's samples in time
+order, each sensor's over the samples where its wrench is finite (a missing reading neither moves nor resets
+the operators, as in the exported graph). A virtual push moves the present reading with that memory held.
 Arrays are (N, S, ...) over N samples and S sensors; wrenches N and Nm.
 """
 
 from __future__ import annotations
 
 import itertools
-from collections.abc import Sequence
+from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
 from functools import partial
 from typing import Any
 
 import numpy as np
 
-from pipeline.calib.pushes import PushPrior, linear_push_gram
+from pipeline.calib.pushes import PushPrior, linear_push_gram, push_gram
 from pipeline.calib.scores import WRENCH
 from pipeline.core.errors import DataError
+from pipeline.core.play import play_outputs, play_step
 
 AFFINE_INPUTS = 7  # raw wrench + temperature: the inputs of the affine map and the polynomials (6 where
 # a group trains on the wrench alone: `fit_linear_baseline(n_inputs=6)`, the networks' affine map then 6 wide)
 TINY_SCALE = 1e-9  # a normalisation scale below this (a constant input) is replaced by 1
+
+
+# --- play operators (memory) ---------------------------------------------------------------------
+
+
+def play_memory(x: np.ndarray, widths: np.ndarray) -> np.ndarray:
+    """(N, S, 6 K) the play outputs before each sample (module docstring) of one log's samples x (N, S, >= 6)
+    in time order, widths (K, 6) per axis (N, Nm); NaN at each sensor's first finite reading and where its
+    reading is not finite."""
+    x = np.asarray(x, dtype=np.float64)
+    widths = np.asarray(widths, dtype=np.float64)
+    n, n_sensors = x.shape[:2]
+    out = np.full((n, n_sensors, widths.size), np.nan)
+    for s in range(n_sensors):
+        rows = np.flatnonzero(np.isfinite(x[:, s, :WRENCH]).all(axis=1))
+        if len(rows) < 2:
+            continue
+        wrench = x[rows, s, :WRENCH]
+        y = np.concatenate([play_outputs(wrench, w) for w in widths], axis=1)  # after each sample
+        out[rows[1:], s] = y[:-1]
+    return out
+
+
+def play_features(wrench: np.ndarray, previous: np.ndarray, widths: np.ndarray) -> np.ndarray:
+    """(N, 6 K) the play states z in [-1, 1] at each sample (column 6 k + a: width k, axis a) from its raw
+    wrench (N, 6) and the play outputs before it, `previous` (N, 6 K) (NaN: a fresh start, z = 0)."""
+    widths = np.asarray(widths, dtype=np.float64).reshape(-1)
+    tiled = np.tile(np.asarray(wrench, dtype=np.float64), len(widths) // WRENCH)
+    return (tiled - play_step(previous, tiled, widths)) / widths
 
 
 # --- linear baselines ----------------------------------------------------------------------------
@@ -94,10 +133,12 @@ def _monomial_plan(powers: np.ndarray) -> list[tuple[int, int, int]]:
 
 @dataclass
 class LinearBaseline:
-    """``f_s = f_raw,s + W_s phi(x_s)`` per sensor s, phi = monomials of the standardised 7 inputs.
+    """``f_s = f_raw,s + W_s phi(x_s)`` per sensor s, phi = monomials of the standardised 7 inputs, and
+    with play `widths` the play states of the raw wrench after them.
 
     `offset`/`scale` (S, 7) standardise each sensor's inputs; `powers` (P, 7) are the monomial
-    exponents (order 1: [1, f, T], the affine model); `weights` (S, 6, P) the fitted W_s.
+    exponents (order 1: [1, f, T], the affine model); `weights` (S, 6, P [+ 6 K]) the fitted W_s; `widths`
+    (K, 6) the play widths per raw axis (N, Nm), None for a memoryless model.
     """
 
     name: str
@@ -105,18 +146,40 @@ class LinearBaseline:
     scale: np.ndarray
     powers: np.ndarray
     weights: np.ndarray
+    widths: np.ndarray | None = None
 
-    def features(self, x: np.ndarray, s: int) -> np.ndarray:
-        """(N, P) features of sensor s from its raw inputs x (N, >= 7; >= 6 for a wrench-only model)."""
+    @property
+    def memory(self) -> bool:
+        """Whether the model reads the play outputs of the sample before (its `memory`)."""
+        return self.widths is not None
+
+    def features(self, x: np.ndarray, s: int, memory: np.ndarray | None = None) -> np.ndarray:
+        """(N, P [+ 6 K]) features of sensor s from its raw inputs x (N, >= 7; >= 6 for a wrench-only model)
+        and, with memory, the play outputs before each sample (N, 6 K) (module docstring)."""
         k = self.offset.shape[1]  # 7, or 6 without temperature
-        return _monomials((x[:, :k] - self.offset[s]) / self.scale[s], self.powers)
+        phi = _monomials((x[:, :k] - self.offset[s]) / self.scale[s], self.powers)
+        if self.widths is None:
+            return phi
+        if memory is None:
+            raise ValueError(f"{self.name}: a model with memory needs the play outputs before each sample")
+        return np.concatenate([phi, play_features(x[:, :WRENCH], memory, self.widths)], axis=1)
 
-    def predict(self, x: np.ndarray) -> np.ndarray:
-        """(N, S, 6) calibrated wrenches from raw inputs x (N, S, >= 7)."""
+    def predict(self, x: np.ndarray, memory: np.ndarray | None = None) -> np.ndarray:
+        """(N, S, 6) calibrated wrenches from raw inputs x (N, S, >= 7) (with memory: and the play outputs
+        before each sample, (N, S, 6 K), `play_memory`)."""
         return np.stack(
-            [x[:, s, :WRENCH] + self.features(x[:, s], s) @ self.weights[s].T for s in range(x.shape[1])],
+            [
+                x[:, s, :WRENCH]
+                + self.features(x[:, s], s, None if memory is None else memory[:, s]) @ self.weights[s].T
+                for s in range(x.shape[1])
+            ],
             axis=1,
         )
+
+    def predict_log(self, x: np.ndarray) -> np.ndarray:
+        """(N, S, 6) calibrated wrenches of one log's samples x (N, S, >= 7) in time order, the memory
+        starting afresh at its first sample (`play_memory`)."""
+        return self.predict(x, play_memory(x, self.widths) if self.widths is not None else None)
 
     def affine_map(self, s: int) -> tuple[np.ndarray, np.ndarray]:
         """Sensor s's model as ``f_raw + weight @ x[:7] + bias``: (weight (6, 7), bias (6,)); order 1 only."""
@@ -131,7 +194,7 @@ class LinearBaseline:
         return weight, bias
 
     def to_dict(self) -> dict[str, Any]:
-        return {
+        out = {
             "name": self.name,
             "model": "f = f_raw + W phi((x[:k] - offset) / scale), k = len(offset), phi = monomials (powers)",
             "offset": self.offset.tolist(),
@@ -139,6 +202,26 @@ class LinearBaseline:
             "powers": self.powers.tolist(),
             "weights": self.weights.tolist(),
         }
+        if self.widths is not None:
+            out["model"] += (
+                ", then per width k and raw axis a the play state z = (f_a - y) / widths[k][a], "
+                "y = clip(y before, f_a - widths[k][a], f_a + widths[k][a]) (y starts at f_a)"
+            )
+            out["widths"] = self.widths.tolist()
+        return out
+
+    @classmethod
+    def from_dict(cls, entry: Mapping[str, Any]) -> LinearBaseline:
+        """Inverse of `to_dict` (KeyError, ValueError or TypeError if `entry` is not one)."""
+        widths = entry.get("widths")
+        return cls(
+            str(entry["name"]),
+            np.asarray(entry["offset"], dtype=np.float64),
+            np.asarray(entry["scale"], dtype=np.float64),
+            np.asarray(entry["powers"], dtype=np.int64),
+            np.asarray(entry["weights"], dtype=np.float64),
+            None if widths is None else np.asarray(widths, dtype=np.float64).reshape(-1, WRENCH),
+        )
 
 
 def fit_linear_baseline(
@@ -156,6 +239,8 @@ def fit_linear_baseline(
     n_inputs: int = AFFINE_INPUTS,
     push: PushPrior | None = None,
     seed: int = 0,
+    widths: np.ndarray | None = None,
+    memory: np.ndarray | None = None,
 ) -> LinearBaseline:
     """Minimise the switched loss of `switched_loss` over W in closed form (normal equations).
 
@@ -166,12 +251,15 @@ def fit_linear_baseline(
     with r = label - raw (residuals, so ridge shrinks towards the primary calibration). Sum samples
     couple the sensors of a foot through X_s; the normal equations are then solved jointly. The last
     term is the virtual pushes' prior (`pipeline.calib.pushes`): exact for the affine model, sampled
-    (seeded by `seed`) for the polynomials.
+    (seeded by `seed`) for the polynomials and the play model (a push moves the present reading, the
+    memory held).
 
     Args:
         x: (N, S, >= 7) raw inputs; labels (N, S, 6); switches (N, S) bool; other arrays as in
             `switched_loss` (numpy). `ridge` is per sample, on standardised features.
         n_inputs: the inputs the model reads, 7 (wrench and temperature) or 6 (the wrench alone).
+        widths: (K, 6) play widths per raw axis (N, Nm): the play model, with `memory` (N, S, 6 K) the play
+            outputs before each sample (`play_memory` of each sample's log); None: memoryless.
 
     Raises:
         DataError: no sample has a switch set.
@@ -185,10 +273,38 @@ def fit_linear_baseline(
     offset = inputs.mean(axis=0)
     scale = np.where(inputs.std(axis=0) > TINY_SCALE, inputs.std(axis=0), 1.0)
     powers = monomial_powers(n_inputs, order)
-    model = LinearBaseline(name, offset, scale, powers, np.zeros((n_sensors, WRENCH, len(powers))))
-    phis = [model.features(x[:, s], s) for s in range(n_sensors)]
-    p = len(powers)
-    k = WRENCH * p  # unknowns per sensor: W_s flattened row-major (output axis, feature)
+    p = len(powers) + (0 if widths is None else np.size(widths))
+    model = LinearBaseline(name, offset, scale, powers, np.zeros((n_sensors, WRENCH, p)), widths)
+    phis = [model.features(x[:, s], s, None if memory is None else memory[:, s]) for s in range(n_sensors)]
+    normal, rhs = _normal_equations(phis, x, labels, switches, lambdas)
+    if use_sum:
+        _add_sum_term(normal, rhs, phis, x, sum_label, alpha_sum.astype(bool), transforms, lambda_sum)
+    penalty = np.tile(np.r_[0.0, np.ones(p - 1)], WRENCH * n_sensors) * ridge * n
+    normal[np.diag_indices_from(normal)] += penalty
+    if push is not None and push.active:
+        rng, k, eye = np.random.default_rng(seed), WRENCH * p, np.eye(WRENCH)
+        for s in range(n_sensors):
+            features = partial(model.features, s=s)
+            if model.memory:
+                gram = push_gram(features, x[:, s], push, rng, memory=memory[:, s])
+            else:
+                gram = linear_push_gram(features, model.powers, model.scale[s], x[:, s], push, rng)
+            normal[s * k : (s + 1) * k, s * k : (s + 1) * k] += push.weight * np.kron(eye, gram)
+    model.weights = _solve_informed(normal, rhs).reshape(n_sensors, WRENCH, p)
+    return model
+
+
+def _normal_equations(
+    phis: Sequence[np.ndarray],
+    x: np.ndarray,
+    labels: np.ndarray,
+    switches: np.ndarray,
+    lambdas: Sequence[float],
+) -> tuple[np.ndarray, np.ndarray]:
+    """(normal matrix, right-hand side) of the sensors' own terms of `fit_linear_baseline`, unknowns per
+    sensor W_s (6, P) flattened row-major (output axis, feature)."""
+    n_sensors, p = len(phis), phis[0].shape[1]
+    k = WRENCH * p
     normal = np.zeros((n_sensors * k, n_sensors * k))
     rhs = np.zeros(n_sensors * k)
     eye = np.eye(WRENCH)
@@ -199,18 +315,7 @@ def fit_linear_baseline(
             # row-major vec: W phi = (I6 kron phi^T) vec(W)
             normal[s * k : (s + 1) * k, s * k : (s + 1) * k] += lambdas[s] * np.kron(eye, phi.T @ phi)
             rhs[s * k : (s + 1) * k] += lambdas[s] * (r.T @ phi).reshape(-1)
-    if use_sum:
-        _add_sum_term(normal, rhs, phis, x, sum_label, alpha_sum.astype(bool), transforms, lambda_sum)
-    penalty = np.tile(np.r_[0.0, np.ones(p - 1)], WRENCH * n_sensors) * ridge * n
-    normal[np.diag_indices_from(normal)] += penalty
-    if push is not None and push.active:
-        rng = np.random.default_rng(seed)
-        for s in range(n_sensors):
-            features = partial(model.features, s=s)
-            gram = linear_push_gram(features, model.powers, model.scale[s], x[:, s], push, rng)
-            normal[s * k : (s + 1) * k, s * k : (s + 1) * k] += push.weight * np.kron(eye, gram)
-    model.weights = _solve_informed(normal, rhs).reshape(n_sensors, WRENCH, p)
-    return model
+    return normal, rhs
 
 
 def _add_sum_term(

@@ -78,17 +78,19 @@ class PushPrior:
 
 
 def push_gram(
-    features: Callable[[np.ndarray], np.ndarray],
+    features: Callable[..., np.ndarray],
     x: np.ndarray,
     prior: PushPrior,
     rng: np.random.Generator,
     rows: int = 4000,
+    memory: np.ndarray | None = None,
 ) -> np.ndarray:
     """(P, P) ``sum over samples of E_delta [d d^T]`` with ``d = features(x + delta) - features(x)``.
 
-    features: maps raw inputs (M, >= 7) to (M, P) features. x: (N, >= 7) one sensor's raw inputs.
-    Exact for features linear in the wrench (the expectation of d d^T is then the same at every sample);
-    otherwise estimated on `rows` (sample, push) draws and scaled to N samples.
+    features: maps raw inputs (M, >= 7) to (M, P) features (with `memory`, (N, ...) a state per sample
+    such as a model with memory reads, also that state, held: ``features(x, memory=...)``). x: (N, >= 7)
+    one sensor's raw inputs. Exact for features linear in the wrench (the expectation of d d^T is then the
+    same at every sample); otherwise estimated on `rows` (sample, push) draws and scaled to N samples.
     """
     n = len(x)
     if n == 0:
@@ -97,7 +99,8 @@ def push_gram(
     base = x[pick].copy()
     pushed = base.copy()
     pushed[:, :WRENCH] += prior.draw(rng, rows)
-    d = features(pushed) - features(base)
+    held = {} if memory is None else {"memory": memory[pick]}
+    d = features(pushed, **held) - features(base, **held)
     return (d.T @ d) * (n / rows)
 
 

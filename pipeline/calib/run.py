@@ -29,8 +29,9 @@ from pipeline.calib.fit import (
 )
 from pipeline.calib.linear import LinearBaseline
 from pipeline.calib.models import WRENCH, save_model
-from pipeline.calib.params import LS_AFFINE, RAW, nn_name
+from pipeline.calib.params import LS_AFFINE
 from pipeline.calib.records import TrainResult, log_network, log_trial_run, write_predictions
+from pipeline.calib.registry import RAW, nn_name
 from pipeline.calib.search import NetResult, code_digest, data_digest, search_network
 from pipeline.calib.studies import open_storage, storage_url
 from pipeline.calib.training import flat_inputs, predict, predict_inputs, use_threads
@@ -91,7 +92,7 @@ def fit_models(params: Params, prep: Prepared, studies: Path, ui: ProgressLog) -
     t = time.perf_counter()
     for name, model in fitted.baselines.items():
         for k, d in data.items():
-            fitted.preds[k][name] = model.predict(d.x)
+            fitted.preds[k][name] = model.predict(d.x, d.memory)
     fitted.timings["baselines"] = seconds + time.perf_counter() - t
     ui.line(f"{group.name}: baselines fitted on {len(prep.train)} samples in {seconds:.1f} s")
     for n_inputs, result in zip(gp.inputs, searches, strict=True):
@@ -123,10 +124,11 @@ def write_outputs(prep: Prepared, fitted: Fitted, out: Path, run_id: str, t0: fl
     )
     predictors = {RAW: (lambda x: x[:, :, :WRENCH].copy(), 7)}
     predictors.update({name: (b.predict, 7) for name, b in fitted.baselines.items()})
+    memory = {name: prep.val.memory for name, b in fitted.baselines.items() if b.memory}
     for name, r in fitted.nets.items():
         predictors[name] = (lambda x, m=r.model: predict_inputs(m, x), r.model.config.n_inputs)
     # on the validation samples' inputs only (no label, no truth): what selection may look at
-    metrics["fidelity"] = group_fidelity(predictors, prep.val.x, list(group.sensors), prep.gp.push)
+    metrics["fidelity"] = group_fidelity(predictors, prep.val.x, list(group.sensors), prep.gp.push, memory)
     out.mkdir(parents=True, exist_ok=True)
     files = ["metrics.json", "baselines.json", "predictions.parquet"]
     example = prep.test.subset(np.arange(min(5, len(prep.test))))
