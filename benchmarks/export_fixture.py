@@ -3,8 +3,9 @@
 Six groups as in params.yaml (four single sensors, two foot pairs), each a `GroupNet` of the thesis's
 size (13 inputs, two hidden layers of 100, LeakyReLU then ReLU) with random weights and normalisation
 constants, saved as the train stage saves networks (``models/<group>/nn13.json/.pt`` + metrics.json), then
-exported by the export package itself (adapter, graphs, manifest). Weights are random: the speed of a
-graph does not depend on its values.
+exported by the export package itself (adapter, graphs, manifest); or (`synthetic_linear`) each group's
+affine map, or its play model (memory: play operators of the widths of params.yaml), as baselines.json
+holds them. Weights are random: the speed of a graph does not depend on its values.
 """
 
 from __future__ import annotations
@@ -55,6 +56,36 @@ def synthetic_models(
         out.append(read_group(d, f"nn{n_inputs}", group))
         nets.append(net.eval())
     return out, nets
+
+
+def synthetic_linear(models_dir: Path, name: str = "play", seed: int = 0) -> list[GroupModel]:
+    """Write models/<group>/ with a random `name` model (``affine``, or ``play`` with the widths of the
+    params' train.defaults) in baselines.json for every group; return the export adapter's view."""
+    from pipeline.calib.linear import LinearBaseline, monomial_powers
+    from pipeline.calib.params import TrainParams
+    from pipeline.core.config import stage_section
+
+    gp = stage_section(load_params(ROOT / "params.yaml"), "train", TrainParams).group("r_arm_ft")
+    widths = None if name != "play" else np.asarray(gp.play_widths(), dtype=np.float64)
+    rng = np.random.default_rng(seed)
+    out = []
+    for group, sensors in GROUPS.items():
+        n, p = len(sensors), 8 + (0 if widths is None else widths.size)
+        offset = np.tile(np.r_[np.zeros(6), 30.0], (n, 1))
+        model = LinearBaseline(
+            name,
+            offset,
+            np.tile(SCALE[:7], (n, 1)),
+            monomial_powers(7, 1),
+            rng.normal(size=(n, 6, p)),
+            widths,
+        )
+        d = models_dir / group
+        d.mkdir(parents=True, exist_ok=True)
+        write_json(d / "baselines.json", {name: model.to_dict()})
+        (d / "metrics.json").write_text(json.dumps({"group": group, "sensors": list(sensors), "test": {}}))
+        out.append(read_group(d, name, group))
+    return out
 
 
 def synthetic_export(out_dir: Path, models: list[GroupModel]) -> dict:

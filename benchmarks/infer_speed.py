@@ -48,8 +48,15 @@ import torch
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from benchmarks import QUICK  # noqa: E402
-from benchmarks.export_fixture import SCALE, random_inputs, synthetic_export, synthetic_models  # noqa: E402
+from benchmarks.export_fixture import (  # noqa: E402
+    SCALE,
+    random_inputs,
+    synthetic_export,
+    synthetic_linear,
+    synthetic_models,
+)
 from pipeline.export.check import run, session  # noqa: E402
+from pipeline.export.linear import STATE, STATE_OUT  # noqa: E402
 
 ROOT = Path(__file__).resolve().parents[1]
 TARGET_P50, TARGET_P99 = 20.0, 50.0  # us, one sample of all sensors on 1 thread
@@ -70,17 +77,24 @@ def latencies(call, inputs: np.ndarray, calls: int, warmup: int = 500) -> np.nda
 
 def _bound(sess: Any, n_out: int) -> Callable[[np.ndarray], None]:
     """One call as a control loop makes it: input and output buffers bound once (I/O binding), the input
-    row overwritten in place before each run."""
+    row overwritten in place before each run; a graph's state carried (its output copied to its input)."""
     inp, out = sess.get_inputs()[0], sess.get_outputs()[0]
     dtype = np.float32 if inp.type == "tensor(float)" else np.float64
     x_buf, y_buf = np.zeros((1, inp.shape[1]), dtype), np.zeros((1, n_out), dtype)
     binding = sess.io_binding()
     binding.bind_input(inp.name, "cpu", 0, x_buf.dtype, x_buf.shape, x_buf.ctypes.data)
     binding.bind_output(out.name, "cpu", 0, y_buf.dtype, y_buf.shape, y_buf.ctypes.data)
+    state = next((i for i in sess.get_inputs() if i.name == STATE), None)
+    if state is not None:
+        s_in, s_out = np.full(state.shape, np.nan, dtype), np.full(state.shape, np.nan, dtype)
+        binding.bind_input(STATE, "cpu", 0, dtype, s_in.shape, s_in.ctypes.data)
+        binding.bind_output(STATE_OUT, "cpu", 0, dtype, s_out.shape, s_out.ctypes.data)
 
     def call(x: np.ndarray) -> None:
         x_buf[...] = x
         sess.run_with_iobinding(binding)
+        if state is not None:
+            s_in[...] = s_out
 
     return call
 
@@ -97,12 +111,13 @@ def _empty_model(n: int) -> Any:
 
 
 def c_api_latency(
-    model: Path, pool: np.ndarray, n_out: int, calls: int, work: Path, warmup: int = 500
+    model: Path, pool: np.ndarray, n_out: int, calls: int, work: Path, warmup: int = 500, state: int = 0
 ) -> dict | str:
     """{"p50_us", "p99_us", "version", "checksum"} of `model` (input ``inputs``, output ``calibrated``)
     called one row of `pool` at a time (cycled, `warmup` calls first) through onnxruntime's C API on 1
     thread (`benchmarks/ort_latency.c`, built into `work` with the system's C compiler against the
-    wheel's libonnxruntime), as a robot's C/C++ loop calls it; or why it could not run (one line)."""
+    wheel's libonnxruntime), as a robot's C/C++ loop calls it, carrying a graph's `state` values (``state``
+    -> ``state_out``) from call to call; or why it could not run (one line)."""
     import shutil
     import subprocess
 
@@ -120,8 +135,9 @@ def c_api_latency(
             return f"cannot build benchmarks/ort_latency.c: {' '.join(done.stderr.split())[:300]}"
     np.ascontiguousarray(pool, dtype=np.float32).tofile(rows)
     args = [str(libraries[-1]), str(model), "inputs", "calibrated", pool.shape[1], n_out, str(rows)]
+    carried = [STATE, STATE_OUT, state] if state else []
     done = subprocess.run(
-        [str(exe), *map(str, (*args, len(pool), calls, warmup))], capture_output=True, text=True
+        [str(exe), *map(str, (*args, len(pool), calls, warmup, *carried))], capture_output=True, text=True
     )
     if done.returncode:
         return (done.stderr.strip().splitlines() or [f"exit status {done.returncode}"])[-1]
@@ -159,9 +175,11 @@ def _real_export(
     models = ", ".join(f"{g} {m}" for g, m in fused["models"].items())
     about = f"{directory}: {len(fused['sensors'])} sensors ({models}), {len(fused['inputs'])} inputs"
     n_out = fused["output_shape"][1]
+    state = int(fused["state"]["shape"][0]) if "state" in fused else 0
+    about += f", {state} state values carried" if state else ""
     results: dict[str, Any] = {
         "real onnxruntime C API float32": c_api_latency(
-            directory / fused["files"]["float32"], pool, n_out, calls, work
+            directory / fused["files"]["float32"], pool, n_out, calls, work, state=state
         )
     }
     results.update(_onnxruntime(sessions, pool, n_out, calls, "real "))
@@ -257,11 +275,21 @@ def _measure(args: argparse.Namespace, work: Path) -> None:
     rows_t = [torch.tensor(r, dtype=torch.float32).reshape(1, -1) for r in pool]
     results["torch eager float32"] = latencies(torch_all, rows_t, args.calls)
 
+    for name in ("affine", "play"):  # the linear families, memoryless and with memory, in the same run
+        linear_doc = synthetic_export(work / name, synthetic_linear(work / f"{name}_models", name))
+        linear = linear_doc["graphs"][linear_doc["fused"]]
+        state = int(linear["state"]["shape"][0]) if "state" in linear else 0
+        file, pool7 = work / name / linear["files"]["float32"], random_inputs(args.rows, n_inputs=7)
+        results[f"{name} 8 sensors C API float32"] = c_api_latency(
+            file, pool7, n_out, args.calls, work, state=state
+        )
     shape = f"13-{args.hidden}-{args.hidden}-6"
     print(f"synthetic export (six groups, 8 networks {shape}); 1 thread; {args.calls} calls per line")
     _print(results, 8)
     verdicts = [_verdict("synthetic, C API", results["onnxruntime C API float32"])]
     verdicts.append(_verdict("synthetic, Python", results["onnxruntime float32 bound"]))
+    for k in ("affine", "play"):
+        verdicts.append(_verdict(f"synthetic {k}, C API", results[f"{k} 8 sensors C API float32"]))
     if args.export:
         about, n_sensors, real = _real_export(Path(args.export), args.calls, args.rows, work)
         print(f"real export {about}")

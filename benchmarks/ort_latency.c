@@ -7,7 +7,11 @@
  * needed: the few OrtApi functions used are called through their slots in the OrtApi table (their
  * indices are part of onnxruntime's stable C ABI: members are only ever appended).
  *
- *   ort_latency LIB MODEL INPUT OUTPUT N_IN N_OUT ROWS_FILE N_ROWS CALLS WARMUP
+ *   ort_latency LIB MODEL INPUT OUTPUT N_IN N_OUT ROWS_FILE N_ROWS CALLS WARMUP [STATE STATE_OUT N_STATE]
+ *
+ * A graph with memory (`pipeline.export.linear`: the play models) has a state input and output of N_STATE
+ * float32: the loop carries it as a robot's loop must, the output of one call the input of the next, in two
+ * buffers it swaps (one tensor over each, created once; the state starts at NaN, a fresh start).
  *
  * ROWS_FILE: N_ROWS rows of N_IN float32 (native byte order), cycled through. Prints one JSON line:
  * {"version": "...", "p50_us": ..., "p99_us": ..., "checksum": ...} (checksum: the sum of the first output
@@ -15,6 +19,7 @@
  * error.
  */
 #include <dlfcn.h>
+#include <math.h>
 #include <stdint.h>
 #include <stdio.h>
 #include <stdlib.h>
@@ -63,10 +68,12 @@ static double now_us(void) {
 }
 
 int main(int argc, char **argv) {
-  if (argc != 11) {
-    fprintf(stderr, "usage: %s LIB MODEL INPUT OUTPUT N_IN N_OUT ROWS_FILE N_ROWS CALLS WARMUP\n", argv[0]);
+  if (argc != 11 && argc != 14) {
+    fprintf(stderr, "usage: %s LIB MODEL INPUT OUTPUT N_IN N_OUT ROWS_FILE N_ROWS CALLS WARMUP "
+            "[STATE STATE_OUT N_STATE]\n", argv[0]);
     return 1;
   }
+  int n_state = argc == 14 ? atoi(argv[13]) : 0;
   const char *input_name = argv[3], *output_name = argv[4];
   int n_in = atoi(argv[5]), n_out = atoi(argv[6]), n_rows = atoi(argv[8]);
   int calls = atoi(argv[9]), warmup = atoi(argv[10]);
@@ -82,6 +89,8 @@ int main(int argc, char **argv) {
   }
   float *rows = malloc(sizeof(float) * n_in * n_rows), *x = calloc(n_in, sizeof(float));
   float *y = calloc(n_out, sizeof(float));
+  float *states[2] = {malloc(sizeof(float) * (n_state + 1)), malloc(sizeof(float) * (n_state + 1))};
+  for (int i = 0; i < n_state; i++) states[0][i] = states[1][i] = NAN;
   double *times = malloc(sizeof(double) * calls);
   FILE *f = fopen(argv[7], "rb");
   if (!f || fread(rows, sizeof(float) * n_in, n_rows, f) != (size_t)n_rows) {
@@ -106,16 +115,27 @@ int main(int argc, char **argv) {
         "input tensor");
   check(FN(CREATE_TENSOR_WITH_DATA, CreateTensor)(memory, y, sizeof(float) * n_out, y_shape, 2, FLOAT, &output),
         "output tensor");
+  void *state[2] = {NULL, NULL};
+  int64_t s_shape[1] = {n_state};
+  for (int b = 0; b < 2 && n_state; b++)
+    check(FN(CREATE_TENSOR_WITH_DATA, CreateTensor)(memory, states[b], sizeof(float) * n_state, s_shape, 1, FLOAT,
+                                                    &state[b]),
+          "state tensor");
   typedef Status (*Run)(void *, void *, const char *const *, void *const *, size_t, const char *const *, size_t,
                         void **);
   Run run = FN(RUN, Run);
+  const char *in_names[2] = {input_name, n_state ? argv[11] : NULL};
+  const char *out_names[2] = {output_name, n_state ? argv[12] : NULL};
+  size_t n_io = n_state ? 2 : 1;
 
   double checksum = 0.0;
   for (int k = -warmup; k < calls; k++) {
     const float *row = rows + (size_t)((k + warmup) % n_rows) * n_in;
     for (int i = 0; i < n_in; i++) x[i] = row[i];
+    int now = (k + warmup) & 1; /* the state of the call before is in buffer `now`, this call's goes to the other */
+    void *inputs[2] = {input, state[now]}, *outputs[2] = {output, state[1 - now]};
     double start = now_us();
-    check(run(session, NULL, &input_name, &input, 1, &output_name, 1, &output), "Run");
+    check(run(session, NULL, in_names, inputs, n_io, out_names, n_io, outputs), "Run");
     double stop = now_us();
     if (k >= 0) times[k] = stop - start;
     checksum += y[0];

@@ -27,7 +27,7 @@ from pipeline.export.trained import read_group
 from pipeline.stages import export as E
 from tests.test_train import LEG, PAIR
 
-MODELS = ("raw", "affine", "poly1", "poly2", "nn7", "nn13")
+MODELS = ("raw", "affine", "poly1", "poly2", "play", "nn7", "nn13")
 SCALE = np.array([60.0, 60.0, 200.0, 4.0, 4.0, 1.5, 4.0, 1, 1, 1, 1, 1, 1])  # per input: N, Nm, degC, ...
 
 
@@ -61,7 +61,7 @@ def test_group_graph_equals_project_model(trained_models: dict, name: str) -> No
     x = _inputs(2, model.n_inputs)
     reference = model.reference(x)
     np.testing.assert_allclose(_outputs(model, "float64", x), reference, rtol=0, atol=1e-9)
-    if model.family == "network":  # float32 arithmetic (as torch's): against torch in test_network_graph_...
+    if model.kind == "network":  # float32 arithmetic (as torch's): against torch in test_network_graph_...
         np.testing.assert_allclose(_outputs(model, "float32", x), reference, rtol=0, atol=2e-3)
     else:  # float32 in and out, float64 inside: only the output's rounding (|f| < 1000 N: < 6.1e-5 N)
         rounded = model.reference(x.astype(np.float32).astype(np.float64))
@@ -231,7 +231,7 @@ def test_float32_check_is_relative_to_float32_resolution(trained_models: dict, n
     model = read_group(trained_models["models"] / LEG, name)
     x = _inputs(1, model.n_inputs, n=4000, seed=5)
     x[:, :3] = np.sign(x[:, :3]) * (2000.0 + np.abs(x[:, :3]) * 20.0)  # |force| from 2 kN up, N
-    if model.family == "network":  # the stored predictions: torch in float32
+    if model.kind == "network":  # the stored predictions: torch in float32
         net, _ = load_model(trained_models["models"] / LEG / name)
         with torch.no_grad():
             reference32 = net(torch.tensor(x, dtype=torch.float32)).numpy().astype(np.float64)
@@ -321,9 +321,9 @@ def test_stage_writes_checked_graphs_and_manifest(exported: dict, trained_models
     assert [c["unit"] for c in fused["inputs"][6:13]] == ["degC", "m/s^2", "m/s^2", "m/s^2"] + ["rad/s"] * 3
     assert fused["outputs"][-1]["topic"] == "/ft/r_foot_rear_ft/wrench_calibrated"
     training = fused["training"][PAIR]
-    assert training["family"] == "polynomial" and len(training["training_data_sha256"]) == 64
+    assert training["family"] == "poly" and len(training["training_data_sha256"]) == 64
     assert training["mlflow_run"] and training["logs"]["test"] == ["05_pole_test", "06_walking_test"]
-    assert fused["training"][LEG]["family"] == "network"
+    assert fused["training"][LEG]["family"] == "nn"
     for name, entry in doc["graphs"].items():
         assert entry["check"]["float32"]["max_ulps"] <= 8, name
         assert entry["check"]["float64"]["max_abs_diff"] <= 1e-9, name

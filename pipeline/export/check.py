@@ -9,6 +9,11 @@ compared with the project's model in float64 on the same inputs. Differences are
 and Nm (the maximum over every sample and output column), and for float32 also in float32 steps (ulps) at
 each sensor's largest |output| on the samples: float32's resolution grows with the wrench (6.1e-5 N at
 512 N, 2.4e-4 N at 2 kN), so the float32 check is relative to it, the float64 one absolute.
+
+A graph with memory (a ``state`` input, `pipeline.export.linear`) is checked on whole test logs: each log's
+rows with finite inputs in time order, one call per log from a fresh state, against the project's model
+run over the same rows (``bounds``: where each log starts); and again in calls of `CHUNK` rows, each
+taking the state the call before returned (``state_carry``: the largest difference between the two runs).
 """
 
 from __future__ import annotations
@@ -20,19 +25,26 @@ from typing import Any
 
 import numpy as np
 
+from pipeline.calib.registry import NETWORK
 from pipeline.core.errors import DataError
 from pipeline.export.trained import PREDICTIONS_FILE, WRENCH, GroupModel, prediction_columns
+
+CHUNK = 997  # rows per call of the state-carrying run of a graph with memory (module docstring)
 
 
 @dataclass
 class Samples:
     """A group's test samples: inputs x (N, K) float64 in the graph's column order, the stored predictions
-    (N, 6 S) of the exported model, the project's prediction from float32 inputs and its float64 one."""
+    (N, 6 S) of the exported model (NaN on rows without one), the project's prediction from float32 inputs
+    and its float64 one; for a model with memory the first row of each log's sequence (`bounds`) and every
+    row's (log, stamp) (`keys`, (N, 2) int64: the log's index in `logs`, ns)."""
 
     x: np.ndarray
     stored: np.ndarray
     reference32: np.ndarray
     reference: np.ndarray
+    bounds: np.ndarray | None = None
+    keys: np.ndarray | None = None
 
     def target(self, dtype: str) -> np.ndarray:
         return self.reference32 if dtype == "float32" else self.reference
@@ -62,14 +74,41 @@ def session(model: Any, threads: int = 1) -> Any:
 
 def run(sess: Any, x: np.ndarray, offsets: np.ndarray | None = None) -> np.ndarray:
     """Outputs of a session on inputs x (N, K), cast to the graph's input type; `offsets` (1, K), in the
-    inputs' units, fed to the graph's ``offsets`` input (None: its default, zeros)."""
+    inputs' units, fed to the graph's ``offsets`` input (None: its default, zeros). A graph with memory
+    starts afresh (its rows: consecutive samples)."""
+    return run_state(sess, x, offsets)[0]
+
+
+def run_state(
+    sess: Any, x: np.ndarray, offsets: np.ndarray | None = None, state: np.ndarray | None = None
+) -> tuple[np.ndarray, np.ndarray | None]:
+    """(outputs, the state after the last row, None for a memoryless graph) of a session on the
+    consecutive samples x (N, K) from `state` (M,) (None: a fresh start); `offsets` as `run`'s."""
     from pipeline.export.graph import OFFSETS
+    from pipeline.export.linear import STATE, STATE_OUT
 
     dtype = np.float32 if sess.get_inputs()[0].type == "tensor(float)" else np.float64
     feed = {sess.get_inputs()[0].name: np.ascontiguousarray(x, dtype=dtype)}
     if offsets is not None:
         feed[OFFSETS] = np.ascontiguousarray(np.reshape(offsets, (1, -1)), dtype=dtype)
-    return sess.run(None, feed)[0]
+    if state is not None:
+        feed[STATE] = np.ascontiguousarray(np.reshape(state, -1), dtype=dtype)
+    names = [o.name for o in sess.get_outputs()]
+    out = sess.run(None, feed)
+    return out[0], (out[names.index(STATE_OUT)] if STATE_OUT in names else None)
+
+
+def run_logs(sess: Any, x: np.ndarray, bounds: np.ndarray | None, chunk: int | None = None) -> np.ndarray:
+    """A graph's outputs on several logs' rows x (N, K), each log from a fresh state (`bounds`: the first
+    row of each; None: one sequence), in calls of `chunk` rows carrying the state (None: a call per log)."""
+    starts = [0] if bounds is None else list(bounds)
+    out = []
+    for lo, hi in zip(starts, [*starts[1:], len(x)], strict=True):
+        state = None
+        for first in range(lo, hi, chunk or max(hi - lo, 1)):
+            y, state = run_state(sess, x[first : min(hi, first + (chunk or hi))], state=state)
+            out.append(y)
+    return np.concatenate(out) if out else np.zeros((0, 0))
 
 
 def load_samples(model_dir: Path, model: GroupModel, labelled_dir: Path) -> Samples:
@@ -91,7 +130,7 @@ def load_samples(model_dir: Path, model: GroupModel, labelled_dir: Path) -> Samp
     except (OSError, ValueError, KeyError) as exc:
         raise DataError(f"{path}: no predictions of {model.name}: {exc}") from None
     parts = []
-    for log, rows in pred.groupby(S.LOG, sort=False):
+    for k, (log, rows) in enumerate(pred.groupby(S.LOG, sort=False)):
         table = labelled_dir / f"{log}{S.PARQUET_SUFFIX}"
         try:
             inputs = pd.read_parquet(table, columns=[S.STAMP, *model.input_columns])
@@ -99,8 +138,13 @@ def load_samples(model_dir: Path, model: GroupModel, labelled_dir: Path) -> Samp
             raise DataError(f"{table}: not found (test log {log} of {path})") from None
         except (OSError, ValueError, KeyError) as exc:
             raise DataError(f"{table}: not the inputs of {model.group}: {exc}") from None
-        merged = rows.merge(inputs, on=S.STAMP, how="left", validate="one_to_one")
-        if merged[model.input_columns].isna().any().any():
+        if model.memory:  # the whole log in time order: every row with finite inputs
+            finite = inputs[model.input_columns].notna().all(axis=1)
+            merged = inputs[finite].merge(rows, on=S.STAMP, how="left", validate="one_to_one")
+            merged[S.LOG] = k
+        else:
+            merged = rows.merge(inputs, on=S.STAMP, how="left", validate="one_to_one")
+        if merged[model.input_columns].isna().any().any() or not len(merged):
             raise DataError(f"{table}: test samples of {path} have no finite inputs there")
         parts.append(merged)
     if not parts:
@@ -108,16 +152,35 @@ def load_samples(model_dir: Path, model: GroupModel, labelled_dir: Path) -> Samp
     frame = pd.concat(parts, ignore_index=True)
     x = frame[model.input_columns].to_numpy(np.float64)
     stored = frame[stored_cols].to_numpy(np.float64)
+    if not model.memory:
+        rounded = x.astype(np.float32).astype(np.float64)
+        return Samples(
+            x, stored, stored if model.kind == NETWORK else model.reference(rounded), model.reference(x)
+        )
+    keys = frame[[S.LOG, S.STAMP]].to_numpy(np.int64)
+    bounds = np.flatnonzero(np.r_[True, keys[1:, 0] != keys[:-1, 0]])
+    return Samples(x, stored, *_references(model, x, bounds), bounds, keys)
+
+
+def _references(model: GroupModel, x: np.ndarray, bounds: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """(from float32 inputs, float64) the project's model over each log's rows (from `bounds`) of x."""
     rounded = x.astype(np.float32).astype(np.float64)
-    return Samples(
-        x, stored, stored if model.family == "network" else model.reference(rounded), model.reference(x)
-    )
+    edges = [*bounds, len(x)]
+    parts = [
+        (model.reference(rounded[a:b]), model.reference(x[a:b]))
+        for a, b in zip(edges[:-1], edges[1:], strict=True)
+    ]
+    return np.concatenate([p[0] for p in parts]), np.concatenate([p[1] for p in parts])
 
 
 def max_diff(a: np.ndarray, b: np.ndarray) -> float:
-    """max |a - b| over every element (N and Nm); inf if shapes differ or a value is not finite."""
+    """max |a - b| over every element (N and Nm); inf if shapes differ or a value is not finite (the rows
+    where `b` is NaN throughout are left out: no stored prediction there)."""
     if a.shape != b.shape:
         return float("inf")
+    if b.ndim == 2 and np.isnan(b).all(axis=1).any():
+        keep = ~np.isnan(b).all(axis=1)
+        a, b = a[keep], b[keep]
     d = np.abs(np.asarray(a, np.float64) - np.asarray(b, np.float64))
     return float(d.max()) if d.size and np.isfinite(d).all() else (0.0 if not d.size else float("inf"))
 
@@ -144,17 +207,26 @@ def _measure(y: np.ndarray, dtype: str, target: np.ndarray, stored: np.ndarray) 
 
 
 def check_group(graphs: Mapping[str, Any], samples: Samples) -> dict[str, dict[str, float]]:
-    """{dtype: {max_abs_diff, max_abs_diff_stored, [max_ulps,] samples}} of a group's graphs (module
-    docstring)."""
+    """{dtype: {max_abs_diff, max_abs_diff_stored, [max_ulps,] samples[, state_carry]}} of a group's graphs
+    (module docstring)."""
     out = {}
     for dtype, graph in graphs.items():
-        y = run(session(graph), samples.x)
+        sess = session(graph)
+        y = run_logs(sess, samples.x, samples.bounds)
         out[dtype] = _measure(y, dtype, samples.target(dtype), samples.stored)
+        if samples.bounds is not None:
+            out[dtype]["state_carry"] = max_diff(run_logs(sess, samples.x, samples.bounds, CHUNK), y)
     return out
 
 
-def check_fused(graphs: Mapping[str, Any], groups: Sequence[Samples]) -> dict[str, dict[str, float]]:
-    """The fused graphs on every group's test samples at once (groups with fewer samples repeat theirs)."""
+def check_fused(
+    graphs: Mapping[str, Any], groups: Sequence[Samples], models: Sequence[GroupModel] = ()
+) -> dict[str, dict[str, float]]:
+    """The fused graphs on every group's test samples at once (groups with fewer samples repeat theirs);
+    with a model of memory among `models` (the groups' models, in order), on the rows of each test log that
+    every group has, each group's reference run over them (module docstring)."""
+    if any(g.bounds is not None for g in groups):
+        return _check_fused_logs(graphs, groups, models)
     n = max(len(g.x) for g in groups)
     take = [np.arange(n) % len(g.x) for g in groups]
     x = np.concatenate([g.x[k] for g, k in zip(groups, take, strict=True)], axis=1)
@@ -164,6 +236,30 @@ def check_fused(graphs: Mapping[str, Any], groups: Sequence[Samples]) -> dict[st
         target = np.concatenate([g.target(dtype)[k] for g, k in zip(groups, take, strict=True)], axis=1)
         out[dtype] = _measure(run(session(graph), x), dtype, target, stored)
     return out
+
+
+def _check_fused_logs(
+    graphs: Mapping[str, Any], groups: Sequence[Samples], models: Sequence[GroupModel]
+) -> dict[str, dict[str, float]]:
+    """`check_fused` with memory: the memory groups' (log, stamp) rows that every group has (a memoryless
+    group's test samples are a subset of the same logs' rows: those rows), in time order per log."""
+    keyed = [g for g in groups if g.keys is not None]
+    shared = set.intersection(*({tuple(k) for k in g.keys.tolist()} for g in keyed))
+    common = np.array([k for k in keyed[0].keys.tolist() if tuple(k) in shared], dtype=np.int64)
+    columns = []
+    for g, model in zip(groups, models, strict=True):
+        if g.keys is None:  # memoryless: the rows its own samples have, repeated to the common length
+            take = np.arange(len(common)) % len(g.x)
+            columns.append((g.x[take], g.reference32[take], g.reference[take], g.stored[take]))
+            continue
+        index = {tuple(k): i for i, k in enumerate(g.keys)}
+        rows = np.array([index[tuple(k)] for k in common], dtype=np.int64)
+        bounds = np.flatnonzero(np.r_[True, common[1:, 0] != common[:-1, 0]])
+        columns.append((g.x[rows], *_references(model, g.x[rows], bounds), g.stored[rows]))
+    x, ref32, ref, stored = (np.concatenate([c[k] for c in columns], axis=1) for k in range(4))
+    bounds = np.flatnonzero(np.r_[True, common[1:, 0] != common[:-1, 0]])
+    samples = Samples(x, stored, ref32, ref, bounds, common)
+    return check_group(graphs, samples)
 
 
 TOLERANCES = {"float32": ("max_ulps", "tolerance_float32_ulps", "float32 steps"), "float64": (

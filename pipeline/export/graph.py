@@ -27,7 +27,9 @@ Per sensor, with x its columns (the forms of `pipeline.export.trained`):
   1)) needs no Transpose but is ~2x slower on large batches than one laid out for batches (samples
   along the convolutions' length, (1, C, N)): the fused graph of an export is the control loop's,
   the groups' graphs are for batches (`ftcal calibrate`);
-- affine / polynomial: ``x[:, :6] + phi((x[:, :7] - offset) / scale) @ W^T``, phi the monomials: the
+- affine and play: every sensor's at once, in float64 (`pipeline.export.linear`), the play models' state
+  carried from row to row and call to call by the graph's ``state`` input and ``state_out`` output;
+- polynomial: ``x[:, :6] + phi((x[:, :7] - offset) / scale) @ W^T``, phi the monomials: the
   standardised inputs padded with a column of ones, gathered by an index table (P, order) and multiplied
   along the last axis (ReduceProd), so one Gather and one ReduceProd compute every monomial; in float64
   also inside a float32 graph (as the project computes them: float32 arithmetic would lose 1e-3 N);
@@ -45,6 +47,7 @@ from typing import Any
 
 import numpy as np
 
+from pipeline.export.linear import STATE, STATE_OUT, stack_linear, stackable
 from pipeline.export.trained import WRENCH, Dense, GroupModel, IdentityPart, LinearPart, NetworkPart
 
 OPSET = 17
@@ -267,11 +270,13 @@ def _stack(
     return b.op("Add", [start, correction], "stack_calibrated")
 
 
-def _all(b: _Builder, x: str, models: Sequence[GroupModel], per_sample: bool) -> tuple[str, int]:
-    """Output (N, 6 S) of every sensor of `models` (input columns side by side); the number of inputs.
+def _all(b: _Builder, x: str, models: Sequence[GroupModel], per_sample: bool) -> tuple[str, int, int]:
+    """Output (N, 6 S) of every sensor of `models` (input columns side by side); the number of inputs; the
+    size of the state (`pipeline.export.linear`; 0: none).
 
-    Networks of equal signature are stacked (`_stack`, a single network too); the other models run
-    alone; a final Gather restores the sensor order when stacking changed it.
+    Networks of equal signature are stacked (`_stack`, a single network too), the affine and play parts
+    too (`stack_linear`); the other models run alone; a final Gather restores the sensor order when
+    stacking changed it.
     """
     sensors, start = [], 0  # (input start, n_inputs, part, name)
     for m in models:
@@ -280,11 +285,14 @@ def _all(b: _Builder, x: str, models: Sequence[GroupModel], per_sample: bool) ->
             start += m.n_inputs
     stacks: dict[Any, list[int]] = {}
     for k, (_, n, part, _) in enumerate(sensors):
-        key = _signature(part, n)
+        key = "linear" if stackable(part) else _signature(part, n)
         stacks.setdefault(key if key is not None else ("alone", k), []).append(k)
-    outs, order = [], []
-    for members in stacks.values():
-        if _signature(sensors[members[0]][2], sensors[members[0]][1]) is not None:
+    outs, order, state = [], [], 0
+    for key, members in stacks.items():
+        if key == "linear":
+            out, state = stack_linear(b, x, start, [(sensors[k][0], sensors[k][2]) for k in members])
+            outs.append(out)
+        elif _signature(sensors[members[0]][2], sensors[members[0]][1]) is not None:
             picked = [sensors[k] for k in members]
             starts, parts = [s[0] for s in picked], [s[2] for s in picked]
             outs.append(_stack(b, x, start, starts, picked[0][1], parts, per_sample))
@@ -297,7 +305,7 @@ def _all(b: _Builder, x: str, models: Sequence[GroupModel], per_sample: bool) ->
     if order != sorted(order):
         columns = np.concatenate([np.arange(k * WRENCH, (k + 1) * WRENCH) for k in np.argsort(order)])
         out = b.op("Gather", [out, b.const("sensor_order", columns, np.int64)], "in_sensor_order", axis=1)
-    return out, start
+    return out, start, state
 
 
 def build(
@@ -314,23 +322,23 @@ def build(
     n_in = sum(len(m.sensors) * m.n_inputs for m in models)
     b.initializers.append(numpy_helper.from_array(np.zeros((1, n_in), dtype=b.dtype), OFFSETS))
     shifted = b.op("Sub", [INPUT, OFFSETS], "rezeroed")
-    out, start = _all(b, shifted, models, per_sample)
+    out, start, state = _all(b, shifted, models, per_sample)
     if b.nodes[-1].output[0] == out:  # name the last result the graph's output (no extra Identity)
         b.nodes[-1].output[0] = OUTPUT
     else:
         b.op("Identity", [out], output=OUTPUT)
     elem = TensorProto.FLOAT if dtype == "float32" else TensorProto.DOUBLE
     n_out = sum(len(m.sensors) for m in models) * WRENCH
-    graph = helper.make_graph(
-        b.nodes,
-        name,
-        [
-            helper.make_tensor_value_info(INPUT, elem, ["N", start]),
-            helper.make_tensor_value_info(OFFSETS, elem, [1, start]),
-        ],
-        [helper.make_tensor_value_info(OUTPUT, elem, ["N", n_out])],
-        b.initializers,
-    )
+    inputs = [
+        helper.make_tensor_value_info(INPUT, elem, ["N", start]),
+        helper.make_tensor_value_info(OFFSETS, elem, [1, start]),
+    ]
+    outputs = [helper.make_tensor_value_info(OUTPUT, elem, ["N", n_out])]
+    if state:  # the play models' state: default NaN (a fresh start), `pipeline.export.linear`
+        b.initializers.append(numpy_helper.from_array(np.full(state, np.nan, dtype=b.dtype), STATE))
+        inputs.append(helper.make_tensor_value_info(STATE, elem, [state]))
+        outputs.append(helper.make_tensor_value_info(STATE_OUT, elem, [state]))
+    graph = helper.make_graph(b.nodes, name, inputs, outputs, b.initializers)
     model = helper.make_model(
         graph,
         opset_imports=[helper.make_opsetid("", OPSET)],

@@ -11,10 +11,12 @@ beside the files, which `ftcal calibrate` and a lab's own loader read:
      "training": {group: {...}}, "check": {dtype: {max_abs_diff, samples}}}}}
 
 Each input/output entry: ``index`` (column of the tensor), ``column`` (labelled-table name), ``sensor``,
-``topic`` and ``field`` (where a ROS 2 log carries the value), ``unit``. ``offsets`` describes the graph's
-second input (`pipeline.export.graph`: subtracted from ``inputs``, default zeros) and the file a
-re-zeroing writes beside the manifest (`pipeline.export.offsets`); ``serials`` the sensor boards the
-calibration belongs to (`pipeline.export.identity`).
+``topic`` and ``field`` (where a ROS 2 log carries the value), ``unit``. A graph whose models have memory
+(the ``play`` family) has a ``state`` entry: its input and output names, shape, initial value and how to
+carry it (`pipeline.export.linear`), and per column the sensor, raw axis and play width it belongs to.
+``offsets`` describes the graph's second input (`pipeline.export.graph`: subtracted from ``inputs``,
+default zeros) and the file a re-zeroing writes beside the manifest (`pipeline.export.offsets`);
+``serials`` the sensor boards the calibration belongs to (`pipeline.export.identity`).
 """
 
 from __future__ import annotations
@@ -73,7 +75,9 @@ def training(model: GroupModel, data_sha256: str, mlflow_run: str | None) -> dic
     info = dict(model.info)
     return {
         "model": model.name,
-        "family": model.family,
+        "family": model.family,  # `pipeline.calib.registry`: raw, affine, poly, play, nn
+        "kind": model.kind,  # identity, linear or network
+        "memory": model.memory,  # a state carried from sample to sample (the graph's ``state``)
         "sensors": list(model.sensors),
         "inputs_per_sensor": model.n_inputs,
         "separable": True,  # each sensor's output depends on its own inputs only (every family here)
@@ -119,6 +123,27 @@ def graph_entry(
         },
         "serials": {s: (serials or {}).get(s) for s in sensors},
         "training": {m.group: dict(trainings[m.group]) for m in models},
+    } | _state(models)
+
+
+def _state(models: Sequence[GroupModel]) -> dict[str, Any]:
+    """{"state": ...} of a graph with memory (module docstring), else {}."""
+    from pipeline.export.linear import STATE, STATE_OUT, state_layout
+
+    layout = state_layout(models)
+    if not layout:
+        return {}
+    return {
+        "state": {
+            "input": STATE,
+            "output": STATE_OUT,
+            "shape": [len(layout)],
+            "initial": "NaN (the input's default): each play operator starts at its sensor's first reading",
+            "carry": f"feed {STATE_OUT} of a call as {STATE} of the next; the rows of a call are "
+            "consecutive samples of the sensors, in stamp order (1 per call in a control loop); a sensor's "
+            "columns may be carried alone (NaN restarts it: after a re-zeroing, a reboot of its board)",
+            "columns": layout,
+        }
     }
 
 
@@ -134,6 +159,12 @@ def metadata(entry: Mapping[str, Any], robot: str) -> dict[str, str]:
         "ftcal.models": json.dumps(entry["models"]),
         "ftcal.inputs": ",".join(f"{c['column']}[{c['unit']}]" for c in entry["inputs"]),
         "ftcal.offsets": f"{OFFSETS}: (1, K) subtracted from {INPUT}, default zeros",
+        "ftcal.state": (
+            f"{entry['state']['input']} -> {entry['state']['output']}: {entry['state']['shape']}, "
+            "default NaN (fresh); carry it from call to call"
+            if "state" in entry
+            else "none (memoryless)"
+        ),
         "ftcal.serials": json.dumps(entry.get("serials") or {}),
         "ftcal.outputs": ",".join(f"{c['column']}[{c['unit']}]" for c in entry["outputs"]),
         "ftcal.training_data_sha256": json.dumps(hashes),

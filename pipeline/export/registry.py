@@ -10,6 +10,8 @@ from __future__ import annotations
 import math
 from typing import Any
 
+from pipeline.calib.registry import NETWORK
+
 REGISTERED_MODEL = "ftcal-onnx"
 ARTIFACT_DIR = "onnx"
 
@@ -43,7 +45,7 @@ def train_run(client: Any, group: str, metrics: dict[str, Any]) -> str | None:
 def _trained_versions(client: Any, group: str, entry: dict[str, Any]) -> list[tuple[str, Any]]:
     """(name, version) of the registered training versions of the group's exported network, if any."""
     training = entry["training"].get(group)
-    if training is None or training["family"] != "network" or not training.get("mlflow_run"):
+    if training is None or training.get("kind") != NETWORK or not training.get("mlflow_run"):
         return []
     name = f"ftcal-{group}-{training['inputs_per_sensor']}"
     query = f"name = '{name}' and run_id = '{training['mlflow_run']}'"

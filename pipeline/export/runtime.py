@@ -13,6 +13,12 @@ sensor's first temperature (or IMU) message has no input yet and is counted as u
 Each sensor's output depends on its own inputs only (``separable`` in the manifest; true of every model
 family here), so a group's graph is fed one sensor's messages in that sensor's slot (and the same rows
 in the other slots, whose outputs are discarded).
+
+A graph with memory (a ``state`` entry in the manifest: the play models) is run on each sensor's wrench
+messages in stamp order, one call per sensor and chunk, carrying that sensor's state columns from chunk to
+chunk (a fresh state at the log's first message), so that every output depends on that message and the
+earlier ones only. Every wrench message moves the state, also one without its temperature yet (its output
+is not written: uncalibrated), as the training's memory moves with every reading.
 """
 
 from __future__ import annotations
@@ -150,14 +156,44 @@ class Deployment:
                 )
         return out
 
-    def predict(self, group: str, inputs: Mapping[int, np.ndarray]) -> dict[int, np.ndarray]:
+    def state_columns(self, group: str) -> dict[int, list[int]] | None:
+        """slot -> its columns of the group's graph's state (None: a memoryless graph)."""
+        entry = self.groups()[group]
+        if "state" not in entry:
+            return None
+        sensors = entry["sensors"]
+        return {
+            k: [c["index"] for c in entry["state"]["columns"] if c["sensor"] == s]
+            for k, s in enumerate(sensors)
+        }
+
+    def predict(
+        self, group: str, inputs: Mapping[int, np.ndarray], state: dict[int, np.ndarray] | None = None
+    ) -> dict[int, np.ndarray]:
         """Calibrated wrenches {slot: (n_slot, 6)} of a group's sensors from their inputs {slot: (n_slot,
         n_inputs)}, float64, in one graph call: the slots' rows side by side (a slot with fewer rows, or
-        none, repeats rows of another; separable models make their outputs irrelevant)."""
-        from pipeline.export.check import run
+        none, repeats rows of another; separable models make their outputs irrelevant). A graph with memory
+        takes each slot's rows as its consecutive samples, one call per slot, from `state` (slot -> its
+        state columns, updated in place; None or a slot not in it: a fresh start)."""
+        from pipeline.export.check import run, run_state
 
         entry = self.groups()[group]
         n_slots = len(entry["sensors"])
+        columns = self.state_columns(group)
+        if columns is not None:
+            out = {}
+            for slot, x in inputs.items():
+                if not len(x):
+                    continue
+                initial = np.full(int(entry["state"]["shape"][0]), np.nan)
+                if state is not None and slot in state:
+                    initial[columns[slot]] = state[slot]
+                offsets = self.offsets.input_vector(entry)
+                y, last = run_state(self.sessions[group], np.tile(x, n_slots), offsets, initial)
+                out[slot] = y[:, slot * 6 : (slot + 1) * 6].astype(np.float64)
+                if state is not None:
+                    state[slot] = np.asarray(last, dtype=np.float64)[columns[slot]]
+            return out
         rows = max(len(x) for x in inputs.values())
         filler = next(x for x in inputs.values() if len(x))
         columns = []
@@ -223,6 +259,9 @@ class CausalCalibrator:
             if p.imu_topic:
                 self._by_topic[p.imu_topic] = ("imu", p.sensor)
         self._pending: list[Any] = []
+        self._states: dict[str, dict[int, np.ndarray]] = {
+            p.group: {} for p in plans if deployment.state_columns(p.group) is not None
+        }  # group -> slot -> its carried state (graphs with memory)
         self.uncalibrated: dict[str, int] = {p.sensor: 0 for p in plans}
         self.calibrated: dict[str, int] = {p.sensor: 0 for p in plans}
 
@@ -259,32 +298,31 @@ class CausalCalibrator:
         return out
 
     def _calibrate(self, batches: Sequence[Any]) -> list[Calibrated]:
-        """Calibrate wrench batches: their inputs, then one graph call per group."""
+        """Calibrate wrench batches: their inputs, then one graph call per group (with memory: per sensor,
+        its messages in stamp order, every one moving its state)."""
         todo: dict[str, list[tuple[Any, SensorPlan, np.ndarray, np.ndarray]]] = {}
         for b in batches:
             plan = self.plans[b.topic]
             parts, ok = [b.fields["wrench"]], np.ones(len(b), dtype=bool)
             if plan.temperature_topic:
                 temperature, ok = self._temperature[plan.sensor].at(b.stamp_ns)
-                parts.append(temperature)
+                parts.append(np.where(ok[:, None], temperature, np.nan))
             if plan.imu_topic:
                 imu, ok_imu = self._imu[plan.sensor].at(b.stamp_ns)
-                parts.append(imu)
+                parts.append(np.where(ok_imu[:, None], imu, np.nan))
                 ok &= ok_imu
             self.uncalibrated[plan.sensor] += int((~ok).sum())
-            if ok.any():
-                todo.setdefault(plan.group, []).append((b, plan, ok, np.concatenate(parts, axis=1)[ok]))
+            fed = np.ones(len(b), dtype=bool) if plan.group in self._states else ok
+            if fed.any():
+                todo.setdefault(plan.group, []).append((b, plan, ok, np.concatenate(parts, axis=1)[fed]))
         out = []
         for group, items in todo.items():
-            inputs: dict[int, list[np.ndarray]] = {}
-            for _, plan, _, x in items:
-                inputs.setdefault(plan.slot, []).append(x)
-            y = self.deployment.predict(group, {slot: np.concatenate(xs) for slot, xs in inputs.items()})
-            taken: dict[int, int] = {}
-            for b, plan, ok, x in items:
-                k = taken.get(plan.slot, 0)
-                taken[plan.slot] = k + len(x)
-                self.calibrated[plan.sensor] += len(x)
+            y = self._run_group(group, items)
+            for (b, plan, ok, _), rows in zip(items, y, strict=True):
+                wrench = rows[ok] if group in self._states else rows  # with memory every row was fed
+                self.calibrated[plan.sensor] += len(wrench)
+                if not len(wrench):
+                    continue
                 out.append(
                     Calibrated(
                         plan,
@@ -292,9 +330,37 @@ class CausalCalibrator:
                         b.log_time_ns[ok],
                         b.publish_time_ns[ok],
                         b.fields["frame_id"][ok],
-                        y[plan.slot][k : k + len(x)],
+                        wrench,
                     )
                 )
+        return out
+
+    def _run_group(self, group: str, items: Sequence[tuple[Any, SensorPlan, np.ndarray, np.ndarray]]) -> list:
+        """Each item's outputs (its fed rows, in its order): one call for the group, or with memory one per
+        slot on its rows sorted by stamp, from and into the slot's carried state."""
+        inputs: dict[int, list[np.ndarray]] = {}
+        stamps: dict[int, list[np.ndarray]] = {}
+        for b, plan, _, x in items:
+            inputs.setdefault(plan.slot, []).append(x)
+            stamps.setdefault(plan.slot, []).append(b.stamp_ns)  # used with memory only: every row fed
+        joined = {slot: np.concatenate(xs) for slot, xs in inputs.items()}
+        if group not in self._states:
+            y = self.deployment.predict(group, joined)
+        else:
+            order = {slot: np.argsort(np.concatenate(t), kind="stable") for slot, t in stamps.items()}
+            sorted_y = self.deployment.predict(
+                group, {slot: x[order[slot]] for slot, x in joined.items()}, self._states[group]
+            )
+            y = {}
+            for slot, rows in sorted_y.items():
+                y[slot] = np.empty_like(rows)
+                y[slot][order[slot]] = rows
+        taken: dict[int, int] = {}
+        out = []
+        for _, plan, _, x in items:
+            k = taken.get(plan.slot, 0)
+            taken[plan.slot] = k + len(x)
+            out.append(y[plan.slot][k : k + len(x)])
         return out
 
 

@@ -1,16 +1,19 @@
 """The one adapter between the train stage's output directory and the export: what a graph needs.
 
 `read_group(models/<group>, name)` reads one model of a group (a network ``nn<k>``, a polynomial
-``poly<n>``, the ``affine`` baseline, or ``raw``) and returns a `GroupModel`: per sensor, the plain
-arrays of the model (float64) in one of three forms, and the project's own predictor for the reference
-check. Nothing else of `pipeline.calib` or `pipeline.stages.train` is used by the export, so a change of
+``poly<n>``, the ``affine`` baseline, the ``play`` model, or ``raw``: its family's kind in
+`pipeline.calib.registry` says which form) and returns a `GroupModel`: per sensor, the plain arrays of the
+model (float64) in one of three forms, and the project's own predictor for the reference check. Nothing
+else of `pipeline.calib` or `pipeline.stages.train` is used by the export (but the registry), so a change of
 their file formats or classes is adapted here only.
 
 Every model of this project is *separable*: sensor s's calibrated wrench depends on sensor s's inputs only
 (a foot pair's two networks are side by side; the baselines' W_s act per sensor). Each part below is
 therefore one sensor's map, inputs in the order of `pipeline.calib.models` (raw wrench fx..tz N/Nm,
 temperature degC, [accelerometer m/s^2, gyroscope rad/s]), output its calibrated wrench (6, N/Nm, sensor
-frame).
+frame). A model with memory (``play``) maps a sensor's inputs and its own state (the play outputs of its
+previous sample) to its wrench and next state; its reference takes rows that are consecutive samples of
+one log, the state starting afresh at the first (`pipeline.calib.linear.play_memory`).
 """
 
 from __future__ import annotations
@@ -24,14 +27,23 @@ from typing import Any
 
 import numpy as np
 
+from pipeline.calib.registry import (
+    AFFINE,
+    FAMILIES,
+    IDENTITY,
+    LINEAR,
+    NETWORK,
+    NN,
+    RAW,
+    family_of,
+    kind_of,
+)
 from pipeline.core.errors import DataError
 
 WRENCH = 6
 METRICS_FILE = "metrics.json"
 BASELINES_FILE = "baselines.json"
 PREDICTIONS_FILE = "predictions.parquet"
-RAW = "raw"
-FAMILIES = ("network", "polynomial", "affine", "raw")
 
 
 @dataclass(frozen=True)
@@ -62,12 +74,19 @@ class NetworkPart:
 @dataclass(frozen=True)
 class LinearPart:
     """``f = x[:6] + weights @ phi((x[:k] - offset) / scale)``, phi the monomials of `powers` (P, k);
-    k = 7 (wrench, temperature), or 6 (the wrench alone)."""
+    k = 7 (wrench, temperature), or 6 (the wrench alone); with play `widths` (K, 6), phi continues with the
+    play states of the raw wrench (`pipeline.calib.linear.play_features`: column 6 k + a, width k, axis a)."""
 
     offset: np.ndarray  # (k,)
     scale: np.ndarray  # (k,)
     powers: np.ndarray  # (P, k) int exponents, constant monomial first
-    weights: np.ndarray  # (6, P)
+    weights: np.ndarray  # (6, P [+ 6 K])
+    widths: np.ndarray | None = None  # (K, 6) N / Nm: the play operators (None: memoryless)
+
+    @property
+    def state_size(self) -> int:
+        """Values of state this part carries from sample to sample (6 K play outputs; 0 memoryless)."""
+        return 0 if self.widths is None else int(self.widths.size)
 
 
 @dataclass(frozen=True)
@@ -87,8 +106,8 @@ class GroupModel:
     """
 
     group: str
-    name: str  # nn7, nn13, affine, poly<n>, raw
-    family: str  # one of FAMILIES
+    name: str  # nn7, nn13, affine, poly<n>, play, raw
+    family: str  # its family's key in `pipeline.calib.registry` (raw, affine, poly, play, nn)
     sensors: tuple[str, ...]
     n_inputs: int  # per sensor: 6, 7 or 13
     parts: tuple[Part, ...]  # one per sensor
@@ -96,6 +115,16 @@ class GroupModel:
     output_columns: list[str]
     reference: Callable[[np.ndarray], np.ndarray] = field(repr=False)
     info: dict[str, Any] = field(default_factory=dict)  # hyperparameters, training logs, ...
+
+    @property
+    def kind(self) -> str:
+        """Its family's kind (`pipeline.calib.registry`): identity, linear or network."""
+        return str(kind_of(self.name))
+
+    @property
+    def memory(self) -> bool:
+        """Whether a sensor's output depends on its earlier samples (a state carried between calls)."""
+        return any(getattr(p, "state_size", 0) for p in self.parts)
 
 
 def input_columns(sensor: str, n_inputs: int) -> list[str]:
@@ -181,7 +210,7 @@ def _network(model_dir: Path, name: str, group: str, sensors: tuple[str, ...]) -
     return GroupModel(
         group,
         name,
-        "network",
+        NN,
         sensors,
         n_inputs,
         tuple(parts),
@@ -195,16 +224,10 @@ def _network(model_dir: Path, name: str, group: str, sensors: tuple[str, ...]) -
 def _linear(model_dir: Path, name: str, group: str, sensors: tuple[str, ...]) -> GroupModel:
     from pipeline.calib.linear import LinearBaseline
 
+    family = str(family_of(name).key)
     path = model_dir / BASELINES_FILE
     try:
-        entry = json.loads(path.read_text(encoding="utf-8"))[name]
-        baseline = LinearBaseline(
-            name,
-            np.asarray(entry["offset"], dtype=np.float64),
-            np.asarray(entry["scale"], dtype=np.float64),
-            np.asarray(entry["powers"], dtype=np.int64),
-            np.asarray(entry["weights"], dtype=np.float64),
-        )
+        baseline = LinearBaseline.from_dict(json.loads(path.read_text(encoding="utf-8"))[name])
     except FileNotFoundError:
         raise DataError(f"{path}: not found") from None
     except KeyError as exc:
@@ -218,17 +241,19 @@ def _linear(model_dir: Path, name: str, group: str, sensors: tuple[str, ...]) ->
         or width not in (6, 7)
     ):
         raise DataError(f"{path}: {name} has {baseline.weights.shape[0]} sensors, metrics.json {n_sensors}")
+    b = baseline
     parts = tuple(
-        LinearPart(baseline.offset[s], baseline.scale[s], baseline.powers, baseline.weights[s])
-        for s in range(n_sensors)
+        LinearPart(b.offset[s], b.scale[s], b.powers, b.weights[s], b.widths) for s in range(n_sensors)
     )
 
-    def reference(x: np.ndarray) -> np.ndarray:
+    def reference(x: np.ndarray) -> np.ndarray:  # rows: consecutive samples of one log (with memory)
         x = np.asarray(x, dtype=np.float64).reshape(len(x), n_sensors, width)
-        return baseline.predict(x).reshape(len(x), n_sensors * WRENCH)
+        return baseline.predict_log(x).reshape(len(x), n_sensors * WRENCH)
 
     order = int(baseline.powers.sum(axis=1).max(initial=0))
-    family = "affine" if name == "affine" else "polynomial"
+    info: dict[str, Any] = {"order": order, "monomials": len(baseline.powers)}
+    if baseline.widths is not None:
+        info["play_widths"] = baseline.widths.tolist()
     return GroupModel(
         group,
         name,
@@ -239,7 +264,7 @@ def _linear(model_dir: Path, name: str, group: str, sensors: tuple[str, ...]) ->
         [c for s in sensors for c in input_columns(s, width)],
         [c for s in sensors for c in output_columns(s)],
         reference,
-        {"order": order, "monomials": len(baseline.powers)},
+        info,
     )
 
 
@@ -253,7 +278,7 @@ def _raw(group: str, sensors: tuple[str, ...], width: int = 7) -> GroupModel:
     return GroupModel(
         group,
         RAW,
-        "raw",
+        RAW,
         sensors,
         width,
         tuple(IdentityPart() for _ in sensors),
@@ -273,14 +298,16 @@ def read_group(model_dir: str | Path, name: str, group: str | None = None) -> Gr
     metrics = read_metrics(model_dir)
     group = group or str(metrics.get("group") or model_dir.name)
     sensors = tuple(str(s) for s in metrics["sensors"])
-    if name == RAW:
+    kind = kind_of(name)
+    if kind == IDENTITY:
         model = _raw(group, sensors, _baseline_width(model_dir))
-    elif name.startswith("nn") and name[2:].isdigit():
+    elif kind == NETWORK:
         model = _network(model_dir, name, group, sensors)
-    elif name == "affine" or (name.startswith("poly") and name[4:].isdigit()):
+    elif kind == LINEAR:
         model = _linear(model_dir, name, group, sensors)
     else:
-        raise DataError(f"{model_dir}: unknown model {name!r} (nn<k>, affine, poly<n> or raw)")
+        names = ", ".join(f.name(1)[:-1] + "<n>" if f.numbered else f.key for f in FAMILIES)
+        raise DataError(f"{model_dir}: unknown model {name!r} ({names})")
     model.info.update(provenance(metrics, name))
     return model
 
@@ -288,7 +315,7 @@ def read_group(model_dir: str | Path, name: str, group: str | None = None) -> Gr
 def _baseline_width(model_dir: Path) -> int:
     """The inputs per sensor of a group's baselines: 7 (wrench, temperature), or 6 where it has none."""
     try:
-        entry = json.loads((model_dir / BASELINES_FILE).read_text(encoding="utf-8")).get("affine") or {}
+        entry = json.loads((model_dir / BASELINES_FILE).read_text(encoding="utf-8")).get(AFFINE) or {}
         return int(np.shape(entry.get("offset", [[0] * 7]))[-1])
     except (OSError, ValueError):
         return 7

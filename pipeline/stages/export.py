@@ -2,7 +2,7 @@
 
 ``ftcal export MODELS METRICS LABELLED OUT --group G`` (a step of stage ``evaluate@<group>``) takes
 the model that `evaluate@<group>` recommends (``recommended`` of ``METRICS/<group>/<headline>.json``;
-``export.models.<group>`` overrides it), whichever its family (network, polynomial, affine, raw), and
+``export.models.<group>`` overrides it), whichever its family (`pipeline.calib.registry`), and
 writes ``OUT/groups/<group>/``: ``<group>.float32.onnx``, ``<group>.float64.onnx`` (the group's graph,
 `pipeline.export.graph`: input ``inputs`` (N, S x 7 or 13) raw wrench, temperature [, accelerometer,
 gyroscope] per sensor, output ``calibrated`` (N, S x 6), normalisation inside) and the group's
@@ -260,7 +260,7 @@ def run_fused(
         entry, graphs = manifest.build_graph(
             manifest.FUSED, models, params.topics, params.robot.urdf, trainings, serials
         )
-        entry["check"] = check.check_fused(graphs, samples)
+        entry["check"] = check.check_fused(graphs, samples, models)
         check.assert_within(manifest.FUSED, entry["check"], tolerance)
         entries[manifest.FUSED] = manifest.write_graphs(out, manifest.FUSED, entry, graphs)
         doc = manifest.document(params.robot.urdf, entries)
