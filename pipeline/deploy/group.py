@@ -128,14 +128,20 @@ def d_interaction(ctx: GroupDay, log: DeployLog) -> TestResult:
 def d_scales(ctx: GroupDay, log: DeployLog) -> TestResult:
     """Test D from the noise level up (`pipeline.deploy.scales`): pushes of 1-40 N, moments and held loads
     added through each sensor's own distortion on every simulated log of the day (`log`'s day), the
-    deployed export beside the oracle and raw; its figure: the slope against the magnitude."""
+    deployed export beside the oracle and raw; its figures: the slope against the magnitude, the held
+    loads' step responses (`pipeline.deploy.steps`)."""
     from pipeline.deploy.page import plot_scales
     from pipeline.deploy.prepare import read_day
     from pipeline.deploy.scales import day_scales
+    from pipeline.deploy.steps import plot_steps
 
     result = day_scales(ctx, read_day(log.labelled.parent.parent))
-    drawn = result and plot_scales(result, ctx.figure("scales"))
-    return result, {"scales": ctx.figure("scales").name} if drawn else {}
+    figures = {}
+    if result and plot_scales(result, ctx.figure("scales")):
+        figures["scales"] = ctx.figure("scales").name
+    if result and plot_steps(result, ctx.figure("steps")):
+        figures["step responses"] = ctx.figure("steps").name
+    return result, figures
 
 
 # test name -> (the experiment type of the log it runs on, the test), in the order of a day's result

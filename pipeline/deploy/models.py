@@ -22,7 +22,6 @@ from pipeline.export.offsets import Offsets
 from pipeline.logs import schema as S
 
 Predictor = Callable[[pd.DataFrame], dict[str, np.ndarray]]  # table -> sensor -> (N, 6) N / Nm
-DEFAULT_DEPLOYED = "nn7"  # the thesis's deployed model (7 inputs: no IMU noise in the output)
 
 
 def _inputs(table: pd.DataFrame, sensors: list[str], n: int) -> np.ndarray:
@@ -33,9 +32,13 @@ def _inputs(table: pd.DataFrame, sensors: list[str], n: int) -> np.ndarray:
 
 
 def group_models(model_dir: Path) -> tuple[list[str], dict[str, Predictor]]:
-    """(the group's sensors, model name -> predictor) of a train output directory ``models/<group>``."""
+    """(the group's sensors, model name -> predictor) of a train output directory ``models/<group>``: its
+    networks (a family of kind network, `pipeline.calib.registry`) and every linear model of baselines.json.
+    A predictor takes one log's table, its rows in time order (a model with memory starts afresh at the
+    first)."""
     from pipeline.calib.linear import LinearBaseline
     from pipeline.calib.models import load_model
+    from pipeline.calib.registry import NETWORK, kind_of
 
     try:
         metrics = json.loads((model_dir / "metrics.json").read_text(encoding="utf-8"))
@@ -43,16 +46,14 @@ def group_models(model_dir: Path) -> tuple[list[str], dict[str, Predictor]]:
     except (OSError, ValueError, KeyError) as exc:
         raise DataError(f"{model_dir}/metrics.json: not a trained group: {exc}") from None
     out: dict[str, Predictor] = {}
-    for file in sorted(model_dir.glob("nn*.json")):
-        net, config = load_model(file.with_suffix(""))
-        out[file.stem] = _net_predictor(net, sensors, int(config["net"]["n_inputs"]))
+    for file in sorted(model_dir.glob("*.json")):
+        if kind_of(file.stem) == NETWORK:
+            net, config = load_model(file.with_suffix(""))
+            out[file.stem] = _net_predictor(net, sensors, int(config["net"]["n_inputs"]))
     baselines = model_dir / "baselines.json"
     if baselines.is_file():
         for name, d in json.loads(baselines.read_text(encoding="utf-8")).items():
-            base = LinearBaseline(
-                name, *(np.asarray(d[k], dtype=np.float64) for k in ("offset", "scale", "powers", "weights"))
-            )
-            out[name] = _linear_predictor(base, sensors)
+            out[name] = _linear_predictor(LinearBaseline.from_dict(d), sensors)
     return sensors, out
 
 
@@ -73,7 +74,7 @@ def _net_predictor(net, sensors: list[str], n: int) -> Predictor:
 
 def _linear_predictor(base, sensors: list[str]) -> Predictor:
     def predict(table: pd.DataFrame) -> dict[str, np.ndarray]:
-        y = base.predict(_inputs(table, sensors, 7))
+        y = base.predict_log(_inputs(table, sensors, 7))
         return {s: y[:, i] for i, s in enumerate(sensors)}
 
     return predict

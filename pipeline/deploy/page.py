@@ -205,6 +205,16 @@ _SCALES_NOTE = (
 )
 
 
+_STEPS_NOTE = (
+    "The loads above held at each sensor's site (raised-cosine ramps, then a plateau) while the robot "
+    "goes on moving: the reported change of the force along the load, over the load, averaged over the "
+    "holds of the day's logs (1 = the load as it is). On the plateau: the means of its first and last "
+    "thirds and their difference (a decay), its extremes (an overshoot). The sensor's hysteresis reads a "
+    "fresh load larger than a held one (the oracle, the static inverse, shows it); a calibration with "
+    "memory must stay flat, neither lagging nor decaying (figure: step responses)."
+)
+
+
 def _scales_rows(e: Mapping[str, Any], tolerance: float, target: float) -> list[str]:
     from pipeline.deploy.scales import JUDGED, row_judgement
 
@@ -257,9 +267,15 @@ def _scales_table(sensor: str, e: Mapping[str, Any], tolerance: float, target: f
 
 def scales_section(ds: Mapping[str, Any], tolerance: float, target: float) -> str:
     """Test D from the noise level up (`pipeline.deploy.scales`): its note and one table per sensor."""
+    from pipeline.deploy.steps import steps_table
+
     parts = ["<h3>Test D from the noise level up: virtual pushes of every scale</h3>",
              f"<p class='note'>{_SCALES_NOTE}</p>"]  # fmt: skip
     parts += [_scales_table(sensor, e, tolerance, target) for sensor, e in ds.items()]
+    steps = steps_table(ds)
+    if steps:
+        parts += ["<h4>Step responses: a held load's reported change over its hold</h4>",
+                  f"<p class='note'>{_STEPS_NOTE}</p>", steps]  # fmt: skip
     return "\n".join(parts)
 
 

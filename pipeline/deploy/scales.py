@@ -23,6 +23,9 @@ Per (family, magnitude) and model, pooled over the day's logs and the samples wh
 `ON_SHARE` of its peak: per axis the slope ``sum(c_a p_a) / sum(p_a^2)`` (c the reported change; None on
 an axis the family does not move) and the change error ``RMS(c - p) / RMS(p)`` over the force axes
 (``error``) and the torque axes (``error_torque``). Forces also per lever scale. `judge` gives the verdict.
+Every model runs over the whole log with the pushes in it (a model with memory from a fresh state at its
+first sample, as deployed), and is read on the pushes' samples. The held loads give the step responses
+(`pipeline.deploy.steps`): the reported change of a load over its hold, against its true profile.
 """
 
 from __future__ import annotations
@@ -135,10 +138,14 @@ def raw_change(
 
 
 class Tally:
-    """Sums per (key, model): sum(c p), sum(p^2), sum((c - p)^2) per axis (6,) each."""
+    """Sums per (key, model): sum(c p), sum(p^2), sum((c - p)^2) per axis (6,) each; the loads' step
+    responses (`steps`)."""
 
     def __init__(self) -> None:
+        from pipeline.deploy.steps import Steps
+
         self.sums: dict[tuple[Any, str], np.ndarray] = {}
+        self.steps = Steps()
 
     def add(self, key: Any, model: str, change: np.ndarray, push: np.ndarray) -> None:
         s = self.sums.setdefault((key, model), np.zeros((3, 6)))
@@ -147,6 +154,7 @@ class Tally:
     def merge(self, other: Tally) -> None:
         for k, v in other.sums.items():
             self.sums[k] = self.sums.get(k, 0.0) + v
+        self.steps.merge(other.steps)
 
     def entry(self, key: Any, model: str) -> dict[str, Any] | None:
         """{"slopes": 6 (None: axis not moved), "error": force axes, "error_torque": torque axes}."""
@@ -183,7 +191,8 @@ def log_tally(
     ok = np.isfinite(inputs).all(axis=1) & np.isfinite(true).all(axis=1)
     temperature = np.nan_to_num(inputs[:, 6], nan=float(np.nanmean(inputs[:, 6]) if ok.any() else 25.0))
     w = np.nan_to_num(true)
-    base = {m: f(np.nan_to_num(inputs)) for m, f in models.items()}
+    inputs = _held_over_gaps(inputs)
+    base = {m: f(inputs) for m, f in models.items()}
     tally = Tally()
     for batch in pushes:
         if not batch:
@@ -194,11 +203,16 @@ def log_tally(
             prof = push.profile()
             p[push.start : push.start + push.length] = prof[:, None] * push.wrench
             scored[push.start : push.start + push.length] = prof > ON_SHARE
-        moved = np.nan_to_num(inputs).copy()
+        moved = inputs.copy()
         moved[:, :6] += raw_change(d, w, temperature, p)
+        outputs = {m: f(moved) for m, f in models.items()}
         rows = np.flatnonzero(scored & ok)
-        changes = {m: f(moved[rows]) - base[m][rows] for m, f in models.items()}
+        changes = {m: outputs[m][rows] - base[m][rows] for m in models}
         for push in batch:
+            if push.family == "load":
+                window = slice(push.start, push.start + push.length)
+                for m in models:
+                    tally.steps.add(m, outputs[m][window] - base[m][window], p[window], push.wrench)
             sel = (rows >= push.start) & (rows < push.start + push.length)
             keys = [(push.family, push.magnitude)]
             if push.lever is not None:
@@ -207,6 +221,15 @@ def log_tally(
                 for m, c in changes.items():
                     tally.add(key, m, c[sel], p[rows[sel]])
     return tally
+
+
+def _held_over_gaps(inputs: np.ndarray) -> np.ndarray:
+    """`inputs` with each non-finite value replaced by the column's last finite one before it (the first
+    finite one at the start; 0 if none): what a model with memory reads is the reading as it last was."""
+    import pandas as pd
+
+    frame = pd.DataFrame(np.asarray(inputs, dtype=np.float64))
+    return np.nan_to_num(frame.ffill().bfill().to_numpy(np.float64))
 
 
 def reference_models(d: SensorDistortion, deployed: Predict) -> dict[str, Predict]:
@@ -279,6 +302,9 @@ def sensor_result(tally: Tally, sp: Any, lever_m: np.ndarray) -> dict[str, Any]:
                 rows[f"{float(mag):g}"] = row
         if rows:
             out[family] = rows
+    steps = tally.steps.entry()
+    if steps:
+        out["step"] = steps
     levers = {}
     for k in sp.levers:
         per = {m: [(tally.entry(("lever", float(k), float(f)), m) or {}).get("error") for f in sp.force_n]
