@@ -123,13 +123,31 @@ def test_exported_files_compute_the_stored_predictions(pipeline_run: dict[str, A
     assert len(frame) > 500 and np.isfinite(expected).all()
     for name in (GROUP, "all"):
         entry = manifest["graphs"][name]
-        x = frame[[c["column"] for c in entry["inputs"]]].to_numpy()
+        columns = [c["column"] for c in entry["inputs"]]
         for dtype, file in entry["files"].items():
             path = d["exported"] / file
             assert hashlib.sha256(path.read_bytes()).hexdigest() == entry["sha256"][dtype]
             session = ort.InferenceSession(str(path), providers=["CPUExecutionProvider"])
-            (y,) = session.run(None, {"inputs": x.astype(np.float32 if dtype == "float32" else np.float64)})
+            real = np.float32 if dtype == "float32" else np.float64
+            if "state" not in entry:
+                (y,) = session.run(None, {"inputs": frame[columns].to_numpy().astype(real)})
+            else:  # memory: each test log from its first reading, one call (the state starts afresh)
+                y = _whole_logs(session, d["labelled"], frame, columns, real)
             np.testing.assert_allclose(y, expected, rtol=0, atol=5e-4, err_msg=f"{name} {dtype}")
+
+
+def _whole_logs(session: Any, labelled: Path, frame: pd.DataFrame, columns: list, real: type) -> np.ndarray:
+    """A graph with memory's outputs at `frame`'s (log, stamp) rows, run over each log's readings (the rows
+    whose raw wrenches are finite) in one call from a fresh state."""
+    out = []
+    for log, part in frame.groupby(S.LOG, sort=False):
+        table = pd.read_parquet(labelled / f"{log}.parquet")
+        wrench = [c for c in columns if c.startswith(f"{S.FT}.")]
+        table = table[table[wrench].notna().all(axis=1)]
+        y = session.run(None, {"inputs": table[columns].to_numpy().astype(real)})[0]
+        where = pd.Series(np.arange(len(table)), index=table[S.STAMP].to_numpy())
+        out.append(y[where.loc[part[S.STAMP].to_numpy()].to_numpy()])
+    return np.concatenate(out)
 
 
 def test_calibrate_agreement_benchmark_runs_on_the_outputs(pipeline_run: dict[str, Any]) -> None:

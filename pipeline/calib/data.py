@@ -106,9 +106,7 @@ class GroupData:
     cut_labels: np.ndarray | None = None  # (N, C, 6) cut-set sums, NaN where the switch is 0
     cut_switches: np.ndarray | None = None  # (N, C) bool
     poses: np.ndarray | None = None  # (N, P, 12) the cut sets' moving members' poses (CutTerm)
-    # (N, S, 6 K) the play outputs before each sample over its log (`pipeline.calib.linear.play_memory`),
-    # for a group with a play model (`Group.widths`), else None
-    memory: np.ndarray | None = None
+    memory: np.ndarray | None = None  # (N, S, 6 K) a play model's memory (`linear.play_memory`), else None
 
     def __len__(self) -> int:
         return len(self.log)
@@ -385,18 +383,12 @@ def _read_log(log: LogInfo, group: Group, index: int) -> GroupData:
         data.memory = play_memory(data.x, np.asarray(group.widths))
     ok &= np.isfinite(data.x[:, :, : group.n_inputs]).all(axis=(1, 2))
     data = data.subset(ok)
-    for s, sensor in enumerate(group.sensors):
-        if not np.isfinite(data.labels[data.switches[:, s], s]).all():
-            raise DataError(
-                f"{log.path}: {S.EXPECTED}.{sensor} is not finite where {S.switch_col(sensor)} is 1"
-            )
-    for c, cut in enumerate(group.cuts):
-        if not np.isfinite(data.cut_labels[data.cut_switches[:, c], c]).all():
-            raise DataError(f"{log.path}: {S.EXPECTED}.{cut.label} is not finite where its switch is 1")
-    if data.sum_switch is not None and not np.isfinite(data.sum_label[data.sum_switch]).all():
-        raise DataError(
-            f"{log.path}: {S.EXPECTED}.{group.pair} is not finite where {S.switch_col(group.pair)} is 1"
-        )
+    exact = [(n, data.labels[:, s], data.switches[:, s]) for s, n in enumerate(group.sensors)]
+    exact += [(c.label, data.cut_labels[:, k], data.cut_switches[:, k]) for k, c in enumerate(group.cuts)]
+    exact += [(group.pair, data.sum_label, data.sum_switch)] if data.sum_switch is not None else []
+    for name, labels, switch in exact:
+        if not np.isfinite(labels[switch]).all():
+            raise DataError(f"{log.path}: {S.EXPECTED}.{name} is not finite where {S.switch_col(name)} is 1")
     return data
 
 

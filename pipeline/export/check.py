@@ -138,13 +138,16 @@ def load_samples(model_dir: Path, model: GroupModel, labelled_dir: Path) -> Samp
             raise DataError(f"{table}: not found (test log {log} of {path})") from None
         except (OSError, ValueError, KeyError) as exc:
             raise DataError(f"{table}: not the inputs of {model.group}: {exc}") from None
-        if model.memory:  # the whole log in time order: every row with finite inputs
-            finite = inputs[model.input_columns].notna().all(axis=1)
-            merged = inputs[finite].merge(rows, on=S.STAMP, how="left", validate="one_to_one")
-            merged[S.LOG] = k
+        if model.memory:  # the whole log in time order: every reading (a temperature may be missing)
+            columns, n = model.input_columns, model.n_inputs
+            wrench = [c for k in range(0, len(columns), n) for c in columns[k : k + WRENCH]]
+            merged = inputs[inputs[wrench].notna().all(axis=1)]
+            merged = merged.merge(rows, on=S.STAMP, how="left", validate="one_to_one").assign(**{S.LOG: k})
+            missing = merged[stored_cols].notna().all(axis=1) & merged[model.input_columns].isna().any(axis=1)
         else:
             merged = rows.merge(inputs, on=S.STAMP, how="left", validate="one_to_one")
-        if merged[model.input_columns].isna().any().any() or not len(merged):
+            missing = merged[model.input_columns].isna().any(axis=1)
+        if missing.any() or not len(merged):
             raise DataError(f"{table}: test samples of {path} have no finite inputs there")
         parts.append(merged)
     if not parts:
@@ -200,6 +203,10 @@ def max_ulps(a: np.ndarray, b: np.ndarray) -> float:
 
 
 def _measure(y: np.ndarray, dtype: str, target: np.ndarray, stored: np.ndarray) -> dict[str, float]:
+    """The differences of outputs y from the target and the stored predictions, on the rows whose target
+    is finite (a model with memory is run over readings without a temperature too: no output there)."""
+    rows = np.isfinite(target).all(axis=1) if y.shape == target.shape else slice(None)
+    y, target, stored = y[rows], target[rows], stored[rows]
     out = {"max_abs_diff": max_diff(y, target), "max_abs_diff_stored": max_diff(y, stored)}
     if dtype == "float32":
         out["max_ulps"] = max_ulps(y, target)
@@ -215,7 +222,9 @@ def check_group(graphs: Mapping[str, Any], samples: Samples) -> dict[str, dict[s
         y = run_logs(sess, samples.x, samples.bounds)
         out[dtype] = _measure(y, dtype, samples.target(dtype), samples.stored)
         if samples.bounds is not None:
-            out[dtype]["state_carry"] = max_diff(run_logs(sess, samples.x, samples.bounds, CHUNK), y)
+            rows = np.isfinite(y).all(axis=1)
+            chunked = run_logs(sess, samples.x, samples.bounds, CHUNK)
+            out[dtype]["state_carry"] = max_diff(chunked[rows], y[rows])
     return out
 
 

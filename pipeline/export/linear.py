@@ -22,14 +22,11 @@ order of `pipeline.calib.linear.play_features`); one sensor's columns can be car
 from __future__ import annotations
 
 from collections.abc import Sequence
-from typing import TYPE_CHECKING, Any
+from typing import Any
 
 import numpy as np
 
 from pipeline.export.trained import WRENCH, GroupModel, LinearPart
-
-if TYPE_CHECKING:
-    from pipeline.export.graph import _Builder
 
 STATE, STATE_OUT = "state", "state_out"  # the graph's state input (default NaN) and output, (M,)
 AXES = ("fx", "fy", "fz", "tx", "ty", "tz")
@@ -72,10 +69,11 @@ def folded(part: LinearPart) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     return linear, bias, part.weights[:, 1 + k :]
 
 
-def stack_linear(b: _Builder, x: str, width: int, parts: Sequence[tuple[int, LinearPart]]) -> tuple[str, int]:
+def stack_linear(b: Any, x: str, width: int, parts: Sequence[tuple[int, LinearPart]]) -> tuple[str, int]:
     """(calibrated wrenches (N, 6 P) of the affine and play `parts` [(first input column, part)] of x (N,
-    `width`), in float64; the state's size M (0: no play part)). With M > 0 the graph gets the ``state``
-    input and ``state_out`` output (module docstring; `build` declares them)."""
+    `width`) in the graph of builder `b` (`pipeline.export.graph`), in float64; the state's size M (0: no
+    play part)). With M > 0 the graph gets the ``state`` input and ``state_out`` output (module docstring;
+    `build` declares them)."""
     from onnx import TensorProto
 
     n = len(parts)
@@ -112,7 +110,7 @@ def stack_linear(b: _Builder, x: str, width: int, parts: Sequence[tuple[int, Lin
     return out, size
 
 
-def _play(b: _Builder, x64: str, columns: np.ndarray, widths: np.ndarray, float32: bool) -> str:
+def _play(b: Any, x64: str, columns: np.ndarray, widths: np.ndarray, float32: bool) -> str:
     """(N, M) the play outputs y after each row of x64's `columns` (one per operator, float64), the
     operators of `widths` run over the rows by one Scan from the ``state`` input; the last: ``state_out``."""
     from onnx import TensorProto, helper, numpy_helper
