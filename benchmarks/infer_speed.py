@@ -84,7 +84,7 @@ def _bound(sess: Any, n_out: int) -> Callable[[np.ndarray], None]:
     binding = sess.io_binding()
     binding.bind_input(inp.name, "cpu", 0, x_buf.dtype, x_buf.shape, x_buf.ctypes.data)
     binding.bind_output(out.name, "cpu", 0, y_buf.dtype, y_buf.shape, y_buf.ctypes.data)
-    state = next((i for i in sess.get_inputs() if i.name == STATE), None)
+    state = next((i for i in sess.get_overridable_initializers() if i.name == STATE), None)
     if state is not None:
         s_in, s_out = np.full(state.shape, np.nan, dtype), np.full(state.shape, np.nan, dtype)
         binding.bind_input(STATE, "cpu", 0, dtype, s_in.shape, s_in.ctypes.data)

@@ -6,7 +6,7 @@ that rate, IMU at the wrench rate; plus joint states, so that the log carries th
 
 from __future__ import annotations
 
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from pathlib import Path
 
 import numpy as np
@@ -30,9 +30,11 @@ def write_log(
     block_s: float = 20.0,
     chunk_size: int = 4 * 2**20,
     serials: dict[str, str] | None = None,
+    edit: Callable[[str, np.ndarray, np.ndarray], None] | None = None,
 ) -> int:
     """Write a log of `seconds` of robot time in chunks of `chunk_size` bytes; the number of messages.
-    `serials`: sensor -> serial of its board, in the experiment record (``serial.<sensor>``)."""
+    `serials`: sensor -> serial of its board, in the experiment record (``serial.<sensor>``); `edit`: called
+    with (sensor, times (n,) s, wrenches (n, 6)) of each block before it is written, may change them."""
     rng = np.random.default_rng(seed)
     meta = {"experiment": {"type": "walking", "robot": robot, "role": "test", "log": path.stem}}
     meta["experiment"] |= {f"serial.{s}": v for s, v in (serials or {}).items()}
@@ -54,6 +56,8 @@ def write_log(
                 delay = np.round(rng.exponential(3e6, n)).astype(np.int64)
                 w = np.sin(2 * np.pi * 0.3 * t[:, None] + np.arange(6) + s) * SCALE + 20.0
                 w += rng.normal(size=(n, 6)) * 0.05 * SCALE
+                if edit is not None:
+                    edit(sensor, t, w)
                 writer.wrenches(
                     f"/ft/{sensor}/wrench", stamps, f"{sensor}_frame", w, log_times_ns=stamps + delay
                 )

@@ -385,3 +385,62 @@ def test_the_export_records_which_boards_it_belongs_to(setup: dict, tmp_path: Pa
     write_log(unrecorded, SENSORS, 2.0)
     assert main(_cli(setup, unrecorded, tmp_path / "out.mcap")) == 0
     assert f"records no serial of {LEG}, {FRONT}, {REAR}: cannot check" in capsys.readouterr().err
+
+
+@pytest.fixture(scope="module")
+def memory_export(setup: dict, tmp_path_factory: pytest.TempPathFactory) -> Path:
+    """The same trained groups exported with their play models (memory) recommended."""
+    tmp = tmp_path_factory.mktemp("calibrate_memory")
+    report = _metrics_dir(tmp, {LEG: "play", PAIR: "play"})
+    patch = pytest.MonkeyPatch()
+    patch.setenv("MLFLOW_TRACKING_URI", f"sqlite:///{tmp / 'mlflow.db'}")
+    try:
+        params = load_params(setup["params"])
+        E.run(params, setup["models"], report, setup["labelled"], tmp / "exported")
+    finally:
+        patch.undo()
+    return tmp / "exported"
+
+
+def _spike(sensor: str, t: np.ndarray, w: np.ndarray) -> None:
+    """The leg's fx 60 N higher at one message, 6 s into the log."""
+    if sensor == LEG:
+        w[np.abs(t - 6.0) < 1e-6, 0] += 60.0
+
+
+def test_calibrate_with_memory_is_causal_and_carries_the_state(
+    setup: dict, memory_export: Path, tmp_path: Path
+) -> None:
+    """A play model's calibration of every raw message equals the project's model run over the sensor's
+    messages in stamp order from the log's first (the state carried across ~15 chunks); a message changed
+    6 s into the log changes no earlier output, and later ones too (the state remembers it)."""
+    logs = {"plain": setup["log"], "spiked": tmp_path / "spiked.mcap"}
+    write_log(logs["spiked"], SENSORS, 10.0, seed=3, chunk_size=32 * 1024, serials=SERIALS, edit=_spike)
+    got = {}
+    for name, log in logs.items():
+        out = tmp_path / f"{name}_calibrated.mcap"
+        assert main(_cli(setup, log, out, models=memory_export)) == 0
+        got[name] = _decoded(out)
+    decoded = _decoded(setup["log"])
+    for sensor, group in ((LEG, LEG), (FRONT, PAIR)):
+        model = read_group(setup["models"] / group, "play")
+        slot = model.sensors.index(sensor)
+        expected = _expected(decoded, sensor, model.n_inputs)  # in log-time order: sorted by stamp here
+        raw = [(_stamp(m.ros_msg), _vec(m.ros_msg.wrench.force) + _vec(m.ros_msg.wrench.torque), e)
+               for m, e in zip(decoded[f"/ft/{sensor}/wrench"], expected, strict=True)]  # fmt: skip
+        raw.sort(key=lambda r: r[0])
+        x = np.array([r[2][1] if r[2] is not None else [*r[1], np.nan] for r in raw])
+        y = model.reference(np.tile(x, (1, len(model.sensors))))[:, slot * 6 : (slot + 1) * 6]
+        calibrated = sorted(got["plain"][f"/ft/{sensor}/wrench_calibrated"], key=lambda m: _stamp(m.ros_msg))
+        np.testing.assert_allclose(_wrenches(calibrated), y[np.isfinite(y).all(axis=1)], rtol=0, atol=1e-9)
+    plain, spiked = (sorted(got[k][f"/ft/{LEG}/wrench_calibrated"], key=lambda m: _stamp(m.ros_msg))
+                     for k in ("plain", "spiked"))  # fmt: skip
+    stamps = np.array([_stamp(m.ros_msg) for m in plain])
+    diff = np.abs(_wrenches(spiked) - _wrenches(plain)).max(axis=1)
+    first = int(np.flatnonzero(diff > 0)[0])
+    assert 5.9 < (stamps[first] - stamps[0]) / 1e9 < 6.1  # nothing before the changed message moved
+    assert diff[first + 1 :].max() > 1e-3  # the memory carries it on (a memoryless model: 0)
+
+
+def _wrenches(messages: list[Any]) -> np.ndarray:
+    return np.array([_vec(m.ros_msg.wrench.force) + _vec(m.ros_msg.wrench.torque) for m in messages])

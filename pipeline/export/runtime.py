@@ -287,9 +287,35 @@ class CausalCalibrator:
         for (kind, sensor), parts in fresh.items():
             stream = self._temperature[sensor] if kind == "temperature" else self._imu[sensor]
             stream.add(np.concatenate([p[0] for p in parts]), np.concatenate([p[1] for p in parts]))
-        out = self._calibrate(self._pending)
-        self._pending = wrenches
+        ready, held = self._ready(self._pending, wrenches)
+        out = self._calibrate(ready)
+        self._pending = held + wrenches
         return out
+
+    def _ready(self, pending: list[Any], incoming: list[Any]) -> tuple[list[Any], list[Any]]:
+        """(the pending wrenches to calibrate now, those held for the next chunk): a sensor with memory's
+        messages stamped at or after the earliest of its `incoming` ones wait, so that its state moves in
+        stamp order across chunks (a message delayed past a chunk's end still comes in its turn)."""
+        from dataclasses import replace
+
+        horizon: dict[str, int] = {}
+        for b in incoming:
+            if len(b) and self.plans[b.topic].group in self._states:
+                horizon[b.topic] = min(horizon.get(b.topic, b.stamp_ns.min()), int(b.stamp_ns.min()))
+        ready, held = [], []
+        for b in pending:
+            later = b.stamp_ns >= horizon.get(b.topic, np.iinfo(np.int64).max)
+            if not later.any():
+                ready.append(b)
+                continue
+            for part, rows in ((ready, ~later), (held, later)):
+                if rows.any():
+                    part.append(replace(
+                        b, log_time_ns=b.log_time_ns[rows], publish_time_ns=b.publish_time_ns[rows],
+                        stamp_ns=b.stamp_ns[rows], order=b.order[rows],
+                        fields={k: v[rows] for k, v in b.fields.items()},
+                    ))  # fmt: skip
+        return ready, held
 
     def flush(self) -> list[Calibrated]:
         """The calibrated wrenches of the last chunk fed."""
