@@ -239,8 +239,29 @@ def test_below_the_oracle_the_page_says_which_floor() -> None:
     floor = noise_floor(frame, ["arm"])["arm"]
     assert floor == pytest.approx(np.sqrt(np.mean(noise**2)), rel=1e-12)
     assert floor == pytest.approx(np.sqrt((3 * 0.36 + 3 * 0.0009) / 6), rel=0.03)  # the noise std pooled
-    report = _Report({"oracle": 0.74, "affine": 0.54, "nn7": 0.30, "nn13": 0.9}, floor)
-    notes = prior_notes([report], ["affine", "nn13"])
-    assert len(notes) == 2  # nn13 is above the oracle: nothing said
+    report = _Report({"oracle": 0.74, "affine": 0.54, "nn7": 0.30, "nn13": 0.9, "play": 0.45}, floor)
+    notes = prior_notes([report], ["affine", "nn13", "play"])
+    assert len(notes) == 3  # nn13 is above the oracle: nothing said
     assert "<b>affine</b>" in notes[0] and "hysteresis absorbed as gain" in notes[0]
-    assert "<b>nn7</b>" in notes[1] and "below the noise floor" in notes[1] and "prior" in notes[1]
+    # memory: between the oracle and the noise floor is where it belongs
+    assert "<b>play</b>" in notes[1] and "memory undoes the sensor's hysteresis" in notes[1]
+    assert "<b>nn7</b>" in notes[2] and "below the noise floor" in notes[2] and "prior" in notes[2]
+
+
+def test_step_response_of_a_held_load() -> None:
+    """A held load's step response (`pipeline.deploy.steps`): a model reporting the push as it is stays at 1
+    on the plateau; one reading a fresh load 20 % larger than a held one shows it as a decay."""
+    from pipeline.deploy.scales import Push
+    from pipeline.deploy.steps import Steps
+
+    push = Push("load", 2.0, None, np.r_[3.0, 0.0, -19.6, 0.5, 0.2, 0.0], 0, 200, ramp=0.15)
+    p = push.profile()[:, None] * push.wrench
+    steps = Steps()
+    steps.add("deployed", p.copy(), p, push.wrench)
+    steps.add("oracle", p * np.linspace(1.2, 1.0, 200)[:, None], p, push.wrench)
+    entry = steps.entry()
+    assert entry["holds"] == 1 and max(entry["truth"]) == pytest.approx(1.0, abs=1e-3)
+    np.testing.assert_allclose(entry["models"]["deployed"], entry["truth"], atol=1e-12)
+    flat, decaying = entry["plateau"]["deployed"], entry["plateau"]["oracle"]
+    assert flat["first"] == flat["last"] == pytest.approx(1.0, abs=1e-3)
+    assert decaying["first"] - decaying["last"] > 0.08 and decaying["max"] > 1.1

@@ -24,7 +24,7 @@ from pipeline.calib.data import GroupData, group_errors
 from pipeline.calib.linear import LinearBaseline
 from pipeline.calib.models import WRENCH
 from pipeline.calib.params import fold_spread, select_by_folds, selection_steps
-from pipeline.calib.registry import RAW, complexity
+from pipeline.calib.registry import RAW, complexity, patterns
 from pipeline.calib.training import NetSetting, predict, train_network, use_threads
 from pipeline.core.progress import ProgressLog
 
@@ -101,7 +101,7 @@ def cross_validate(
         "mean": {m: float(np.mean(v)) for m, v in scores.items()},
         "spread": {m: fold_spread(v) for m, v in scores.items()},
         "rule": (
-            f"simplest model (raw < affine < poly < nn7 < nn13) unless a more complex one's mean validation "
+            f"simplest model ({' < '.join(patterns())}) unless a more complex one's mean validation "
             f"rmse_labelled over the {len(prep.split['folds'])} folds is lower by more than {margin:.0%} and "
             f"its mean improvement exceeds the spread (std over folds) of its improvements"
         ),

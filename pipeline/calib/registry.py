@@ -75,6 +75,11 @@ def poly_name(order: int) -> str:
     return BY_KEY[POLY].name(order)
 
 
+def patterns() -> list[str]:
+    """Every family's model name, simplest first: raw, affine, poly<n>, play, nn<n>."""
+    return [f"{f.key}<n>" if f.numbered else f.key for f in sorted(FAMILIES, key=lambda f: f.rank)]
+
+
 def family_of(name: str) -> Family | None:
     """The family of model `name` (None: not a model of any family, e.g. ``oracle``)."""
     for family in FAMILIES:

@@ -7,9 +7,11 @@
   pair's mapped to the sole frame as its sum is. No memoryless calibration can go below it.
 
 A memoryless model may sit a little below the oracle legitimately: fitted on moving data, it absorbs part of
-the hysteresis's minor-loop gain. Below the noise floor it can only be reading a prior over the robot's
-motions (its training relation), not the sensor. `prior_notes` says which, per headline and model, where a
-model beats the oracle against the truth on all test samples.
+the hysteresis's minor-loop gain. A model with memory (`pipeline.calib.registry`: the play family) goes below
+it honestly, down to the noise floor, by undoing the hysteresis from the reading's path. Below the noise
+floor any model can only be reading a prior over the robot's motions (its training relation), not the
+sensor. `prior_notes` says which, per headline and model, where a model beats the oracle against the truth
+on all test samples.
 """
 
 from __future__ import annotations
@@ -19,6 +21,7 @@ from typing import Any
 
 import numpy as np
 
+from pipeline.calib.registry import has_memory
 from pipeline.logs import schema as S
 
 GroupReport = Any  # pipeline.evaluation.results.GroupReport (which imports this module)
@@ -85,6 +88,7 @@ _PRIOR = (
 _GAIN = (
     "part of the sensor's hysteresis absorbed as gain, which a memoryless model can do; a warning, not a win"
 )
+_MEMORY = "its memory undoes the sensor's hysteresis, which is what the noise floor leaves to be undone"
 
 
 def prior_notes(results: Sequence[GroupReport], models: Sequence[str]) -> list[str]:
@@ -103,7 +107,7 @@ def prior_notes(results: Sequence[GroupReport], models: Sequence[str]) -> list[s
                     where = (
                         f"above the noise floor ({floor:.3g})" if floor is not None else "(no noise floor)"
                     )
-                    why = f"{where}: {_GAIN}"
+                    why = f"{where}: {_MEMORY if has_memory(str(model)) else _GAIN}"
                 notes.append(
                     f"{MARK} {r.group} / {name}: <b>{model}</b> scores {rmse:.3g} against the truth on all "
                     f"test samples, below the oracle ({oracle:.3g}), {why}."
@@ -120,6 +124,8 @@ def prior_box(results: Sequence[GroupReport], models: Sequence[str]) -> str:
         "<b>Below the oracle:</b> the oracle inverts each simulated sensor's static distortion exactly, so a "
         "memoryless model below it is either absorbing the hysteresis's minor-loop gain (between the oracle "
         "and the noise floor, the white noise raw - distorted of the simulator's truth) or reading a prior "
-        "over the robot's motions, not the sensor (below the noise floor)."
+        "over the robot's motions, not the sensor (below the noise floor). A model with memory (play) may "
+        "go down to the noise floor: it undoes the hysteresis from the reading's path; below it, it too "
+        "reads a prior."
     )
     return f"<div class='flags'>{head}<ul>{''.join(f'<li>{n}</li>' for n in notes)}</ul></div>"

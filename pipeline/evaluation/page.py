@@ -94,6 +94,8 @@ def _headline_cells(r: GroupReport, name: str, refs: Sequence[str], cfg: Evaluat
                 cell = cell.replace("</td>", f"<sup>{MARK}</sup></td>", 1)
             row += cell
         row += _cell(r.headline_rmse(ref, ORACLE, name=name))
+        if ref == TRUTH:  # the white noise alone: what a calibration with memory is judged against
+            row += _cell(r.floor.get(name))
     for ref in refs:
         a, b = ratios["raw_over_nn7"][ref], ratios["nn7_over_oracle"][ref]
         row += _cell(a, None if a is None else a >= cfg.target_raw_over_nn7)
@@ -111,8 +113,9 @@ def summary_table(results: Sequence[GroupReport], cfg: EvaluateParams) -> str:
     head1 = "<tr><th rowspan=2>group</th><th rowspan=2>sensor / sum</th>"
     head2 = "<tr>"
     for ref in refs:
-        head1 += f"<th colspan=4>RMSE against {REFERENCE_TITLES[ref]}</th>"
+        head1 += f"<th colspan={5 if ref == TRUTH else 4}>RMSE against {REFERENCE_TITLES[ref]}</th>"
         head2 += "<th>raw</th><th>best on val.</th><th>NN7</th><th>oracle</th>"
+        head2 += "<th>noise floor</th>" if ref == TRUTH else ""
     for ref in refs:
         head1 += f"<th colspan=2>ratios, {REFERENCE_TITLES[ref]}</th>"
         head2 += "<th>raw / NN7</th><th>NN7 / oracle</th>"
@@ -221,7 +224,10 @@ def _not_calibrated_box(results: Sequence[GroupReport]) -> str:
 _SUMMARY_NOTE = (
     "<p class='note'>Accuracy targets: raw/NN7 &ge; {a:g} and NN7/oracle &le; {b:g}, "
     "against the labels and against the truth (green: met, red: not). The oracle inverts each simulated "
-    "sensor's static distortion exactly: its error is the noise floor. <i>deploy</i>: the simplest model "
+    "sensor's static distortion exactly: its error is the white noise and the hysteresis, the floor of every "
+    "memoryless model; the <i>noise floor</i> is the white noise alone (raw - distorted of the simulator's "
+    "truth), the floor of a model with memory (play), which can undo the hysteresis. <i>deploy</i>: the "
+    "simplest model "
     "unless a more complex one is better on validation by more than train.selection_margin, if not "
     "noise-flagged, else the next of the validation ranking. Labels exist "
     "only where a sensor's switch is 1 (a foot sum: where the contacts are all on the foot or all off it). "

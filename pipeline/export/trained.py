@@ -29,7 +29,6 @@ import numpy as np
 
 from pipeline.calib.registry import (
     AFFINE,
-    FAMILIES,
     IDENTITY,
     LINEAR,
     NETWORK,
@@ -37,6 +36,7 @@ from pipeline.calib.registry import (
     RAW,
     family_of,
     kind_of,
+    patterns,
 )
 from pipeline.core.errors import DataError
 
@@ -306,8 +306,7 @@ def read_group(model_dir: str | Path, name: str, group: str | None = None) -> Gr
     elif kind == LINEAR:
         model = _linear(model_dir, name, group, sensors)
     else:
-        names = ", ".join(f.name(1)[:-1] + "<n>" if f.numbered else f.key for f in FAMILIES)
-        raise DataError(f"{model_dir}: unknown model {name!r} ({names})")
+        raise DataError(f"{model_dir}: unknown model {name!r} ({', '.join(patterns())})")
     model.info.update(provenance(metrics, name))
     return model
 
