@@ -146,3 +146,14 @@ def test_export_of_an_unknown_model_names_the_families(tmp_path: Path) -> None:
     (tmp_path / "metrics.json").write_text(json.dumps({"group": "g", "sensors": ["s"], "test": {}}))
     with pytest.raises(DataError, match=r"unknown model 'gru' \(raw, affine, poly<n>, play, nn<n>\)"):
         read_group(tmp_path, "gru", "g")
+
+
+def test_each_axis_remembers_its_own_raw_axis_only(models: dict) -> None:
+    # a past excursion of the raw fx (beyond every play width), fx back to the same readings after it: the
+    # fx play states differ from there on, the other axes' outputs do not (their memory is their own axis's)
+    x, _ = _log(12, n=900)
+    changed = x.copy()
+    changed[300:340, 0, 0] += 250.0
+    y, z = models["play"].predict_log(x)[:, 0], models["play"].predict_log(changed)[:, 0]
+    assert np.abs(z[340:, 0] - y[340:, 0]).max() > 0.5  # fx remembers the excursion
+    np.testing.assert_allclose(z[340:, 1:], y[340:, 1:], rtol=0, atol=1e-12)
