@@ -133,6 +133,17 @@ def _serials(params: Any, model: Any, paths: list[Path]) -> dict[str, str | None
     return training_serials(experiments, model.sensors, params.robot.serials)
 
 
+def _imu_axes(model: Any, paths: list[Path]) -> dict[str, list[str] | None]:
+    """Sensor -> the IMU axis map ingest applied to its board in its training logs
+    (`pipeline.export.identity.training_imu_axes`)."""
+    from pipeline.export.identity import training_imu_axes
+    from pipeline.logs import schema as S
+    from pipeline.logs.tables import read_table_metadata
+
+    ingests = {str(p): read_table_metadata(p).get(S.META_INGEST.decode()) or {} for p in paths}
+    return training_imu_axes(ingests, model.sensors)
+
+
 def _check_dirs(*paths: tuple[Path, str]) -> None:
     for path, what in paths:
         if not path.is_dir():
@@ -178,9 +189,9 @@ def run_group(
         client = mlflow.MlflowClient()
         paths = _training_logs(model, models_dir / group, labelled)
         training = _training(client, model, models_dir / group, paths)
-        serials = _serials(params, model, paths)
+        serials, imu_axes = _serials(params, model, paths), _imu_axes(model, paths)
         entry, graphs = manifest.build_graph(
-            group, [model], params.topics, params.robot.urdf, {group: training}, serials
+            group, [model], params.topics, params.robot.urdf, {group: training}, serials, imu_axes
         )
         entry["check"] = check.check_group(graphs, samples)
         check.assert_within(group, entry["check"], tolerance)
@@ -256,9 +267,10 @@ def run_fused(
     samples = [check.load_samples(models_dir / m.group, m, labelled) for m in models]
     trainings = {g: e["training"][g] for g, e in entries.items()}
     serials = {s: v for e in entries.values() for s, v in (e.get("serials") or {}).items()}
+    imu_axes = {s: v for e in entries.values() for s, v in (e.get("imu_axes") or {}).items()}
     with stage_run(f"{STAGE}_fused", {"models": {g: e["models"][g] for g, e in entries.items()}}) as active:
         entry, graphs = manifest.build_graph(
-            manifest.FUSED, models, params.topics, params.robot.urdf, trainings, serials
+            manifest.FUSED, models, params.topics, params.robot.urdf, trainings, serials, imu_axes
         )
         entry["check"] = check.check_fused(graphs, samples)
         check.assert_within(manifest.FUSED, entry["check"], tolerance)
