@@ -290,17 +290,23 @@ def run_fused(
 
 
 def _fuse_nothing(params: Any, out: Path, uncalibrated: dict[str, str], t0: float) -> ExportResult:
-    """No group is calibrated: manifest.json says why per group (and sensor), and no graph is written
-    (a fused graph left from an earlier run is removed, so that nothing stale is deployed)."""
+    """No group is calibrated: manifest.json says why per group (and sensor), and the fused graph's files
+    are graphs of no sensor (`pipeline.export.graph.empty`: zero columns in and out), so that nothing
+    stale is deployed and the stage's outputs exist."""
+    import json
+
     from pipeline.calib.exact import NOT_CALIBRATED
     from pipeline.core.io import write_json
-    from pipeline.export import manifest
+    from pipeline.export import graph, manifest
 
-    for stale in out.glob(f"{manifest.FUSED}.*.onnx"):
-        stale.unlink()
+    why = {"ftcal.robot": params.robot.urdf, NOT_CALIBRATED: json.dumps(uncalibrated)}
+    for dtype in graph.DTYPES:
+        model = graph.empty(dtype, why, f"ftcal_{manifest.FUSED}_nothing_calibrated")
+        manifest.write_graphs(out, manifest.FUSED, {}, {dtype: model})
     doc = {**manifest.document(params.robot.urdf, {}, fused=None), NOT_CALIBRATED: uncalibrated}
     write_json(out / manifest.MANIFEST_FILE, doc)
-    return ExportResult(out, doc, [manifest.MANIFEST_FILE], time.perf_counter() - t0)
+    files = sorted(p.name for p in out.iterdir() if p.is_file())
+    return ExportResult(out, doc, files, time.perf_counter() - t0)
 
 
 def _log_checks(doc: dict[str, Any]) -> None:
@@ -347,7 +353,8 @@ def _cmd(args: argparse.Namespace) -> int:
     left = (result.manifest.get("not_calibrated") or {}).items()
     uncalibrated = "".join(f"; {g} not calibrated, nothing exported: {why}" for g, why in left)
     if not graphs:
-        print(f"export: no graph written to {result.out_dir}{uncalibrated}")
+        what = "graphs of no sensor" if args.fused else "no graph"
+        print(f"export: {what} written to {result.out_dir}{uncalibrated}")
         return 0
     checks = {
         d: max(e["check"][d][k] for e in graphs.values())
