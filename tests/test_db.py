@@ -1,4 +1,4 @@
-"""`ftcal db start|stop` as the README runs it, from a directory the ``postgres`` user cannot enter (a
+"""`ftcal db start|stop` as docs/scaling.md runs it, from a directory the ``postgres`` user cannot enter (a
 checkout under /root): the server starts, serves both databases, runs as ``postgres`` (never as root) and
 stops. Run as another user, the server is that user's and the cluster stays where it was asked."""
 

@@ -6,7 +6,7 @@ What it checks is the hand-offs: every stage reads what the previous one wrote; 
 evaluate reads (the contract of `pipeline.calib.records`, linked to MLflow by run id); the exported ONNX
 files, loaded from disk with onnxruntime's own API, compute the stored test predictions; the labels of the
 simulated logs agree with iDynTree's expected FT measurements (1e-6 N/Nm) and are as close to the true
-wrench as the README says.
+wrench as docs/labels.md says.
 """
 
 from __future__ import annotations
@@ -151,8 +151,9 @@ def _whole_logs(session: Any, labelled: Path, frame: pd.DataFrame, columns: list
 
 
 def test_calibrate_agreement_benchmark_runs_on_the_outputs(pipeline_run: dict[str, Any]) -> None:
-    """README's `benchmarks/calibrate_agreement.py` on this run's outputs (a pipeline's, as it needs): the
-    calibrated copy keeps every message, and the exported graph computes the stored test predictions."""
+    """`benchmarks/calibrate_agreement.py` (docs/benchmarks.md) on this run's outputs (a pipeline's, as it
+    needs): the calibrated copy keeps every message, and the exported graph computes the stored test
+    predictions."""
     d = pipeline_run["dirs"]
     log = sorted(d["sim"].glob("*walking_test.mcap"))[0]
     args = [str(log), "--models", str(d["exported"]), "--trained", str(d["models"])]
@@ -171,7 +172,7 @@ def test_calibrate_agreement_benchmark_runs_on_the_outputs(pipeline_run: dict[st
 
 
 def test_labelled_sensor_errors_against_truth_are_small(pipeline_run: dict[str, Any]) -> None:
-    """Labels are within what the simulator's 3% mass errors allow of the true leg wrench: the README's
+    """Labels are within what the simulator's 3% mass errors allow of the true leg wrench: docs/labels.md's
     0.6-1.2 N (force RMSE over the test log)."""
     d = pipeline_run["dirs"]
     frame = pd.read_parquet(sorted(d["labelled"].glob("*pole_test.parquet"))[0])

@@ -248,3 +248,71 @@ def test_short_commands_run() -> None:
     for args in (["dag"], ["status"], ["metrics", "show"]):
         proc = _run([sys.executable, "-m", "dvc", *args])
         assert proc.returncode == 0, (args, proc.stderr[-1000:])
+
+
+def _prose(text: str) -> str:
+    """The text outside fenced code blocks and inline code spans."""
+    return re.sub(r"`[^`\n]*`", "", re.sub(r"```.*?```", "", text, flags=re.S))
+
+
+def anchors(text: str) -> set[str]:
+    """The anchors a forge gives the headings of a Markdown text: lower case, code and link markup dropped,
+    punctuation but ``-`` and ``_`` dropped, spaces -> ``-``, a repeated one suffixed ``-1``, ``-2``..."""
+    seen: dict[str, int] = {}
+    for heading in re.findall(r"^#{1,6} (.+)$", re.sub(r"```.*?```", "", text, flags=re.S), flags=re.M):
+        plain = re.sub(r"\[([^\]]*)\]\([^)]*\)", r"\1", heading).replace("`", "").strip().lower()
+        slug = re.sub(r"[^\w\- ]", "", plain).replace(" ", "-")
+        seen[slug] = seen.get(slug, -1) + 1
+        if seen[slug]:
+            seen[f"{slug}-{seen[slug]}"] = 0
+    return set(seen)
+
+
+def links() -> list[tuple[str, str]]:
+    out = []
+    for doc in DOCS:
+        for target in re.findall(r"\]\(([^)\s]+)\)", _prose(doc.read_text())):
+            if not re.match(r"[a-z]+:", target):  # http:, https:, mailto: are not files of the checkout
+                out.append((doc.relative_to(ROOT).as_posix(), target))
+    return out
+
+
+def check_link(doc: str, target: str) -> list[str]:
+    path, _, fragment = target.partition("#")
+    file = (ROOT / doc).parent / path if path else ROOT / doc
+    if not file.resolve().is_relative_to(ROOT) or not file.exists():
+        return [f"no file {path}"]
+    if fragment and fragment not in anchors(file.read_text()):
+        return [f"{path or doc} has no heading #{fragment}"]
+    return []
+
+
+@pytest.mark.parametrize(("doc", "target"), links(), ids=lambda v: v if len(v) < 60 else v[:57] + "...")
+def test_links_resolve(doc: str, target: str) -> None:
+    """Every link between the pages names a file of the checkout, and a heading of it after a ``#``."""
+    assert not check_link(doc, target), f"{doc}: ({target}): {check_link(doc, target)}"
+
+
+def test_every_docs_page_is_linked_from_the_readme_and_opens_with_a_title_and_a_summary() -> None:
+    linked = {target.partition("#")[0] for doc, target in links() if doc == "README.md"}
+    for page in DOCS[1:]:
+        name = page.relative_to(ROOT).as_posix()
+        assert name in linked, f"README.md does not link {name}"
+        title, summary = page.read_text().split("\n\n", 2)[:2]
+        assert re.fullmatch(r"# \S.*", title), f"{name}: no title on its first line"
+        assert not summary.startswith(("#", "|", "```", "- ")), f"{name}: no summary under the title"
+
+
+def test_ci_runs_what_the_readme_says() -> None:
+    """`.ci/run` installs with the README's install commands (pip's output options aside) and runs the
+    README's test command, exactly."""
+    readme = (ROOT / "README.md").read_text()
+    lines = (ROOT / ".ci/run").read_text().splitlines()
+    ci = [shlex.split(line) for line in lines if line.split()[:1] in (["pip"], ["pytest"])]
+    quiet = ("--quiet", "-q", "--disable-pip-version-check")
+    ci_pip = [[w for w in words if w not in quiet] for words in ci if words[0] == "pip"]
+    block = re.search(r"## Install\n\n```\n(.*?)\n```", readme, flags=re.S)
+    assert block, "README.md: no install block under ## Install"
+    assert ci_pip == [shlex.split(part) for part in block.group(1).split(" && ")], (ci_pip, block.group(1))
+    tests = [line for line in code_blocks(readme) if line.startswith("pytest")]
+    assert tests == [" ".join(words) for words in ci if words[0] == "pytest"], tests

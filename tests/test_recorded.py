@@ -9,7 +9,6 @@ says so."""
 from __future__ import annotations
 
 import json
-import shlex
 from pathlib import Path
 from typing import Any
 
@@ -366,21 +365,24 @@ def test_recorded_logs_only_simulate_nothing_and_deployment_says_so(
 @pytest.mark.skipif(
     not REAL_RUN.is_dir(), reason=f"{REAL_RUN} is absent (../shared is beside developer checkouts)"
 )
-def test_the_real_2016_run_goes_through_every_stage_and_says_why_no_sensor_is_calibrated(
-    tmp_path: Path, monkeypatch: pytest.MonkeyPatch, capfd: pytest.CaptureFixture[str]
+def test_the_real_2016_run_goes_through_dvc_repro_and_says_why_no_sensor_is_calibrated(
+    tmp_path: Path,
 ) -> None:
     """The yoga run of ../shared (right foot on the floor; the left leg's and the arms' joint streams not
-    kept) with its sidecar, as a lab sets it up: every command of dvc.yaml from ingest on, as written
-    there, exits 0 with no traceback; the frozen board is flagged; no sensor has an exact label (each
-    needs the left leg or an arm), and every stage names, per sensor, the streams it lacks."""
+    kept) with its sidecar, as a lab sets it up (params: iCub 2.x, recorded logs only, wrench-only models):
+    `dvc repro` runs every stage to the end, exit 0, no traceback, nothing simulated; the frozen board is
+    flagged; no sensor has an exact label (each needs the left leg or an arm), and every stage names, per
+    sensor, the streams it lacks; the export's graphs calibrate no sensor and its manifest says why."""
+    import os
     import shutil
+    import subprocess
+    import sys
 
     import numpy as np
+    import onnx
     import pandas as pd
 
-    from pipeline.cli import main
     from pipeline.logs import schema as S
-    from tests.test_readme import stages
 
     raw = tmp_path / "data" / "raw"
     shutil.copytree(REAL_RUN / "icub", raw / "yoga" / "icub")
@@ -391,17 +393,21 @@ def test_the_real_2016_run_goes_through_every_stage_and_says_why_no_sensor_is_ca
     data["ingest"]["source"] = "data/raw"
     data["train"]["defaults"]["inputs"] = [6]
     (tmp_path / "params.yaml").write_text(yaml.safe_dump(data, sort_keys=False))
-    shutil.copy(REPO / "dvc.yaml", tmp_path / "dvc.yaml")  # the repo root of the commands' paths
-    monkeypatch.chdir(tmp_path)
-    monkeypatch.setenv("MLFLOW_TRACKING_URI", f"sqlite:///{tmp_path / 'mlflow.db'}")
-    wired = stages()
-    names = ["ingest", "smooth", "label", *(f"{k}@{g}" for k in ("train", "evaluate") for g in GROUPS)]
-    source = yaml.safe_load((REPO / "params.yaml").read_text())["ingest"]["source"]
-    for name in [*names, "report"]:
-        cmd = wired[name]["cmd"].replace(f" {source} ", " data/raw ")
-        assert main(shlex.split(cmd)[1:]) == 0, name
-    out, err = capfd.readouterr()
-    assert "Traceback" not in out + err
+    shutil.copy(REPO / "dvc.yaml", tmp_path / "dvc.yaml")  # and the code its stages depend on
+    shutil.copytree(REPO / "pipeline", tmp_path / "pipeline", ignore=shutil.ignore_patterns("__pycache__"))
+    (tmp_path / data["deploy"]["real_logs"]).mkdir(parents=True)  # tracked, empty, in a checkout
+    env = {
+        **os.environ,
+        "PYTHONPATH": str(REPO),
+        "MLFLOW_TRACKING_URI": f"sqlite:///{tmp_path / 'mlflow.db'}",
+    }
+    dvc = [sys.executable, "-m", "dvc"]
+    subprocess.run([*dvc, "init", "--no-scm", "-q"], cwd=tmp_path, env=env, check=True)
+    proc = subprocess.run([*dvc, "repro"], cwd=tmp_path, env=env, capture_output=True, text=True)
+    out = proc.stdout + proc.stderr
+    assert proc.returncode == 0, out[-3000:]
+    assert "Traceback" not in out
+    assert not list((tmp_path / "data" / "sim").glob("*.mcap"))  # recorded logs only: nothing simulated
     assert "frozen: yoga: r_leg_ft 11.9 s, 16.0% of samples" in out
     table = pd.read_parquet(tmp_path / "data" / "labelled" / "yoga.parquet")
     assert (~table[S.ok_col(S.WRENCH_STREAM, "r_leg_ft")]).mean() >= 0.16  # its frozen 16 % flagged
@@ -424,4 +430,7 @@ def test_the_real_2016_run_goes_through_every_stage_and_says_why_no_sensor_is_ca
     assert "<b>Not calibrated:</b>" in page and "<b>legs</b>: " in page
     manifest = json.loads((tmp_path / "exported" / "manifest.json").read_text())
     assert manifest["graphs"] == {} and set(manifest["not_calibrated"]) == set(GROUPS)
-    assert not list((tmp_path / "exported").rglob("*.onnx"))
+    assert not list((tmp_path / "exported" / "groups").rglob("*.onnx"))
+    for dtype in ("float32", "float64"):  # the fused graph: no sensor, zero columns in and out
+        graph = onnx.load(tmp_path / "exported" / f"all.{dtype}.onnx").graph
+        assert [d.dim_value for d in graph.output[0].type.tensor_type.shape.dim][1:] == [0]

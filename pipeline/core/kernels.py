@@ -25,7 +25,7 @@ with AVX2 and AVX-512, so they are left as they are. Each variable is read once,
 deliberate choice, or the emulation of another machine); ``FTCAL_KERNELS=native`` pins nothing (each
 library's fastest kernels for this CPU; results then depend on the machine). On a CPU without AVX2, or not
 x86-64, nothing is pinned either: there the last bits can differ, which training's decisions are made to
-tolerate (README, "Same data, same params, another machine").
+tolerate (docs/models.md, "Same data, same params, another machine").
 """
 
 from __future__ import annotations

@@ -6,7 +6,7 @@ calibration would report with the offset it was trained with. It is nonlinear, s
 front of it, on the raw reading, not after it. Over a still stretch with exact labels:
 
 - a sensor with its own exact label L_s: ``f_s(x_i - delta_s) = L_s,i``;
-- a cut set C whose sum is exact (both legs in double support, a foot pair...: README "Labels"):
+- a cut set C whose sum is exact (both legs in double support, a foot pair...: docs/labels.md):
   ``sum_{s in C} T_s,i f_s(x_i - delta_s) = L_C,i`` (``T_s = sign_s frame_X_s``, `pipeline.physics.cuts`).
 
 Every such equation over every sample, each axis divided by its noise (the raw readings' std over the

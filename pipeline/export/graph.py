@@ -348,3 +348,22 @@ def build(
     helper.set_model_props(model, metadata)
     checker.check_model(model, full_check=True)
     return model
+
+
+def empty(dtype: str, metadata: dict[str, str], name: str) -> Any:
+    """The ONNX ModelProto of an export that calibrates no sensor: ``inputs`` (N, 0) -> ``calibrated`` (N,
+    0) in `dtype`, with `metadata` props (they say why). What the pipeline writes where its graphs' files
+    must exist but no group could be calibrated."""
+    from onnx import TensorProto, checker, helper
+
+    elem = TensorProto.FLOAT if dtype == "float32" else TensorProto.DOUBLE
+    graph = helper.make_graph(
+        [helper.make_node("Identity", [INPUT], [OUTPUT])],
+        name,
+        [helper.make_tensor_value_info(INPUT, elem, ["N", 0])],
+        [helper.make_tensor_value_info(OUTPUT, elem, ["N", 0])],
+    )
+    model = helper.make_model(graph, opset_imports=[helper.make_opsetid("", OPSET)], producer_name="ftcal")
+    helper.set_model_props(model, metadata)
+    checker.check_model(model, full_check=True)
+    return model

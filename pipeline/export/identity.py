@@ -42,6 +42,29 @@ def training_serials(
     return out
 
 
+def training_imu_axes(
+    ingests: Mapping[str, Mapping[str, object]], sensors: Sequence[str]
+) -> dict[str, list[str] | None]:
+    """Sensor -> the IMU axis map ingest applied to its board in the training logs (`ingests`: log -> its
+    ``ftcal.ingest`` metadata, whose ``imu_axes`` is `ingest.imu_axes`; None: unmapped). Raises DataError
+    naming two logs ingested with different maps for one sensor (the board's inputs would differ)."""
+    out: dict[str, list[str] | None] = {}
+    for sensor in sensors:
+        seen: dict[tuple[str, ...] | None, str] = {}
+        for log, ingest in ingests.items():
+            axes = (ingest.get("imu_axes") or {}).get(sensor)  # type: ignore[union-attr]
+            seen.setdefault(tuple(axes) if axes else None, log)
+        if len(seen) > 1:
+            (a, log_a), (b, log_b) = list(seen.items())[:2]
+            raise DataError(
+                f"{log_b}: {sensor}'s IMU was ingested with axes {b} there but {a} in {log_a}: set "
+                "ingest.imu_axes once for every training log"
+            )
+        axes = next(iter(seen), None)
+        out[sensor] = list(axes) if axes else None
+    return out
+
+
 def check_serials(
     expected: Mapping[str, str | None],
     experiment: Mapping[str, object] | None,

@@ -96,9 +96,12 @@ def graph_entry(
     topics: Any,
     trainings: Mapping[str, Mapping[str, Any]],
     serials: Mapping[str, str | None] | None = None,
+    imu_axes: Mapping[str, Sequence[str] | None] | None = None,
 ) -> dict[str, Any]:
     """A graph's manifest entry, without files and checks (added once written and checked); `serials`:
-    sensor -> the serial of the board its calibration belongs to (None: not recorded)."""
+    sensor -> the serial of the board its calibration belongs to (None: not recorded); `imu_axes`: sensor ->
+    its board's IMU axes in the sensor frame that ingest mapped in training (`ingest.imu_axes`; None: the
+    board reads in the sensor frame), which a runtime applies to the board's IMU before the graph."""
     from pipeline.export.offsets import FILE
 
     inputs, outputs = columns(models, topics)
@@ -122,6 +125,7 @@ def graph_entry(
             "(N, Nm; zero on the other columns), from a re-zeroing (ftcal rezero)",
         },
         "serials": {s: (serials or {}).get(s) for s in sensors},
+        "imu_axes": {s: _axes(imu_axes, s) for s in sensors},
         "training": {m.group: dict(trainings[m.group]) for m in models},
     } | _state(models)
 
@@ -147,6 +151,11 @@ def _state(models: Sequence[GroupModel]) -> dict[str, Any]:
     }
 
 
+def _axes(imu_axes: Mapping[str, Sequence[str] | None] | None, sensor: str) -> list[str] | None:
+    axes = (imu_axes or {}).get(sensor)
+    return list(axes) if axes else None
+
+
 def metadata(entry: Mapping[str, Any], robot: str) -> dict[str, str]:
     """ONNX metadata_props of a graph: the whole entry as JSON and flat keys for viewers."""
     runs = {g: t.get("mlflow_run") or "" for g, t in entry["training"].items()}
@@ -166,6 +175,7 @@ def metadata(entry: Mapping[str, Any], robot: str) -> dict[str, str]:
             else "none (memoryless)"
         ),
         "ftcal.serials": json.dumps(entry.get("serials") or {}),
+        "ftcal.imu_axes": json.dumps(entry.get("imu_axes") or {}),
         "ftcal.outputs": ",".join(f"{c['column']}[{c['unit']}]" for c in entry["outputs"]),
         "ftcal.training_data_sha256": json.dumps(hashes),
         "ftcal.mlflow_runs": json.dumps(runs),
@@ -211,12 +221,13 @@ def build_graph(
     robot: str,
     trainings: Mapping[str, Mapping[str, Any]],
     serials: Mapping[str, str | None] | None = None,
+    imu_axes: Mapping[str, Sequence[str] | None] | None = None,
 ) -> tuple[dict[str, Any], dict[str, Any]]:
     """(manifest entry, {dtype: ONNX ModelProto}) of a group's graph, or of the fused graph of `models`
     (`name` FUSED: laid out for one sample per call)."""
     from pipeline.export import graph
 
-    entry = graph_entry(models, topics, trainings, serials)
+    entry = graph_entry(models, topics, trainings, serials, imu_axes)
     props = metadata(entry, robot)
     graphs = {
         dtype: graph.build(models, dtype, props, f"ftcal_{name}", per_sample=name == FUSED)

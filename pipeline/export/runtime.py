@@ -5,9 +5,10 @@
 `pipeline.export.offsets`) fed to every graph's ``offsets`` input. `CausalCalibrator` turns the decoded
 messages of a log, chunk by chunk, into calibrated wrenches: for every raw wrench message of a modelled
 sensor, the temperature (and IMU) are those of the latest message stamped at or before the wrench's
-header stamp, never a later one, as a robot's loop would have them. Messages may arrive out of stamp
-order (transport delays), so the wrenches of one chunk are calibrated once the next chunk has been read:
-a temperature delayed by less than a chunk (seconds) is still found. A wrench stamped before its
+header stamp, never a later one, as a robot's loop would have them; a board whose IMU axes training mapped
+(``ingest.imu_axes``, the manifest's ``imu_axes``) is read through the same map. Messages may arrive out
+of stamp order (transport delays), so the wrenches of one chunk are calibrated once the next chunk has been
+read: a temperature delayed by less than a chunk (seconds) is still found. A wrench stamped before its
 sensor's first temperature (or IMU) message has no input yet and is counted as uncalibrated.
 
 Each sensor's output depends on its own inputs only (``separable`` in the manifest; true of every model
@@ -32,6 +33,7 @@ import numpy as np
 
 from pipeline.core.errors import DataError
 from pipeline.export.offsets import Offsets
+from pipeline.logs.imu_axes import to_sensor_frame
 
 WRENCH_FIELDS = tuple(f"wrench.{k}.{a}" for k in ("force", "torque") for a in "xyz")
 IMU_FIELDS = tuple(f"linear_acceleration.{a}" for a in "xyz") + tuple(f"angular_velocity.{a}" for a in "xyz")
@@ -80,6 +82,15 @@ class Deployment:
     def serials(self) -> dict[str, str | None]:
         """Sensor -> the serial of the sensor its calibration was trained for (None: not recorded)."""
         return {s: v for entry in self.groups().values() for s, v in (entry.get("serials") or {}).items()}
+
+    def imu_axes(self) -> dict[str, tuple[str, str, str] | None]:
+        """Sensor -> its board's IMU axes that training mapped (`ingest.imu_axes`), applied to the board's
+        readings before the graph (None: the board reads in the sensor frame)."""
+        return {
+            s: tuple(v) if v else None  # type: ignore[misc]
+            for entry in self.groups().values()
+            for s, v in (entry.get("imu_axes") or {}).items()
+        }
 
     def with_offsets(self, offsets: Offsets) -> Deployment:
         """The same export and sessions, run with `offsets` (an empty `Offsets`: as delivered)."""
@@ -258,6 +269,7 @@ class CausalCalibrator:
                 self._by_topic[p.temperature_topic] = ("temperature", p.sensor)
             if p.imu_topic:
                 self._by_topic[p.imu_topic] = ("imu", p.sensor)
+        self._axes = deployment.imu_axes()  # boards whose IMU training saw mapped (ingest.imu_axes)
         self._pending: list[Any] = []
         self._states: dict[str, dict[int, np.ndarray]] = {
             p.group: {} for p in plans if deployment.state_columns(p.group) is not None
@@ -279,9 +291,10 @@ class CausalCalibrator:
                 kind, _ = key = self._by_topic[b.topic]
                 if kind == "temperature":
                     value = b.fields["temperature"].reshape(-1, 1)
-                else:
-                    value = np.concatenate(
-                        [b.fields["linear_acceleration"], b.fields["angular_velocity"]], axis=1
+                else:  # in the sensor frame, as training read it
+                    value = to_sensor_frame(
+                        np.concatenate([b.fields["linear_acceleration"], b.fields["angular_velocity"]], 1),
+                        self._axes.get(key[1]),
                     )
                 fresh.setdefault(key, []).append((b.stamp_ns, value))
         for (kind, sensor), parts in fresh.items():

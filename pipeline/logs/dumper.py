@@ -1,4 +1,5 @@
-"""A YARP dataDumper run read as the topics of the MCAP contract (format: the reference and README).
+"""A YARP dataDumper run read as the topics of the MCAP contract (format: the reference and
+docs/recorded-logs.md).
 
 A run is a folder of port folders, one per dumped port, each with ``info.log`` and ``data.log``: the
 dumper's own layout ``<run>/<robot>/<part>/<port>/`` (one robot prefix folder, e.g. ``icub``), or folders

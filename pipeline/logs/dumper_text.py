@@ -1,4 +1,5 @@
-"""The text of a YARP dataDumper port: ``data.log`` lines parsed into arrays (format: README, reference).
+"""The text of a YARP dataDumper port: ``data.log`` lines parsed into arrays (format:
+docs/recorded-logs.md, reference).
 
 Every line is ``<seq> <time> [<time>] <payload>``, separated by single spaces. ``seq`` is the sender's
 counter (not a time base); the first time is the sender's stamp (float s since the epoch, 6 decimals),

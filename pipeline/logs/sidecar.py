@@ -43,7 +43,7 @@ def read_sidecar(side: Path, log: Path) -> dict[str, str]:
     if not side.is_file():
         raise DataError(
             f"{log}: missing experiment sidecar {side.name} beside it (YAML with at least `type`, "
-            "and `role`, `robot`, `contacts`, `window`, `segments` where known; see README)"
+            "and `role`, `robot`, `contacts`, `window`, `segments` where known; see docs/recorded-logs.md)"
         )
     try:
         data = yaml.safe_load(side.read_text(encoding="utf-8"))

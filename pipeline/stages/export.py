@@ -133,6 +133,17 @@ def _serials(params: Any, model: Any, paths: list[Path]) -> dict[str, str | None
     return training_serials(experiments, model.sensors, params.robot.serials)
 
 
+def _imu_axes(model: Any, paths: list[Path]) -> dict[str, list[str] | None]:
+    """Sensor -> the IMU axis map ingest applied to its board in its training logs
+    (`pipeline.export.identity.training_imu_axes`)."""
+    from pipeline.export.identity import training_imu_axes
+    from pipeline.logs import schema as S
+    from pipeline.logs.tables import read_table_metadata
+
+    ingests = {str(p): read_table_metadata(p).get(S.META_INGEST.decode()) or {} for p in paths}
+    return training_imu_axes(ingests, model.sensors)
+
+
 def _check_dirs(*paths: tuple[Path, str]) -> None:
     for path, what in paths:
         if not path.is_dir():
@@ -178,9 +189,9 @@ def run_group(
         client = mlflow.MlflowClient()
         paths = _training_logs(model, models_dir / group, labelled)
         training = _training(client, model, models_dir / group, paths)
-        serials = _serials(params, model, paths)
+        serials, imu_axes = _serials(params, model, paths), _imu_axes(model, paths)
         entry, graphs = manifest.build_graph(
-            group, [model], params.topics, params.robot.urdf, {group: training}, serials
+            group, [model], params.topics, params.robot.urdf, {group: training}, serials, imu_axes
         )
         entry["check"] = check.check_group(graphs, samples)
         check.assert_within(group, entry["check"], tolerance)
@@ -256,9 +267,10 @@ def run_fused(
     samples = [check.load_samples(models_dir / m.group, m, labelled) for m in models]
     trainings = {g: e["training"][g] for g, e in entries.items()}
     serials = {s: v for e in entries.values() for s, v in (e.get("serials") or {}).items()}
+    imu_axes = {s: v for e in entries.values() for s, v in (e.get("imu_axes") or {}).items()}
     with stage_run(f"{STAGE}_fused", {"models": {g: e["models"][g] for g, e in entries.items()}}) as active:
         entry, graphs = manifest.build_graph(
-            manifest.FUSED, models, params.topics, params.robot.urdf, trainings, serials
+            manifest.FUSED, models, params.topics, params.robot.urdf, trainings, serials, imu_axes
         )
         entry["check"] = check.check_fused(graphs, samples, models)
         check.assert_within(manifest.FUSED, entry["check"], tolerance)
@@ -278,17 +290,23 @@ def run_fused(
 
 
 def _fuse_nothing(params: Any, out: Path, uncalibrated: dict[str, str], t0: float) -> ExportResult:
-    """No group is calibrated: manifest.json says why per group (and sensor), and no graph is written
-    (a fused graph left from an earlier run is removed, so that nothing stale is deployed)."""
+    """No group is calibrated: manifest.json says why per group (and sensor), and the fused graph's files
+    are graphs of no sensor (`pipeline.export.graph.empty`: zero columns in and out), so that nothing
+    stale is deployed and the stage's outputs exist."""
+    import json
+
     from pipeline.calib.exact import NOT_CALIBRATED
     from pipeline.core.io import write_json
-    from pipeline.export import manifest
+    from pipeline.export import graph, manifest
 
-    for stale in out.glob(f"{manifest.FUSED}.*.onnx"):
-        stale.unlink()
+    why = {"ftcal.robot": params.robot.urdf, NOT_CALIBRATED: json.dumps(uncalibrated)}
+    for dtype in graph.DTYPES:
+        model = graph.empty(dtype, why, f"ftcal_{manifest.FUSED}_nothing_calibrated")
+        manifest.write_graphs(out, manifest.FUSED, {}, {dtype: model})
     doc = {**manifest.document(params.robot.urdf, {}, fused=None), NOT_CALIBRATED: uncalibrated}
     write_json(out / manifest.MANIFEST_FILE, doc)
-    return ExportResult(out, doc, [manifest.MANIFEST_FILE], time.perf_counter() - t0)
+    files = sorted(p.name for p in out.iterdir() if p.is_file())
+    return ExportResult(out, doc, files, time.perf_counter() - t0)
 
 
 def _log_checks(doc: dict[str, Any]) -> None:
@@ -335,7 +353,8 @@ def _cmd(args: argparse.Namespace) -> int:
     left = (result.manifest.get("not_calibrated") or {}).items()
     uncalibrated = "".join(f"; {g} not calibrated, nothing exported: {why}" for g, why in left)
     if not graphs:
-        print(f"export: no graph written to {result.out_dir}{uncalibrated}")
+        what = "graphs of no sensor" if args.fused else "no graph"
+        print(f"export: {what} written to {result.out_dir}{uncalibrated}")
         return 0
     checks = {
         d: max(e["check"][d][k] for e in graphs.values())

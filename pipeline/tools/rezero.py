@@ -12,7 +12,7 @@ use it: a robot's loop reads it at start-up.
 Each LOG (MCAP, robot-logger ``.mat`` or dataDumper run, with its sidecar) is ingested, smoothed and
 labelled as training logs are; the stretch is its first still one (``deploy.rezero``), or ``--start``;
 several logs are solved together. Standing on both feet the legs and feet have exact labels only for
-their sums (README "Labels"): what a stretch cannot determine is said per sensor, and left as delivered.
+their sums (docs/labels.md): what a stretch cannot determine is said per sensor, and left as delivered.
 Refused in one line: a log of another robot or another sensor board (serials), a stretch where the robot
 moved, or without an exact label of the sensors asked for.
 """
