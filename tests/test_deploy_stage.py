@@ -162,8 +162,10 @@ def test_stages_write_pages_metrics_details_and_figures(stage: dict[str, Any]) -
         "later_rezeroed_hip_pitch.png",
         "later_rezeroed_interaction.png",
         "later_rezeroed_scales.png",
+        "later_rezeroed_steps.png",
         "later_rezeroed_walking.png",
         "later_scales.png",
+        "later_steps.png",
         "later_walking.png",
         "result.json",
     ]
@@ -171,14 +173,17 @@ def test_stages_write_pages_metrics_details_and_figures(stage: dict[str, Any]) -
         "later_interaction.png",
         "later_rezeroed_interaction.png",
         "later_rezeroed_scales.png",
+        "later_rezeroed_steps.png",
         "later_rezeroed_walking.png",
         "later_scales.png",
+        "later_steps.png",
         "later_walking.png",
         "result.json",
     ]
     for src in (
         "deployment/groups/r_leg_ft/later_walking.png",
         "deployment/groups/r_leg_ft/later_hip_pitch.png",
+        "deployment/groups/r_leg_ft/later_steps.png",
     ):
         assert f'src="{src}"' in page and (reports / src).is_file()
     later = stage["trained"]["details"]["later"]
@@ -212,7 +217,7 @@ def test_a_flags_exactly_the_models_above_the_params_limit(stage: dict[str, Any]
     assert set(test_a) == set(DEPLOYED)
     for group, entry in test_a.items():
         assert entry["deployed"] == DEPLOYED[group] and entry["quasi_static_s"] > 1.0
-        assert set(entry["models"]) == {"affine", "poly1", "poly2", "nn7", "nn13"}
+        assert set(entry["models"]) == {"affine", "poly1", "poly2", "play", "nn7", "nn13"}
         for model, r in entry["models"].items():
             assert math.isfinite(r["worst"]) and r["worst"] == max(r["ratio_axes"]), (group, model)
             assert r["flagged"] == (r["worst"] > limit), (group, model, r["worst"], limit)
