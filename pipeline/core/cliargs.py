@@ -16,3 +16,24 @@ def add_params_option(parser: argparse.ArgumentParser, what: str = "") -> None:
         metavar="PATH",
         help=f"params file ({purpose}default: params.yaml at the repo root)",
     )
+
+
+DEFAULT_MODELS = "exported"  # the export stage's output directory, at the repo root (dvc.yaml)
+
+
+def add_models_option(parser: argparse.ArgumentParser) -> None:
+    """``--models DIR``: an export directory (default: `DEFAULT_MODELS` at the repo root; `models_dir`)."""
+    parser.add_argument(
+        "--models",
+        type=Path,
+        default=None,
+        metavar="DIR",
+        help=f"export directory with manifest.json (default: {DEFAULT_MODELS}/ at the repo root)",
+    )
+
+
+def models_dir(models: Path | None) -> Path:
+    """The export directory `--models` names, or the repo root's `DEFAULT_MODELS`."""
+    from pipeline.core.config import repo_root
+
+    return models if models is not None else repo_root() / DEFAULT_MODELS

@@ -25,11 +25,10 @@ import sys
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
-from pipeline.core.cliargs import add_params_option
+from pipeline.core.cliargs import add_models_option, add_params_option, models_dir
 from pipeline.core.errors import DataError
 
 COMMAND = "calibrate"
-DEFAULT_MODELS = "exported"  # the export stage's output directory, at the repo root (dvc.yaml)
 MCAP_SUFFIX = ".mcap"
 
 if TYPE_CHECKING:
@@ -88,10 +87,10 @@ def run(
 
 
 def _cmd(args: argparse.Namespace) -> int:
-    from pipeline.core.config import load_params, repo_root
+    from pipeline.core.config import load_params
 
     params = load_params(args.params)
-    models = args.models if args.models is not None else repo_root() / DEFAULT_MODELS
+    models = models_dir(args.models)
     offsets = False if args.no_offsets else (args.offsets if args.offsets is not None else True)
     results = run(params, args.source, args.out, models, force=args.force, offsets=offsets)
     if results:
@@ -115,13 +114,7 @@ def add_cli(subparsers: Any) -> None:
     )
     parser.add_argument("source", type=Path, metavar="IN", help="MCAP log, or a directory of *.mcap logs")
     parser.add_argument("out", type=Path, metavar="OUT", help="output log (or directory, for a directory IN)")
-    parser.add_argument(
-        "--models",
-        type=Path,
-        default=None,
-        metavar="DIR",
-        help=f"export directory with manifest.json (default: {DEFAULT_MODELS}/ at the repo root)",
-    )
+    add_models_option(parser)
     parser.add_argument("--force", action="store_true", help="replace existing output logs")
     which = parser.add_mutually_exclusive_group()
     which.add_argument(

@@ -25,11 +25,10 @@ from datetime import datetime, timezone
 from pathlib import Path
 from typing import Any
 
-from pipeline.core.cliargs import add_params_option
+from pipeline.core.cliargs import add_models_option, add_params_option, models_dir
 from pipeline.core.errors import DataError
 
 COMMAND = "rezero"
-DEFAULT_MODELS = "exported"  # the export's directory, at the repo root (dvc.yaml)
 
 
 def _prepare(params: Any, robot: Any, log: Path, work: Path) -> Any:
@@ -168,10 +167,10 @@ def _print(doc: dict[str, Any]) -> None:
 
 
 def _cmd(args: argparse.Namespace) -> int:
-    from pipeline.core.config import load_params, repo_root
+    from pipeline.core.config import load_params
 
     params = load_params(args.params)
-    models = args.models if args.models is not None else repo_root() / DEFAULT_MODELS
+    models = models_dir(args.models)
     doc = run(
         params, args.logs, models, start_s=args.start, duration_s=args.duration, sensors=args.sensors,
         out=args.out,
@@ -187,10 +186,7 @@ def add_cli(subparsers: Any) -> None:
         description=(__doc__ or "").split("\n\n")[0],
     )  # fmt: skip
     parser.add_argument("logs", type=Path, nargs="+", metavar="LOG", help="log(s) with a still stretch")
-    parser.add_argument(
-        "--models", type=Path, default=None, metavar="DIR",
-        help=f"export directory with manifest.json (default: {DEFAULT_MODELS}/ at the repo root)",
-    )  # fmt: skip
+    add_models_option(parser)
     parser.add_argument(
         "--start", type=float, default=None, metavar="S",
         help="start of the stretch, s of the log's time (default: its first still stretch); "
