@@ -13,14 +13,12 @@ assembly: one group's change re-runs that group's tests and this page only. Logs
 from __future__ import annotations
 
 import argparse
-import json
 import os
 from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
 
 from pipeline.core.cliargs import add_params_option
-from pipeline.core.errors import DataError
 
 STAGE = "deploy_report"
 COMMAND = "deploy-report"
@@ -28,18 +26,14 @@ PAGE, METRICS, DETAILS = "deployment.html", "deployment.json", "deployment/detai
 
 
 def _group_results(groups_dir: Path, groups: list[str]) -> dict[str, dict[str, Any]]:
+    from pipeline.core.io import read_json
     from pipeline.deploy.verdict import RESULT_FILE
 
-    out = {}
+    results = {}
     for group in groups:
-        path = groups_dir / group / RESULT_FILE
-        try:
-            out[group] = json.loads(path.read_text(encoding="utf-8"))
-        except FileNotFoundError:
-            raise DataError(f"{path}: not found (run `dvc repro evaluate@{group}`)") from None
-        except (OSError, ValueError) as exc:
-            raise DataError(f"{path}: not a deployment test result: {exc}") from None
-    return out
+        missing = f"not found (run `dvc repro evaluate@{group}`)"
+        results[group] = read_json(groups_dir / group / RESULT_FILE, "a deployment test result", missing)
+    return results
 
 
 def run(params: Any, groups_dir: str | Path, reports: str | Path) -> dict[str, Any]:
