@@ -67,6 +67,7 @@ TRAIN_PARAMS = {
         "lambda_push": 0.1,
         "push_force_n": 20.0,
         "push_lever_m": 0.2,
+        "free_lever": True,
         "residual_slope": 0.05,
         "n_trials": 3,
         "search": {"lr": {"low": 0.001, "high": 0.03, "log": True}, "hidden": [16, 32]},

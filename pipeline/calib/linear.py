@@ -291,9 +291,39 @@ def fit_linear_baseline(
             else:
                 gram = linear_push_gram(features, model.powers, model.scale[s], x[:, s], push, rng)
             normal[s * k : (s + 1) * k, s * k : (s + 1) * k] += push.weight * np.kron(eye, gram)
+            if push.free_lever:
+                _free_lever(normal[s * k : (s + 1) * k, s * k : (s + 1) * k], gram, push.weight, model, s)
     allowed = None if widths is None else np.tile(_own_axis(len(powers), len(widths)), n_sensors)
     model.weights = _solve_informed(normal, rhs, allowed).reshape(n_sensors, WRENCH, p)
     return model
+
+
+def _free_lever(block: np.ndarray, gram: np.ndarray, weight: float, model: LinearBaseline, s: int) -> None:
+    """Release the lever from the virtual pushes' penalty of sensor `s` (`block`, its (6 P, 6 P) part of the
+    normal matrix, in place): of the correction's torque<-force coefficients T (3, 3), T_oa = W[3 + o, j_a] /
+    scale_a with j_a the linear feature of raw force axis a (Nm/N = m), only the symmetric part pays.
+
+    The antisymmetric part is a cross product, ``T f = -d x f``: the sensor's torque reference point moved by
+    d (m). A sensor's origin is wherever its gauges and mounting put it (the simulated sensors' `lever_m`,
+    up to 8 mm), and the labels see it wherever a force varies; it cannot rebuild a force from a torque nor
+    cancel a torque's noise on a limb's relation, so a push is reported exactly once d is right. Penalised,
+    it was half learned where the labels' forces vary little (an iCub 2.x foot sensor's sideways forces): a
+    push at its sole, 1.2 cm below it, then read 0.2-0.6 of its torque about the vertical axis.
+    """
+    linear = {int(np.argmax(row)): j + 1 for j, row in enumerate(model.powers[1:]) if row.sum() == 1}
+    if not all(a in linear for a in range(3)):
+        return
+    p = gram.shape[0]
+    cols = [linear[a] for a in range(3)]
+    scale = model.scale[s][:3]
+    # the penalty's weight per coefficient in physical units (h I on T), from the gram's force diagonal
+    h = weight * float(np.mean(np.diag(gram)[cols] * scale**2))
+    idx = np.array([(3 + o) * p + cols[a] for o in range(3) for a in range(3)])
+    swap = np.array([3 * a + o for o in range(3) for a in range(3)])  # (o, a) -> (a, o)
+    sym = (np.eye(9) + np.eye(9)[swap]) / 2  # vec(T) -> vec of its symmetric part (a projector)
+    d = 1.0 / np.tile(scale, 3)  # T = W / scale
+    block[np.ix_(idx, idx)] -= weight * np.kron(np.eye(3), gram[np.ix_(cols, cols)])
+    block[np.ix_(idx, idx)] += h * (d[:, None] * sym * d[None, :])
 
 
 def _own_axis(static: int, n_widths: int) -> np.ndarray:

@@ -129,6 +129,7 @@ class GroupParams:
     lambda_push: float  # weight of the virtual pushes' prior (pipeline.calib.pushes)
     push_force_n: float  # their force std, N
     push_lever_m: float  # and lever, m (torque std = force x lever)
+    free_lever: bool  # the linear fits leave the sensor's torque reference point to the labels
     residual_slope: float  # networks: the Lipschitz bound of their correction in push units (> 0)
     n_trials: int  # Optuna trials per network (the first: these params)
     search: Mapping[str, Any]  # key -> [choices] or {low, high, log}
@@ -213,6 +214,8 @@ class GroupParams:
         if not _is_number(slope) or not 0 < slope <= 1:
             raise ConfigError(f"{key}.residual_slope must be a number in (0, 1], got {slope!r}")
         object.__setattr__(self, "residual_slope", float(slope))
+        if not isinstance(self.free_lever, bool):
+            raise ConfigError(f"{key}.free_lever must be true or false, got {self.free_lever!r}")
         orders = self.poly_orders
         if not isinstance(orders, list | tuple) or any(not _is_int(o) or not 1 <= o <= 4 for o in orders):
             raise ConfigError(f"{key}.poly_orders must be a list of integers in [1, 4], got {orders!r}")
@@ -279,7 +282,7 @@ class GroupParams:
     @property
     def push(self) -> PushPrior:
         """The virtual pushes every model of the group is fitted with."""
-        return PushPrior(self.lambda_push, self.push_force_n, self.push_lever_m)
+        return PushPrior(self.lambda_push, self.push_force_n, self.push_lever_m, self.free_lever)
 
     def play_widths(self) -> tuple[tuple[float, ...], ...] | None:
         """The play model's widths, one row per operator (K, 6: force axes N, torque axes Nm); None: the

@@ -62,6 +62,7 @@ class PushPrior:
     weight: float
     force_n: float
     lever_m: float
+    free_lever: bool = False  # the linear fits leave the sensor's torque reference point to the labels
 
     @property
     def active(self) -> bool:
