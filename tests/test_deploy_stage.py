@@ -53,7 +53,8 @@ INTERACTION = {  # short: 1 s, 8 sites x 2 directions x 0.5 s, then 2 hands x (1
 }
 DEPLOYED = {LEG: "nn13", PAIR: "affine"}
 REZERO = {"duration_s": 2.0, "min_s": 1.5, "still_joint_rad_s": 0.02, "still_gyro_rad_s": 0.05,
-          "prior_force_n": 10.0, "prior_torque_nm": 0.5, "pose_limit": 2.0}  # fmt: skip
+          "prior_force_n": 10.0, "prior_torque_nm": 0.5, "pose_limit": 2.0, "label_mass_rel": 0.01,
+          "label_com_m": 0.003, "significance": 2.0}  # fmt: skip
 LINEAR = {  # the hidden distortion without its temperature terms, nonlinearity and hysteresis
     "temperature_gain": 0.0,
     "offset_drift_force": 0.0,
@@ -432,8 +433,13 @@ def test_rezeroed_factory_map_removes_the_mean_reading_minus_label(stage: dict[s
             expected = (
                 rows[S.wrench_cols(S.FT, s)].to_numpy() - rows[S.wrench_cols(S.EXPECTED, s)].to_numpy()
             ).mean(0)
-            np.testing.assert_allclose(rezero["offsets"][s], expected, rtol=0, atol=1e-5)
+            np.testing.assert_allclose(rezero["sensors"][s]["estimate"], expected, rtol=0, atol=1e-5)
             assert rezero["sensors"][s]["status"] == "all"
+            # the factory map's offsets (tens of N, Nm) are far beyond the labels' error: applied in full
+            beyond = np.abs(expected) > 2.0 * np.asarray(rezero["sensors"][s]["threshold"])
+            assert beyond[:3].all()
+            estimate = np.asarray(rezero["sensors"][s]["estimate"])
+            np.testing.assert_array_equal(np.asarray(rezero["offsets"][s])[beyond], estimate[beyond])
     after = json.loads((stage["raw_reports"] / "deployment" / "details.json").read_text())["rezeroed"][
         "later"
     ]
@@ -445,12 +451,16 @@ def test_rezeroed_factory_map_removes_the_mean_reading_minus_label(stage: dict[s
 
 def test_rezeroed_exact_affine_map_solves_its_linear_equation(stage: dict[str, Any]) -> None:
     """The exact affine inverse w = C^-1 (x - o): re-zeroed, C^-1 (raw - delta - o) = label on average, so
-    delta = mean(raw - C label) - o (numpy, truth.json): the labels' own model error, under a newton."""
+    delta = mean(raw - C label) - o (numpy, truth.json): the labels' own model error, under a newton. The
+    offset did not move: what is applied of that estimate is what exceeds its threshold only."""
     rezero, rows = _first_still(stage, LEG, "exact")
     d = stage["truth"]["distortions"][LEG]
     raw, label = rows[S.wrench_cols(S.FT, LEG)].to_numpy(), rows[S.wrench_cols(S.EXPECTED, LEG)].to_numpy()
     expected = (raw - label @ np.asarray(d["coupling"]).T).mean(0) - np.asarray(d["offset"])
-    np.testing.assert_allclose(rezero["offsets"][LEG], expected, rtol=0, atol=1e-5)
+    entry = rezero["sensors"][LEG]
+    np.testing.assert_allclose(entry["estimate"], expected, rtol=0, atol=1e-5)
     assert np.abs(expected[:3]).max() < 1.5
+    within = np.abs(expected) <= np.asarray(entry["threshold"])
+    assert np.all(np.asarray(rezero["offsets"][LEG])[within] == 0.0)
     page = (stage["exact_reports"] / "deployment.html").read_text()
     assert "<h2 id='later-rezeroed'>later, re-zeroed</h2>" in page and "re-zeroed from 00_poses_test" in page

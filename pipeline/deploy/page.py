@@ -309,8 +309,19 @@ _REZERO_NOTE = (
     "std: their uncertainty from the stretch's noise (worst force and torque axis); spread: the std of the "
     "offsets re-zeroed from each still pose of the log alone (worst axes), and its ratio to the reading's "
     "noise (worst axis): above the limit the calibration depends on the pose (the sensor's hysteresis, the "
-    "URDF's errors in the labels), which the noise does not show."
+    "URDF's errors in the labels), which the noise does not show. Applied: the axes whose estimated change "
+    "is applied in full, shrunk, or not at all (within deploy.rezero.significance x its noise and floor: "
+    "the labels' model error for the pose and the spread over the poses); the offsets shown are those "
+    "applied."
 )
+
+
+def _applied(reasons: list[str] | None) -> str:
+    """``full/shrunk/none``: how many axes of a sensor's estimate were applied so (`deploy.shrink`)."""
+    if not reasons:
+        return "-"
+    kinds = [r.split(" ")[0] for r in reasons]
+    return f"{kinds.count('applied')}/{kinds.count('shrunk')}/{kinds.count('not')}"
 
 
 def _worst(values: list[Any]) -> float | None:
@@ -341,10 +352,12 @@ def rezero_table(records: Mapping[str, Mapping[str, Any]], limit: float) -> str:
                 + "".join(cell(v) for v in offset) + cell(max(e["std"][:3])) + cell(max(e["std"][3:]))
                 + cell(_worst(spread[:3])) + cell(_worst(spread[3:]))
                 + cell(pose.get("ratio"), None if depends is None else not depends)
-                + f"<td>{'POSE-DEPENDENT' if depends else ('ok' if depends is not None else '-')}</td></tr>"
+                + f"<td>{'POSE-DEPENDENT' if depends else ('ok' if depends is not None else '-')}</td>"
+                + f"<td>{_applied(e.get('applied'))}</td></tr>"
             )  # fmt: skip
     header = ["group", "sensor", "re-zeroed", "fx", "fy", "fz", "tx", "ty", "tz", "std force", "std torque",
-              "spread force", "spread torque", f"spread / noise (<= {limit:g})", "pose"]  # fmt: skip
+              "spread force", "spread torque", f"spread / noise (<= {limit:g})", "pose",
+              "applied (full/shrunk/none)"]  # fmt: skip
     head = "".join(f"<th>{esc(h)}</th>" for h in header)
     rows_html = f'<table class="num"><thead><tr>{head}</tr></thead><tbody>{"".join(rows)}</tbody></table>'
     return "\n".join([f"<p class='note'>{_REZERO_NOTE}</p>", *parts, rows_html if rows else ""])

@@ -52,6 +52,10 @@ class RezeroParams:
     still_gyro_rad_s: float  # ... and every FT board slower than this, rad/s (low-passed gyroscope norm)
     prior_force_n: float  # expected offset change per force axis (1 sigma), N: what the labels leave open
     prior_torque_nm: float  # per torque axis, Nm
+    label_mass_rel: float  # the labels' model error (1 sigma): the URDF's masses, relative, ...
+    label_com_m: float  # ... and centres of mass, m per axis (`pipeline.deploy.shrink`)
+    significance: float  # an estimated change within this x (noise + label error) is not applied; beyond
+    # twice it in full, shrunk continuously between
     pose_limit: (
         float  # offsets' spread over a log's still poses above this x the reading's noise: pose-dependent
     )
@@ -192,7 +196,8 @@ def _rezero(raw: Any) -> RezeroParams:
     bounds = {
         "duration_s": (0.1, 3600.0), "min_s": (0.1, 600.0), "still_joint_rad_s": (1e-6, 10.0),
         "still_gyro_rad_s": (1e-6, 10.0), "prior_force_n": (1e-3, 1e4), "prior_torque_nm": (1e-4, 1e3),
-        "pose_limit": (0.0, 1e3),
+        "pose_limit": (0.0, 1e3), "label_mass_rel": (0.0, 1.0), "label_com_m": (0.0, 1.0),
+        "significance": (0.0, 100.0),
     }  # fmt: skip
     values = {k: _num(raw[k], f"rezero.{k}", *bounds[k]) for k in names}
     if values["min_s"] > values["duration_s"]:

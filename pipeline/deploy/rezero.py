@@ -28,6 +28,9 @@ stretches remove (1: fixed by exact labels; between 0 and 1: through sums); a se
 
 Uncertainty: the posterior std per axis (N, Nm), from the residuals' scatter (its variance, and its
 autocorrelation: the effective number of independent samples) where determined, the prior's where not.
+It counts the readings' noise only; the labels' model error for the stretch's pose (the URDF's masses and
+centres of mass) does not average out over its samples: a floor per axis (`pipeline.deploy.shrink`). What
+is applied (``offsets``) is the estimate shrunk towards zero where it is not significant against both.
 """
 
 from __future__ import annotations
@@ -40,6 +43,7 @@ import numpy as np
 import pandas as pd
 
 from pipeline.core.errors import DataError
+from pipeline.deploy.shrink import LabelError, reasons, shrink, thresholds
 from pipeline.export.offsets import Offsets
 from pipeline.logs import schema as S
 
@@ -81,6 +85,17 @@ class StretchData:
     equations: list[Equation]
     noise: dict[str, np.ndarray]
     samples: int
+
+
+@dataclass
+class Gain:
+    """How an equation's label moves the solve: its mean over the stretch (6,) N / Nm, and the gradient's
+    change per unit change of it (6, 6 S): a constant label error e shifts the gradient by
+    ``design.T @ e``."""
+
+    members: tuple[str, ...]
+    label: np.ndarray
+    design: np.ndarray
 
 
 def _transforms(cut: Any, table: pd.DataFrame) -> dict[str, np.ndarray]:
@@ -144,17 +159,26 @@ def stretch_data(
 
 @dataclass
 class Rezero:
-    """A re-zeroing's result per sensor of `sensors`: offset (6,) N / Nm (subtracted from the raw wrench),
-    its posterior std (6,), the share of each axis the labels determine (6,), the equations naming it."""
+    """A re-zeroing's result per sensor of `sensors`: the estimated offset change (6,) N / Nm, its posterior
+    std from the noise (6,), its floor from the labels' model error (6,), the threshold of its shrinkage and
+    the offset applied (subtracted from the raw wrench; `pipeline.deploy.shrink`), the share of each axis the
+    labels determine (6,), the equations naming it."""
 
     sensors: list[str]
-    offsets: dict[str, np.ndarray]
+    estimated: dict[str, np.ndarray]
     std: dict[str, np.ndarray]
+    floor: dict[str, np.ndarray]
+    threshold: dict[str, np.ndarray]
     determined: dict[str, np.ndarray]
     involved: dict[str, list[str]]
     residual_rms: dict[str, list[float]] = field(default_factory=dict)  # equation -> (6,) after the fit
     iterations: int = 0
     samples: int = 0
+
+    @property
+    def offsets(self) -> dict[str, np.ndarray]:
+        """Sensor -> the offset applied (6,) N / Nm: its estimate shrunk where not significant."""
+        return {s: shrink(self.estimated[s], self.threshold[s]) for s in self.sensors}
 
     def status(self, sensor: str) -> str:
         """``all`` (every axis fixed by exact labels), ``sums`` (through cut-set sums only), ``none``."""
@@ -163,13 +187,19 @@ class Rezero:
 
     def rezeroed(self) -> Offsets:
         """The offsets of the sensors this re-zeroing reached (``all`` or ``sums``)."""
-        return Offsets({s: self.offsets[s] for s in self.sensors if self.status(s) != "none"})
+        return Offsets({s: v for s, v in self.offsets.items() if self.status(s) != "none"})
 
     def record(self) -> dict[str, dict[str, Any]]:
-        """Sensor -> its JSON-able entry (offset aside): std, determined share, status, equations."""
+        """Sensor -> its JSON-able entry (offset aside): estimate, std, floor, threshold, per axis what was
+        applied and why not, determined share, status, equations."""
+        applied = self.offsets
         return {
             s: {
+                "estimate": [float(v) for v in self.estimated[s]],
                 "std": [float(v) for v in self.std[s]],
+                "floor": [float(v) for v in self.floor[s]],
+                "threshold": [float(v) for v in self.threshold[s]],
+                "applied": reasons(self.estimated[s], applied[s], self.threshold[s]),
                 "determined": [round(float(v), 4) for v in self.determined[s]],
                 "status": self.status(s),
                 "equations": self.involved[s],
@@ -244,10 +274,11 @@ def _basis(stretches: Sequence[StretchData], index: Mapping[str, int], scale: np
 def _system(
     deployment: Any, stretches: Sequence[StretchData], deltas: Mapping[str, np.ndarray],
     index: Mapping[str, int], scale: np.ndarray, derivatives: bool,
-) -> tuple[np.ndarray, np.ndarray, float, list[tuple[str, np.ndarray, np.ndarray]]]:  # fmt: skip
+) -> tuple[np.ndarray, np.ndarray, float, list[tuple[str, np.ndarray, np.ndarray]], list[Gain]]:  # fmt: skip
     """(normal matrix H (6 S, 6 S), gradient A^T r (6 S,), squared error, per equation (name, whitened
-    residuals (N, 6), residuals N / Nm)) at `deltas`; H and the gradient zero without `derivatives`."""
-    h, g, cost, out = np.zeros((len(scale),) * 2), np.zeros(len(scale)), 0.0, []
+    residuals (N, 6), residuals N / Nm), per equation its `Gain`) at `deltas`; H and the gradient zero and no
+    gains without `derivatives`."""
+    h, g, cost, out, gains = np.zeros((len(scale),) * 2), np.zeros(len(scale)), 0.0, [], []
     for data in stretches:
         y = _outputs(deployment, data, deltas)
         jac = _jacobians(deployment, data, deltas) if derivatives else None
@@ -259,26 +290,61 @@ def _system(
             if design is not None:
                 h += np.einsum("nik,nil->kl", design, design)
                 g += np.einsum("nik,ni->k", design, residual)
-    return h, g, cost, out
+                per_label = design.sum(axis=0) / _sigma(eq, data.noise)[:, None]
+                gains.append(Gain(eq.members, eq.label.mean(axis=0), per_label))
+    return h, g, cost, out, gains
 
 
 def _posterior_std(
     h: np.ndarray, basis: np.ndarray, residuals: list[np.ndarray], scale: np.ndarray
-) -> np.ndarray:
+) -> tuple[np.ndarray, np.ndarray]:
     """(6 S,) posterior std, N / Nm: determined directions from the normal matrix scaled by the residuals'
-    variance and autocorrelation (effective samples), the others the prior's."""
+    variance and autocorrelation (effective samples), the others the prior's; and (6 S,) its determined
+    part alone (what the estimate's noise is: along the others the estimate stays at zero)."""
     squares = sum(float((r**2).sum()) for r in residuals)  # each (N_i, 6): time series per axis
     variance = max(squares / max(sum(r.size for r in residuals), 1), 1e-12)
     lag = sum(float((r[1:] * r[:-1]).sum()) for r in residuals) / max(squares, 1e-300)
     longest = max((len(r) for r in residuals), default=1)
     inflation = float(np.clip((1 + lag) / max(1 - lag, 1e-9), 1.0, longest))
     reduced = basis.T @ h @ basis / (variance * inflation)
-    cov = basis @ np.linalg.inv(reduced) @ basis.T + np.eye(len(scale)) - basis @ basis.T
-    return scale * np.sqrt(np.clip(np.diag(cov), 0.0, None))
+    determined = np.diag(basis @ np.linalg.inv(reduced) @ basis.T)
+    cov = determined + np.diag(np.eye(len(scale)) - basis @ basis.T)
+    return scale * np.sqrt(np.clip(cov, 0.0, None)), scale * np.sqrt(np.clip(determined, 0.0, None))
 
 
-def solve(deployment: Any, stretches: Sequence[StretchData], sensors: Sequence[str], prior: Prior) -> Rezero:
-    """Each sensor's raw-side offset change from the exact labels of `stretches` (module docstring).
+def _floor(
+    gains: Sequence[Gain], h: np.ndarray, basis: np.ndarray, index: Mapping[str, int], scale: np.ndarray,
+    label_error: LabelError,
+) -> np.ndarray:  # fmt: skip
+    """(6 S,) the offsets' floor, N / Nm (`LabelError.label_floor` of the mean labels). A sensor with exact
+    labels of its own: theirs (RMS over them; the calibration's slope taken as one), whatever sums it is also
+    in, whose labels' errors are those of their members' (the same links). Through sums only: each sum's
+    carried by the solve's linear map from labels to offsets (a constant label error e moves the Gauss-Newton
+    solution by ``-B (B^T H B)^-1 B^T design^T e``), the sums independent."""
+    solve_map = basis @ np.linalg.inv(basis.T @ h @ basis) @ basis.T
+    variance = np.zeros(len(scale))
+    for sensor, i in index.items():
+        rows = slice(6 * i, 6 * i + 6)
+        own = [label_error.label_floor(g.label) ** 2 for g in gains if g.members == (sensor,)]
+        if own:
+            variance[rows] = np.mean(own, axis=0)
+            continue
+        for g in (g for g in gains if sensor in g.members):
+            k = scale[rows, None] * (solve_map[rows] @ g.design.T)  # (6, 6): offsets per unit label error
+            variance[rows] += (k**2) @ label_error.label_floor(g.label) ** 2
+    return np.sqrt(variance)
+
+
+def solve(
+    deployment: Any, stretches: Sequence[StretchData], sensors: Sequence[str], prior: Prior,
+    label_error: LabelError | None = None, significance: float = 0.0,
+    pose_spread: Mapping[str, Sequence[float]] | None = None,
+) -> Rezero:  # fmt: skip
+    """Each sensor's raw-side offset change from the exact labels of `stretches` (module docstring), and
+    what of it is applied: shrunk where within `significance` x its noise and its floor, the labels' error
+    of `label_error` (None: none) with the spread of its estimates over a log's still poses where known
+    (`pose_spread`: sensor -> (6,) N / Nm), in quadrature (`pipeline.deploy.shrink`; significance 0: every
+    estimate applied as it is).
 
     `deployment`: the export (`pipeline.export.runtime.Deployment`, as delivered: its own offsets are
     not used); `sensors`: the sensors re-zeroed (the equations' other members are not). Raises DataError if
@@ -298,7 +364,7 @@ def solve(deployment: Any, stretches: Sequence[StretchData], sensors: Sequence[s
     z, iterations = np.zeros(len(scale)), 0
     while iterations < MAX_ITERATIONS:
         iterations += 1
-        h, g, cost, _ = _system(deployment, stretches, deltas(z), index, scale, True)
+        h, g, cost, _, _ = _system(deployment, stretches, deltas(z), index, scale, True)
         step = -basis @ np.linalg.solve(basis.T @ h @ basis, basis.T @ g)
         t = 1.0  # halved until the squared error decreases (a network's kink can overshoot a full step)
         while (
@@ -308,15 +374,25 @@ def solve(deployment: Any, stretches: Sequence[StretchData], sensors: Sequence[s
         z = z + t * step
         if np.abs(t * step * scale).max() < TOLERANCE_N:
             break
-    h, _, _, residuals = _system(deployment, stretches, deltas(z), index, scale, True)
-    std = _posterior_std(h, basis, [w for _, w, _ in residuals], scale)
+    h, _, _, residuals, gains = _system(deployment, stretches, deltas(z), index, scale, True)
+    std, noise = _posterior_std(h, basis, [w for _, w, _ in residuals], scale)
+    floor = (
+        np.zeros(len(scale)) if label_error is None else _floor(gains, h, basis, index, scale, label_error)
+    )
+    known = pose_spread or {}
+    spread = [np.zeros(6) if known.get(s) is None else np.asarray(known[s], float) for s in sensors]
+    floor = np.hypot(floor, np.concatenate(spread))
+    threshold = thresholds(noise, floor, significance)
     share = np.diag(basis @ basis.T)
     involved = {
         s: sorted({eq.name for d in stretches for eq in d.equations if s in eq.members}) for s in sensors
     }
+
+    def per_sensor(v: np.ndarray) -> dict[str, np.ndarray]:
+        return {s: v[6 * i : 6 * i + 6] for s, i in index.items()}
+
     return Rezero(
-        sensors, deltas(z), {s: std[6 * i : 6 * i + 6] for s, i in index.items()},
-        {s: share[6 * i : 6 * i + 6] for s, i in index.items()}, involved,
-        {name: np.sqrt(np.mean(r**2, axis=0)).tolist() for name, _, r in residuals},
+        sensors, deltas(z), per_sensor(std), per_sensor(floor), per_sensor(threshold), per_sensor(share),
+        involved, {name: np.sqrt(np.mean(r**2, axis=0)).tolist() for name, _, r in residuals},
         iterations, sum(d.samples for d in stretches),
     )  # fmt: skip

@@ -11,7 +11,7 @@ hysteresis, or a model error the labels carry, differs from pose to pose).
 
 from __future__ import annotations
 
-from collections.abc import Sequence
+from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
 from typing import Any
 
@@ -21,6 +21,7 @@ import pandas as pd
 from pipeline.core.errors import DataError
 from pipeline.deploy.params import RezeroParams
 from pipeline.deploy.rezero import Prior, Rezero, StretchData, solve, stretch_data
+from pipeline.deploy.shrink import LabelError
 from pipeline.deploy.still import Motion, StillLimits, Stretch, motion, stretches, window
 from pipeline.logs import schema as S
 
@@ -105,11 +106,31 @@ def _data(
 
 def rezero_logs(
     deployment: Any, picked: Sequence[tuple[LogTables, Stretch]], sensors: Sequence[str], cuts: Sequence[Any],
-    cfg: RezeroParams,
+    cfg: RezeroParams, poses: Sequence[Mapping[str, Any]] = (),
 ) -> Rezero:  # fmt: skip
-    """Solve the offsets of `sensors` from the stretches `picked` together (module docstring)."""
+    """Solve the offsets of `sensors` from the stretches `picked` together (module docstring); the floor of
+    what is applied includes the spread over the still poses of the first of `poses` (`pose_dependence` of
+    the logs) that has several."""
     data = [_data(log, s, deployment, sensors, cuts) for log, s in picked]
-    return solve(deployment, data, sensors, Prior(cfg.prior_force_n, cfg.prior_torque_nm))
+    spread = pose_spread(poses)
+    return solve(deployment, data, sensors, prior(cfg), label_error(cfg), cfg.significance, spread)
+
+
+def pose_spread(poses: Sequence[Mapping[str, Any]]) -> dict[str, list[float]]:
+    """Sensor -> the spread of its offsets over the still poses (N, Nm) of the first log of `poses`
+    (`pose_dependence` of each) that has several; none: empty."""
+    for log in poses:
+        if log["sensors"]:
+            return {s: p["spread"] for s, p in log["sensors"].items()}
+    return {}
+
+
+def prior(cfg: RezeroParams) -> Prior:
+    return Prior(cfg.prior_force_n, cfg.prior_torque_nm)
+
+
+def label_error(cfg: RezeroParams) -> LabelError:
+    return LabelError(cfg.label_mass_rel, cfg.label_com_m)
 
 
 def pose_dependence(
@@ -118,7 +139,6 @@ def pose_dependence(
     """Each still pose of `log` re-zeroed alone; per sensor re-zeroed in full in every pose, the offsets'
     spread over the poses (std, N / Nm per axis), the reading's noise (std over a pose, mean of the poses),
     their worst-axis ratio and whether it exceeds ``pose_limit``. Fewer than two poses: ``poses`` only."""
-    prior = Prior(cfg.prior_force_n, cfg.prior_torque_nm)
     poses, results = [], []
     for found in stretches(log.motion, log.name):
         if found.seconds < cfg.min_s:
@@ -128,18 +148,18 @@ def pose_dependence(
         data = _data(log, picked, deployment, sensors, cuts)
         if data.equations:
             poses.append((picked, data))
-            results.append(solve(deployment, [data], sensors, prior))
+            results.append(solve(deployment, [data], sensors, prior(cfg)))
     out: dict[str, Any] = {"log": log.name, "poses": [[p.t0, p.t1] for p, _ in poses], "sensors": {}}
     if len(results) < 2:
         return out
     for s in sensors:
         if any(r.status(s) != "all" for r in results):
             continue
-        spread = np.std([r.offsets[s] for r in results], axis=0, ddof=1)
+        spread = np.std([r.estimated[s] for r in results], axis=0, ddof=1)
         noise = np.mean([d.noise[s] for _, d in poses], axis=0)
         ratio = float((spread / noise).max())
         out["sensors"][s] = {
-            "offsets": [[float(v) for v in r.offsets[s]] for r in results],
+            "offsets": [[float(v) for v in r.estimated[s]] for r in results],
             "spread": spread.tolist(), "noise": noise.tolist(), "ratio": ratio,
             "depends": bool(ratio > cfg.pose_limit),
         }  # fmt: skip
@@ -177,11 +197,11 @@ def rezero_day(
             picked = pick(tables, cfg)
         except DataError:
             continue
+        poses = pose_dependence(deployment, tables, chosen, cuts, cfg)
         try:
-            result = rezero_logs(deployment, [(tables, picked)], chosen, cuts, cfg)
+            result = rezero_logs(deployment, [(tables, picked)], chosen, cuts, cfg, [poses])
         except DataError as exc:  # the first still seconds have no exact label of the group's sensors
             return {"error": str(exc)}
-        poses = pose_dependence(deployment, tables, chosen, cuts, cfg)
         offsets = {s: [float(v) for v in value] for s, value in result.rezeroed().values.items()}
         return {"offsets": offsets, "sensors": result.record(), **record(result, [picked], poses)}
     return {"error": f"no still stretch of {cfg.min_s:g} s or more in the day's logs: not re-zeroed"}

@@ -9,14 +9,18 @@ from which log and stretch, how still the robot was, and per sensor what the str
 
     {"format": "ftcal-offsets", "version": 1, "manifest_sha256": ..., "robot": ..., "created": ...,
      "logs": [{"path", "sha256"}], "stretches": [{log, t0, t1, joint, joint_rad_s, gyro_rad_s, ...}],
-     "sensors": {"<sensor>": {"offset": [6], "std": [6], "status": "all" | "sums" | "none",
+     "sensors": {"<sensor>": {"offset": [6], "estimate": [6], "std": [6], "floor": [6],
+                              "threshold": [6], "applied": [6 reasons], "status": "all" | "sums" | "none",
                               "determined": [6], "equations": [...], "pose_spread": [6] | null,
-                              "serial": ...}}, "pose_dependence": {...}, ...}
+                              "serial": ...}}, "pose_dependence": {...}, "significance": {...}, ...}
 
-``offset`` is subtracted from the sensor's raw wrench (fx fy fz N, tx ty tz Nm) before the calibration;
-``std`` its uncertainty from the stretch's noise (1 sigma, N and Nm; the prior's along what the stretch
-leaves open), ``pose_spread`` the spread of the offsets over the log's still poses where it has several
-(a systematic part the noise does not show). A robot's loop reads the file at start-up and binds
+``offset`` is subtracted from the sensor's raw wrench (fx fy fz N, tx ty tz Nm) before the calibration:
+the ``estimate`` shrunk towards zero where it is not significant (`pipeline.deploy.shrink`); ``std`` the
+estimate's uncertainty from the stretch's noise (1 sigma, N and Nm; the prior's along what the stretch
+leaves open), ``floor`` the labels' model error for the stretch's pose carried to the offsets (1 sigma),
+``threshold`` the shrinkage's per axis, ``applied`` per axis what was applied and why not;
+``pose_spread`` the spread of the estimates over the log's still poses where it has several (a systematic
+part the noise does not show). A robot's loop reads the file at start-up and binds
 `input_vector` of its graph to the graph's ``offsets``
 input (`pipeline.export.graph`); `ftcal calibrate` and the deployment tests do the same.
 """

@@ -78,7 +78,7 @@ def run(
 
     from pipeline.deploy.params import deploy_params
     from pipeline.deploy.prepare import load_nominal_robot, robot_cuts
-    from pipeline.deploy.rezeroing import log_tables, pick, pose_dependence, record, rezero_logs
+    from pipeline.deploy.rezeroing import log_tables, pick, pose_dependence, pose_spread, record, rezero_logs
     from pipeline.export.identity import check_serials
     from pipeline.export.manifest import sha256_file
     from pipeline.export.offsets import FILE, document
@@ -101,8 +101,9 @@ def run(
             tables.append(log_tables(str(log), prepared.labelled, prepared.smoothed, robot, cfg))
             picked.append(pick(tables[-1], cfg, start_s))
         chosen = _sensors(deployment, tables, sensors)
+        poses = [pose_dependence(deployment, t, chosen, cuts, cfg) for t in tables]
         try:
-            result = rezero_logs(deployment, list(zip(tables, picked, strict=True)), chosen, cuts, cfg)
+            result = rezero_logs(deployment, list(zip(tables, picked, strict=True)), chosen, cuts, cfg, poses)
         except DataError:
             if not sensors:
                 raise
@@ -110,10 +111,7 @@ def run(
         unreached = [s for s in chosen if result.status(s) == "none"]
         if sensors and unreached:
             raise DataError(_unreached(unreached, picked, cuts))
-        poses = [pose_dependence(deployment, t, chosen, cuts, cfg) for t in tables]
-    serials, spread = deployment.serials(), {}
-    for log in poses:  # the first log with several poses
-        spread = spread or {s: p["spread"] for s, p in log["sensors"].items()}
+    serials, spread = deployment.serials(), pose_spread(poses)
     entries = {
         s: e | {"pose_spread": spread.get(s), "serial": serials.get(s)} for s, e in result.record().items()
     }
@@ -122,6 +120,8 @@ def run(
         created=datetime.now(timezone.utc).strftime("%Y-%m-%dT%H:%M:%SZ"),
         logs=[{"path": str(p), "sha256": sha256_file(Path(p)) if Path(p).is_file() else None} for p in logs],
         prior={"force_n": cfg.prior_force_n, "torque_nm": cfg.prior_torque_nm},
+        significance={"label_mass_rel": cfg.label_mass_rel, "label_com_m": cfg.label_com_m,
+                      "significance": cfg.significance},
         **record(result, picked, {"logs": poses}),
     )  # fmt: skip
     from pipeline.core.io import write_json
@@ -158,6 +158,10 @@ def _print(doc: dict[str, Any]) -> None:
         spread = (entry or {}).get("pose_spread")
         over = f"; over the poses {' '.join(f'{v:.2f}' for v in spread)}" if spread else ""
         print(f"  {sensor}: {what}; offset {offset} (N, Nm) +- {std} (noise){over}")
+        if entry and entry["offset"] != entry["estimate"]:
+            estimate, floor = (" ".join(f"{v:+.2f}" for v in entry[k]) for k in ("estimate", "floor"))
+            print(f"    estimated {estimate}, floor {floor} (labels' error, pose spread): not applied within "
+                  "deploy.rezero.significance x the noise and floor, shrunk up to twice it")  # fmt: skip
     for log in doc["pose_dependence"]["logs"]:
         for sensor, p in log["sensors"].items():
             if p["depends"]:
