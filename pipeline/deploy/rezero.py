@@ -358,8 +358,11 @@ def solve(
         raise DataError(f"{names}: no exact label of {', '.join(sensors)} there, nor of a sum of only them")
     deployment = deployment.with_offsets(Offsets())
 
+    def per_sensor(v: np.ndarray) -> dict[str, np.ndarray]:
+        return {s: v[6 * i : 6 * i + 6] for s, i in index.items()}
+
     def deltas(z: np.ndarray) -> dict[str, np.ndarray]:
-        return {s: scale[6 * i : 6 * i + 6] * z[6 * i : 6 * i + 6] for s, i in index.items()}
+        return per_sensor(scale * z)
 
     z, iterations = np.zeros(len(scale)), 0
     while iterations < MAX_ITERATIONS:
@@ -387,10 +390,6 @@ def solve(
     involved = {
         s: sorted({eq.name for d in stretches for eq in d.equations if s in eq.members}) for s in sensors
     }
-
-    def per_sensor(v: np.ndarray) -> dict[str, np.ndarray]:
-        return {s: v[6 * i : 6 * i + 6] for s, i in index.items()}
-
     return Rezero(
         sensors, deltas(z), per_sensor(std), per_sensor(floor), per_sensor(threshold), per_sensor(share),
         involved, {name: np.sqrt(np.mean(r**2, axis=0)).tolist() for name, _, r in residuals},
