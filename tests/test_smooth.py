@@ -155,15 +155,16 @@ def test_stage_adds_kinematics_and_keeps_everything(
     pd.testing.assert_frame_equal(after[before.columns], before)
     t = (after[S.STAMP].to_numpy() - T0) / 1e9
     w = 2 * np.pi * 0.5
+    cfg = yaml.safe_load(params.read_text())["smooth"]
+    h = cfg["window"] // 2  # samples at each end where the fitted polynomial is one-sided
     for k, j in enumerate(JOINTS):
         np.testing.assert_allclose(after[S.joint_col(S.QS, j)], joint_position(t, k), atol=1e-4)
         np.testing.assert_allclose(
-            after[S.joint_col(S.DQS, j)][10:-10], 0.5 * w * np.cos(w * t[10:-10] + k), atol=1e-3
+            after[S.joint_col(S.DQS, j)][h:-h], 0.5 * w * np.cos(w * t[h:-h] + k), atol=1e-3
         )
     ok = after[S.ok_col(S.KINEMATICS_STREAM)].to_numpy()
-    assert ok[10:-10].all() and not ok[:10].any() and not ok[-10:].any()
+    assert ok[h:-h].all() and not ok[:h].any() and not ok[-h:].any()
     meta = read_table_metadata(out / "log.parquet")
-    cfg = yaml.safe_load(params.read_text())["smooth"]
     assert meta["ftcal.smooth"]["window"] == cfg["window"] and meta["ftcal.smooth"]["segments"] == 1
     assert meta["ftcal.experiment"]["type"] == "walking"
     assert meta["ftcal.schema"]["kind"] == "smoothed"
