@@ -150,6 +150,15 @@ def _whole_logs(session: Any, labelled: Path, frame: pd.DataFrame, columns: list
     return np.concatenate(out)
 
 
+def _benchmark(script: str, args: list[str]) -> subprocess.CompletedProcess[str]:
+    """A benchmark script run on a pipeline's outputs; it must exit 0."""
+    proc = subprocess.run(
+        [sys.executable, script, *args], cwd=REPO, capture_output=True, text=True, timeout=300
+    )
+    assert proc.returncode == 0, proc.stderr[-2000:]
+    return proc
+
+
 def test_calibrate_agreement_benchmark_runs_on_the_outputs(pipeline_run: dict[str, Any]) -> None:
     """`benchmarks/calibrate_agreement.py` (docs/benchmarks.md) on this run's outputs (a pipeline's, as it
     needs): the calibrated copy keeps every message, and the exported graph computes the stored test
@@ -158,17 +167,26 @@ def test_calibrate_agreement_benchmark_runs_on_the_outputs(pipeline_run: dict[st
     log = sorted(d["sim"].glob("*walking_test.mcap"))[0]
     args = [str(log), "--models", str(d["exported"]), "--trained", str(d["models"])]
     args += ["--labelled", str(d["labelled"]), "--params", str(pipeline_run["tmp"] / "params.yaml")]
-    proc = subprocess.run(
-        [sys.executable, "benchmarks/calibrate_agreement.py", *args],
-        cwd=REPO,
-        capture_output=True,
-        text=True,
-        timeout=300,
-    )
-    assert proc.returncode == 0, proc.stderr[-2000:]
+    proc = _benchmark("benchmarks/calibrate_agreement.py", args)
     assert "byte-identical in the copy: True" in proc.stdout, proc.stdout
     diff = re.search(r"max \|diff\| (\S+) N/Nm", proc.stdout)
     assert diff is not None and float(diff.group(1)) < 1e-3, proc.stdout
+
+
+def test_identify_benchmark_runs_on_the_outputs(pipeline_run: dict[str, Any]) -> None:
+    """`benchmarks/identify.py` (docs/benchmarks.md) on this run's tables: labels recomputed with the true
+    inertial parameters are closer to the true wrench than the URDF's for every sensor with exact samples."""
+    d = pipeline_run["dirs"]
+    args = ["--params", str(pipeline_run["tmp"] / "params.yaml"), "--quick"]
+    args += [f"--{n}={d[n]}" for n in ("smoothed", "labelled", "ingested")]
+    proc = _benchmark("benchmarks/identify.py", args)
+    last = "parts of at least 1 kg identified within 1 % of the truth"
+    assert re.search(rf"{last}: \d+ of \d+$", proc.stdout.strip()), proc.stdout
+    rows = re.findall(r"^\s*(\w+_ft)\s+(\S+)\s+(\S+)\s+(\S+)$", proc.stdout, re.M)
+    assert rows, proc.stdout
+    for sensor, urdf, true, _ in rows:
+        if urdf != "nan":
+            assert float(true) < float(urdf), (sensor, proc.stdout)
 
 
 def test_labelled_sensor_errors_against_truth_are_small(pipeline_run: dict[str, Any]) -> None:
