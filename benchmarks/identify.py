@@ -47,7 +47,7 @@ import pandas as pd
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from pipeline.calib.params import TrainParams  # noqa: E402
-from pipeline.core.config import load_params, repo_root, resolve_urdf, stage_section  # noqa: E402
+from pipeline.core.config import Params, load_params, repo_root, resolve_urdf, stage_section  # noqa: E402
 from pipeline.core.play import play_operator  # noqa: E402
 from pipeline.logs import schema as S  # noqa: E402
 from pipeline.logs.tables import read_table_metadata  # noqa: E402
@@ -160,10 +160,12 @@ class Log:
         self.raw = stack(lab if reading == S.FT else truth, reading)
         self.temp = np.stack([lab[S.temperature_col(s)].to_numpy()[rows] for s in self.sensors], 1)
         whole = np.nan_to_num(stack(lab if reading == S.FT else truth, reading, slice(None)))
-        self.plays = np.stack(  # (n, S, 6, K): of the reading, on the whole log in time order, then sampled
-            [np.stack([play_operator(whole[:, k], w) for w in widths], 2) for k in range(len(self.sensors))],
-            1,
-        )[rows]
+        plays = [[play_operator(whole[:, k], w) for w in widths] for k in range(len(self.sensors))]
+        self.plays = (  # (n, S, 6, K): of the reading, on the whole log in time order, then sampled
+            np.stack([np.stack(p, 2) for p in plays], 1)[rows]
+            if len(widths)
+            else np.zeros((len(rows), len(self.sensors), 6, 0))
+        )
         size = PARAMS * len(links) if basis is None else basis.shape[1]
         self.Y = np.zeros((len(rows), len(self.sensors), 6, size))
         contacts, fixed = lab[S.CONTACTS].to_numpy()[rows], lab[S.FIXED_LINK].to_numpy()[rows]
@@ -215,59 +217,6 @@ def parse() -> argparse.Namespace:
     return ap.parse_args()
 
 
-def main() -> None:
-    args = parse()
-    step = 200 if args.quick else args.step
-    params = load_params(args.params or args.run / "params.yaml")
-    dirs = {n: getattr(args, n) or args.run / "data" / n for n in ("smoothed", "labelled", "ingested")}
-    robot = load_robot(resolve_urdf(params.robot.urdf, repo_root()))
-    truth_robot = build_world(params, simulate_params(params)).truth_robot
-    links = [lk for lk, i in robot.links.items() if i is not None and i.mass > 0]
-    pi_urdf = link_params(robot, links)
-    truth_delta = link_params(truth_robot, links) - pi_urdf
-    stems = sorted(p.stem for p in dirs["labelled"].glob("*.parquet"))
-    train = [s for s in stems if s.endswith("_train")]
-    train_params = stage_section(params, "train", TrainParams)  # the play widths, as the training's
-    widths = np.array(train_params.group(next(iter(train_params.groups))).play_widths() or np.zeros((0, 6)))
-    n_f = BASE_FEATURES + len(widths)
-    cols, reading = sensor_columns(args.sensor, n_f), READINGS[args.reading]
-    eqs = {}
-    for stem in train:
-        log = Log(dirs, stem, robot, links, None, params.robot.gravity, step, widths, reading)
-        eqs[stem] = normal_equations(log, cols)
-        print(f"{stem}: {len(log.sw)} exact samples", flush=True)
-    prec = np.r_[
-        link_prior(pi_urdf),
-        np.tile(np.concatenate([feature_prior(a, len(widths))[cols] for a in range(6)]), len(robot.sensors)),
-    ]
-    h, g = sum(e[0] for e in eqs.values()), sum(e[1] for e in eqs.values())
-    cov = np.linalg.inv(args.weight * h + np.diag(prec))
-    delta = (cov @ (args.weight * g))[: len(pi_urdf)]
-    loo = [
-        np.linalg.solve(args.weight * (h - e[0]) + np.diag(prec), args.weight * (g - e[1]))
-        for e in eqs.values()
-    ]
-    basis = np.column_stack([truth_delta, delta])
-    print("\nlabels against truth on exact samples, every log (RMSE, 6 axes pooled, N and Nm)")
-    print(f"{'sensor':>18} {'urdf':>8} {'true inertials':>15} {'identified':>11}")
-    errs: dict[tuple[str, str], list[np.ndarray]] = {}
-    for stem in stems:
-        log = Log(dirs, stem, robot, links, basis, params.robot.gravity, step, widths)
-        for k, s in enumerate(robot.sensors):
-            on = log.sw[:, k] & np.isfinite(log.true[:, k]).all(1)
-            base = log.label[on, k] - log.true[on, k]
-            for name, e in (
-                ("urdf", base),
-                ("true", base + log.Y[on, k, :, 0]),
-                ("ident", base + log.Y[on, k, :, 1]),
-            ):
-                errs.setdefault((s, name), []).append(e)
-    for s in robot.sensors:
-        urdf, true, ident = (rmse(errs[s, name]) for name in ("urdf", "true", "ident"))
-        print(f"{s:>18} {urdf:8.3f} {true:15.3f} {ident:11.3f}")
-    report_parts(robot, links, pi_urdf, truth_delta, delta, cov, np.array(loo)[:, : len(pi_urdf)])
-
-
 def report_parts(
     robot: RobotModel,
     links: list[str],
@@ -296,6 +245,94 @@ def report_parts(
             heavy += 1
             close += abs(m_id - m_true) <= 0.01 * m_true
     print(f"parts of at least 1 kg identified within 1 % of the truth: {close} of {heavy}")
+
+
+def identify(
+    dirs: dict[str, Path],
+    stems: list[str],
+    robot: RobotModel,
+    links: list[str],
+    params: Params,
+    args: argparse.Namespace,
+    widths: np.ndarray,
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The identified parameter changes (10 L,), the posterior covariance of all unknowns and the
+    leave-one-log-out estimates (logs, 10 L), from the training logs among `stems`."""
+    cols = sensor_columns(args.sensor, BASE_FEATURES + len(widths))
+    eqs = []
+    for stem in (s for s in stems if s.endswith("_train")):
+        log = Log(
+            dirs, stem, robot, links, None, params.robot.gravity, args.step, widths, READINGS[args.reading]
+        )
+        eqs.append(normal_equations(log, cols))
+        print(f"{stem}: {len(log.sw)} exact samples", flush=True)
+    n_p = PARAMS * len(links)
+    prec = np.r_[
+        link_prior(link_params(robot, links)),
+        np.tile(np.concatenate([feature_prior(a, len(widths))[cols] for a in range(6)]), len(robot.sensors)),
+    ]
+    h, g = sum(e[0] for e in eqs), sum(e[1] for e in eqs)
+    cov = np.linalg.inv(args.weight * h + np.diag(prec))
+    loo = [
+        np.linalg.solve(args.weight * (h - e[0]) + np.diag(prec), args.weight * (g - e[1]))[:n_p] for e in eqs
+    ]
+    return (cov @ (args.weight * g))[:n_p], cov, np.array(loo)
+
+
+def print_label_errors(
+    dirs: dict[str, Path],
+    stems: list[str],
+    robot: RobotModel,
+    links: list[str],
+    basis: np.ndarray,
+    params: Params,
+    args: argparse.Namespace,
+) -> None:
+    """Per sensor, the labels' RMSE against truth on every log's exact samples: as labelled, and with the
+    parameter changes of `basis` (10 L, 2: the truth's, the identified)."""
+    print("\nlabels against truth on exact samples, every log (RMSE, 6 axes pooled, N and Nm)")
+    print(f"{'sensor':>18} {'urdf':>8} {'true inertials':>15} {'identified':>11}")
+    errs: dict[tuple[str, str], list[np.ndarray]] = {}
+    for stem in stems:
+        log = Log(dirs, stem, robot, links, basis, params.robot.gravity, args.step, np.zeros((0, 6)))
+        for k, s in enumerate(robot.sensors):
+            on = log.sw[:, k] & np.isfinite(log.true[:, k]).all(1)
+            base = log.label[on, k] - log.true[on, k]
+            for name, e in (
+                ("urdf", base),
+                ("true", base + log.Y[on, k, :, 0]),
+                ("ident", base + log.Y[on, k, :, 1]),
+            ):
+                errs.setdefault((s, name), []).append(e)
+    for s in robot.sensors:
+        urdf, true, ident = (rmse(errs[s, name]) for name in ("urdf", "true", "ident"))
+        print(f"{s:>18} {urdf:8.3f} {true:15.3f} {ident:11.3f}")
+
+
+def main() -> None:
+    args = parse()
+    args.step = 200 if args.quick else args.step
+    params = load_params(args.params or args.run / "params.yaml")
+    dirs = {n: getattr(args, n) or args.run / "data" / n for n in ("smoothed", "labelled", "ingested")}
+    stems = sorted(p.stem for p in dirs["labelled"].glob("*.parquet"))
+    missing = [s for s in stems if not (dirs["ingested"] / f"{s}.truth.parquet").is_file()]
+    if not stems or missing:
+        what = (
+            f"{dirs['labelled']}: no labelled table"
+            if not stems
+            else (f"{dirs['ingested']}: no <log>.truth.parquet for {len(missing)} of {len(stems)} logs")
+        )
+        sys.exit(f"identify: {what} (it needs simulated logs after dvc repro)")
+    robot = load_robot(resolve_urdf(params.robot.urdf, repo_root()))
+    truth_robot = build_world(params, simulate_params(params)).truth_robot
+    links = [lk for lk, i in robot.links.items() if i is not None and i.mass > 0]
+    pi_urdf = link_params(robot, links)
+    truth_delta = link_params(truth_robot, links) - pi_urdf
+    train_params = stage_section(params, "train", TrainParams)  # the play widths, as the training's
+    widths = np.array(train_params.group(next(iter(train_params.groups))).play_widths() or np.zeros((0, 6)))
+    delta, cov, loo = identify(dirs, stems, robot, links, params, args, widths)
+    print_label_errors(dirs, stems, robot, links, np.column_stack([truth_delta, delta]), params, args)
+    report_parts(robot, links, pi_urdf, truth_delta, delta, cov, loo)
 
 
 if __name__ == "__main__":
