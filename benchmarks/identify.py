@@ -49,9 +49,10 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 from pipeline.calib.params import TrainParams  # noqa: E402
 from pipeline.core.config import Params, load_params, repo_root, resolve_urdf, stage_section  # noqa: E402
 from pipeline.core.play import play_operator  # noqa: E402
+from pipeline.labels.table import experiment_gravity  # noqa: E402
 from pipeline.logs import schema as S  # noqa: E402
 from pipeline.logs.tables import read_table_metadata  # noqa: E402
-from pipeline.physics.cuts import _components  # noqa: E402
+from pipeline.physics.cuts import components  # noqa: E402
 from pipeline.physics.dynamics import ContactCase  # noqa: E402
 from pipeline.physics.regressor import PARAMS, ReadingRegressor, link_params  # noqa: E402
 from pipeline.physics.robot import RobotModel, load_robot  # noqa: E402
@@ -118,12 +119,6 @@ def link_prior(pi: np.ndarray) -> np.ndarray:
     return np.concatenate(out)
 
 
-def gravity_of(table: Path, gravity: float) -> np.ndarray:
-    """(3,) m/s^2: the gravity a labelled table's experiment declares in its fixed link's frame, else down."""
-    g = (read_table_metadata(table).get("ftcal.experiment") or {}).get("gravity", "")
-    return np.array([float(v) for v in g.split()]) if g else np.array([0.0, 0.0, -gravity])
-
-
 class Log:
     """One labelled log's exact samples (every `step`-th), their readings, labels, truth and regressors."""
 
@@ -146,7 +141,8 @@ class Log:
         sm = pd.read_parquet(dirs["smoothed"] / f"{stem}.parquet")
         truth = pd.read_parquet(dirs["ingested"] / f"{stem}.truth.parquet").set_index(S.STAMP)
         truth = truth.reindex(lab[S.STAMP].to_numpy())
-        grav = gravity_of(dirs["labelled"] / f"{stem}.parquet", gravity)
+        table = dirs["labelled"] / f"{stem}.parquet"
+        grav = experiment_gravity(table, read_table_metadata(table).get("ftcal.experiment") or {}, gravity)
         q, dq, ddq = (sm[S.joint_cols(k, robot.joint_names)].to_numpy() for k in (S.QS, S.DQS, S.DDQS))
         self.sensors = list(robot.sensors)
         sw = np.column_stack([lab[S.switch_col(s)].to_numpy() for s in self.sensors]).astype(bool)
@@ -231,7 +227,7 @@ def report_parts(
     parts of at least 1 kg identified within 1 % last."""
     print("\npart (heaviest link)   URDF kg   identified kg   posterior sd   jackknife sd    true kg")
     close = heavy = 0
-    for part in _components(robot, {ft.joint for ft in robot.sensors.values()}):
+    for part in components(robot, {ft.joint for ft in robot.sensors.values()}):
         sel = np.zeros(len(pi_urdf))
         sel[[PARAMS * k for k, lk in enumerate(links) if lk in part]] = 1.0
         if not sel.any():

@@ -264,7 +264,7 @@ def _read_smoothed(src: Path, robot: RobotModel) -> tuple[pd.DataFrame, dict[str
     return table, meta
 
 
-def _gravity_fixed(src: Path, experiment: dict[str, str], gravity: float) -> np.ndarray:
+def experiment_gravity(src: Path, experiment: dict[str, str], gravity: float) -> np.ndarray:
     """(3,) gravity in the fixed link frame (m/s^2): the experiment's, else (0, 0, -gravity)."""
     text = experiment.get("gravity", "")
     try:
@@ -326,7 +326,7 @@ def label_table(src: Path, dst: Path, lab: Labeller, truth_dir: Path | None = No
         if contacts is None:
             raw = {s: table[S.wrench_cols(S.FT, s)].to_numpy() for f in lab.feet for s in f.sensors}
             contacts = detect_contacts(robot, lab.feet, raw, time_s, lab.cfg, lab.gravity, str(src))
-        gravity_fixed = _gravity_fixed(src, experiment, lab.gravity)
+        gravity_fixed = experiment_gravity(src, experiment, lab.gravity)
         columns = label_arrays(lab, contacts, q, dq, ddq, ok, gravity_fixed, lacking)
         every = ok.all(axis=1)  # the IMU check reads every joint's kinematics
         imu = check_log(robot, table, meta, contacts, (q, dq, ddq), every, gravity_fixed, lab.cfg.imu_check)

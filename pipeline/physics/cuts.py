@@ -79,7 +79,7 @@ class CutSet:
         return not (contacts & self.part) or contacts <= self.part
 
 
-def _components(robot: RobotModel, cut_joints: set[str]) -> list[set[str]]:
+def components(robot: RobotModel, cut_joints: set[str]) -> list[set[str]]:
     """Connected parts of the link graph without the `cut_joints`."""
     adjacency: dict[str, list[str]] = {link: [] for link in robot.links}
     for joint in robot.joints.values():
@@ -105,7 +105,7 @@ def _components(robot: RobotModel, cut_joints: set[str]) -> list[set[str]]:
 def _isolated_part(robot: RobotModel, sensors: Sequence[str]) -> tuple[set[str], list[set[str]]] | None:
     """(isolated part, the part beyond each sensor) if some part touches every cut, else None."""
     fts = [robot.sensors[s] for s in sensors]
-    parts = _components(robot, {ft.joint for ft in fts})
+    parts = components(robot, {ft.joint for ft in fts})
     part_of = {link: k for k, part in enumerate(parts) for link in part}
     hubs = [
         k
