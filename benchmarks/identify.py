@@ -46,9 +46,9 @@ import pandas as pd
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
+from pipeline.calib.linear import play_features, play_memory  # noqa: E402
 from pipeline.calib.params import TrainParams  # noqa: E402
 from pipeline.core.config import Params, load_params, repo_root, resolve_urdf, stage_section  # noqa: E402
-from pipeline.core.play import play_operator  # noqa: E402
 from pipeline.labels.table import experiment_gravity  # noqa: E402
 from pipeline.logs import schema as S  # noqa: E402
 from pipeline.logs.tables import read_table_metadata  # noqa: E402
@@ -61,12 +61,12 @@ from pipeline.sim.world import build_world  # noqa: E402
 
 UNITS = np.r_[np.full(3, 20.0), np.full(3, 4.0)]  # N, Nm: the features' unit per axis
 BASE_FEATURES = 15  # per output axis: wrench (6), temperature, 1, wrench x temperature (6), quadratic; plays
-# the sensor models' features: the offset; and the affine map; or the offset and the plays; or all
+# the sensor models: their columns among the first BASE_FEATURES, and whether the plays join them
 SENSOR_MODELS = {
-    "offset": [7],
-    "affine": [*range(6), 7],
-    "hysteresis": [7, BASE_FEATURES],
-    "full": [0, BASE_FEATURES],
+    "offset": ([7], False),
+    "affine": ([*range(6), 7], False),
+    "hysteresis": ([7], True),
+    "full": (list(range(BASE_FEATURES)), True),
 }
 # what stands for the reading: the raw wrench, the true one, or the exact static inverse of the simulated
 # sensor applied to the raw one (the reading without its static distortion: hysteresis and noise left)
@@ -95,7 +95,7 @@ def feature_prior(axis: int, plays: int) -> np.ndarray:
         if (axis < 3) == (j < 3):
             sd[j] = (PRIOR_SD["gain"] if j == axis else PRIOR_SD["coupling"]) * u
         else:
-            sd[j] = PRIOR_SD["lever"] * 20.0 if axis >= 3 else PRIOR_SD["coupling"] * 4.0
+            sd[j] = PRIOR_SD["lever"] * UNITS[0] if axis >= 3 else PRIOR_SD["coupling"] * UNITS[3]
     sd[6], sd[7], sd[8:14] = PRIOR_SD["t"] * u, 1e4, PRIOR_SD["zt"] * u
     sd[14], sd[15:] = PRIOR_SD["quad"] * u, PRIOR_SD["play"] * u
     return 1.0 / sd**2
@@ -103,9 +103,8 @@ def feature_prior(axis: int, plays: int) -> np.ndarray:
 
 def sensor_columns(model: str, n_features: int) -> list[int]:
     """The feature columns of sensor model `model` (`SENSOR_MODELS`) among `n_features`."""
-    if model == "hysteresis":
-        return [7, *range(BASE_FEATURES, n_features)]
-    return list(range(n_features)) if model == "full" else SENSOR_MODELS[model]
+    static, plays = SENSOR_MODELS[model]
+    return [*static, *range(BASE_FEATURES, n_features)] if plays else static
 
 
 def link_prior(pi: np.ndarray) -> np.ndarray:
@@ -137,11 +136,11 @@ class Log:
         """`dirs`: the smoothed, labelled and ingested tables; ``self.Y`` (n, S, 6, B) the readings of the
         parameter directions `basis` (10 L, B), or of every parameter (B = 10 L) for None; `reading`: the
         column kind in place of the raw reading (S.FT, else one of the truth table's)."""
-        lab = pd.read_parquet(dirs["labelled"] / f"{stem}.parquet")
+        table = dirs["labelled"] / f"{stem}.parquet"
+        lab = pd.read_parquet(table)
         sm = pd.read_parquet(dirs["smoothed"] / f"{stem}.parquet")
         truth = pd.read_parquet(dirs["ingested"] / f"{stem}.truth.parquet").set_index(S.STAMP)
         truth = truth.reindex(lab[S.STAMP].to_numpy())
-        table = dirs["labelled"] / f"{stem}.parquet"
         grav = experiment_gravity(table, read_table_metadata(table).get("ftcal.experiment") or {}, gravity)
         q, dq, ddq = (sm[S.joint_cols(k, robot.joint_names)].to_numpy() for k in (S.QS, S.DQS, S.DDQS))
         self.sensors = list(robot.sensors)
@@ -153,15 +152,15 @@ class Log:
             return np.stack([frame[S.wrench_cols(kind, s)].to_numpy()[at] for s in self.sensors], 1)
 
         self.label, self.true = stack(lab, S.EXPECTED), stack(truth, S.TRUE)
-        self.raw = stack(lab if reading == S.FT else truth, reading)
+        whole = stack(lab if reading == S.FT else truth, reading, slice(None))  # (N, S, 6)
+        self.raw = whole[rows]
         self.temp = np.stack([lab[S.temperature_col(s)].to_numpy()[rows] for s in self.sensors], 1)
-        whole = np.nan_to_num(stack(lab if reading == S.FT else truth, reading, slice(None)))
-        plays = [[play_operator(whole[:, k], w) for w in widths] for k in range(len(self.sensors))]
-        self.plays = (  # (n, S, 6, K): of the reading, on the whole log in time order, then sampled
-            np.stack([np.stack(p, 2) for p in plays], 1)[rows]
-            if len(widths)
-            else np.zeros((len(rows), len(self.sensors), 6, 0))
-        )
+        self.plays = np.zeros((len(rows), len(self.sensors), 6, len(widths)))  # (n, S, 6, K)
+        if len(widths):  # the training's play states of the reading, over the whole log in time order
+            memory = play_memory(whole, widths)
+            for k in range(len(self.sensors)):
+                z = play_features(whole[:, k], memory[:, k], widths)[rows]  # (n, 6 K): column 6 j + axis
+                self.plays[:, k] = z.reshape(len(rows), len(widths), 6).transpose(0, 2, 1)
         size = PARAMS * len(links) if basis is None else basis.shape[1]
         self.Y = np.zeros((len(rows), len(self.sensors), 6, size))
         contacts, fixed = lab[S.CONTACTS].to_numpy()[rows], lab[S.FIXED_LINK].to_numpy()[rows]
