@@ -46,9 +46,9 @@ import pandas as pd
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from pipeline.calib.linear import play_features, play_memory  # noqa: E402
 from pipeline.calib.params import TrainParams  # noqa: E402
 from pipeline.core.config import Params, load_params, repo_root, resolve_urdf, stage_section  # noqa: E402
+from pipeline.core.play import play_features, play_memory  # noqa: E402
 from pipeline.labels.table import experiment_gravity  # noqa: E402
 from pipeline.logs import schema as S  # noqa: E402
 from pipeline.logs.tables import read_table_metadata  # noqa: E402

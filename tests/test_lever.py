@@ -12,8 +12,9 @@ from __future__ import annotations
 
 import numpy as np
 
-from pipeline.calib.linear import fit_linear_baseline, play_memory
+from pipeline.calib.linear import fit_linear_baseline
 from pipeline.calib.pushes import PushPrior
+from pipeline.core.play import play_memory
 from tests.test_pushes import NOISE, on_relation
 
 D = np.array([0.004, -0.006, 0.003])  # m: the displaced torque reference point

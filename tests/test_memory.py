@@ -13,11 +13,11 @@ import numpy as np
 import pytest
 
 from pipeline.calib.fidelity import memory_gaps, model_fidelity
-from pipeline.calib.linear import fit_linear_baseline, play_memory
+from pipeline.calib.linear import fit_linear_baseline
 from pipeline.calib.pushes import PushPrior
 from pipeline.calib.registry import FAMILIES, complexity, family_of, has_memory, kind_of, nn_name, poly_name
 from pipeline.core.errors import DataError
-from pipeline.core.play import play_operator
+from pipeline.core.play import play_memory, play_operator
 from pipeline.evaluation.fidelity import unfaithful
 from pipeline.export import graph
 from pipeline.export.check import run_logs, run_state, session

@@ -27,11 +27,11 @@ import pyarrow as pa
 import pyarrow.parquet as pq
 
 from pipeline.calib.cuts import CutTerm, cut_sums_np
-from pipeline.calib.linear import play_memory
 from pipeline.calib.params import GroupParams
 from pipeline.calib.scores import wrench_errors
 from pipeline.core.config import Params
 from pipeline.core.errors import ConfigError, DataError
+from pipeline.core.play import play_memory
 from pipeline.logs import schema as S
 
 ROLE_TRAIN, ROLE_TEST = "train", "test"

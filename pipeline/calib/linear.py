@@ -31,40 +31,11 @@ import numpy as np
 from pipeline.calib.pushes import PushPrior, linear_push_gram, push_gram
 from pipeline.calib.scores import WRENCH
 from pipeline.core.errors import DataError
-from pipeline.core.play import play_outputs, play_step
+from pipeline.core.play import play_features, play_memory
 
 AFFINE_INPUTS = 7  # raw wrench + temperature: the inputs of the affine map and the polynomials (6 where
 # a group trains on the wrench alone: `fit_linear_baseline(n_inputs=6)`, the networks' affine map then 6 wide)
 TINY_SCALE = 1e-9  # a normalisation scale below this (a constant input) is replaced by 1
-
-
-# --- play operators (memory) ---------------------------------------------------------------------
-
-
-def play_memory(x: np.ndarray, widths: np.ndarray) -> np.ndarray:
-    """(N, S, 6 K) the play outputs before each sample (module docstring) of one log's samples x (N, S, >= 6)
-    in time order, widths (K, 6) per axis (N, Nm); NaN at each sensor's first finite reading and where its
-    reading is not finite."""
-    x = np.asarray(x, dtype=np.float64)
-    widths = np.asarray(widths, dtype=np.float64)
-    n, n_sensors = x.shape[:2]
-    out = np.full((n, n_sensors, widths.size), np.nan)
-    for s in range(n_sensors):
-        rows = np.flatnonzero(np.isfinite(x[:, s, :WRENCH]).all(axis=1))
-        if len(rows) < 2:
-            continue
-        wrench = x[rows, s, :WRENCH]
-        y = np.concatenate([play_outputs(wrench, w) for w in widths], axis=1)  # after each sample
-        out[rows[1:], s] = y[:-1]
-    return out
-
-
-def play_features(wrench: np.ndarray, previous: np.ndarray, widths: np.ndarray) -> np.ndarray:
-    """(N, 6 K) the play states z in [-1, 1] at each sample (column 6 k + a: width k, axis a) from its raw
-    wrench (N, 6) and the play outputs before it, `previous` (N, 6 K) (NaN: a fresh start, z = 0)."""
-    widths = np.asarray(widths, dtype=np.float64).reshape(-1)
-    tiled = np.tile(np.asarray(wrench, dtype=np.float64), len(widths) // WRENCH)
-    return (tiled - play_step(previous, tiled, widths)) / widths
 
 
 # --- linear baselines ----------------------------------------------------------------------------

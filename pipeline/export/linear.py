@@ -16,7 +16,7 @@ row (``state_out`` (M,)), which the next call takes as its ``state`` input (M,),
 everywhere: a caller that feeds ``inputs`` alone starts afresh at its first row (and a NaN reading
 restarts its operators). Column j of the state
 belongs to the sensor, raw axis and width of `state_layout`'s entry j (per sensor, width k and axis a in the
-order of `pipeline.calib.linear.play_features`); one sensor's columns can be carried alone.
+order of `pipeline.core.play.play_features`); one sensor's columns can be carried alone.
 """
 
 from __future__ import annotations

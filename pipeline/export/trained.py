@@ -13,7 +13,7 @@ therefore one sensor's map, inputs in the order of `pipeline.calib.models` (raw 
 temperature degC, [accelerometer m/s^2, gyroscope rad/s]), output its calibrated wrench (6, N/Nm, sensor
 frame). A model with memory (``play``) maps a sensor's inputs and its own state (the play outputs of its
 previous sample) to its wrench and next state; its reference takes rows that are consecutive samples of
-one log, the state starting afresh at the first (`pipeline.calib.linear.play_memory`).
+one log, the state starting afresh at the first (`pipeline.core.play.play_memory`).
 """
 
 from __future__ import annotations
@@ -75,7 +75,7 @@ class NetworkPart:
 class LinearPart:
     """``f = x[:6] + weights @ phi((x[:k] - offset) / scale)``, phi the monomials of `powers` (P, k);
     k = 7 (wrench, temperature), or 6 (the wrench alone); with play `widths` (K, 6), phi continues with the
-    play states of the raw wrench (`pipeline.calib.linear.play_features`: column 6 k + a, width k, axis a)."""
+    play states of the raw wrench (`pipeline.core.play.play_features`: column 6 k + a, width k, axis a)."""
 
     offset: np.ndarray  # (k,)
     scale: np.ndarray  # (k,)
