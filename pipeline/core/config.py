@@ -269,11 +269,8 @@ class Params:
 
 @dataclass(frozen=True)
 class LabelParams:
-    """Section `label` of params.yaml (stage `label`; see the comments there).
-
-    Thresholds are in robot-weight units (fractions of the URDF's total mass times gravity), so the same
-    values hold for any robot.
-    """
+    """Section `label` of params.yaml (stage `label`; see the comments there). Thresholds are in robot-weight
+    units (fractions of the URDF's total mass times gravity), so the same values hold for any robot."""
 
     contact_on: float  # fraction of robot weight: a foot's normal force above this -> touching
     contact_off: float  # fraction of robot weight: below this -> not touching
@@ -281,6 +278,8 @@ class LabelParams:
     zero_quantile: float  # the foot's zero level is the median of its readings below this quantile
     cut_max_sensors: int  # cut sets (summed labels) of 2 to this many FT sensors; 1 = none
     imu_check: Any = None  # label.imu_check: pipeline.labels.imu_params.ImuCheckParams (built there)
+    inertials: str = "urdf"  # the labels' inertial parameters: urdf or identified (checked in imu_params)
+    identify: Any = None  # label.identify: pipeline.labels.imu_params.IdentifyParams (built there)
 
     def __post_init__(self) -> None:
         for name in ("contact_on", "contact_off", "guard_s", "zero_quantile"):

@@ -1,7 +1,9 @@
-"""Section ``label.imu_check`` of params.yaml: the thresholds of the FT boards' IMU check.
+"""Sections ``label.imu_check`` and ``label.identify`` of params.yaml: the thresholds of the FT boards' IMU
+check, and the identification of the robot's inertial parameters.
 
-The check and the reasons for the defaults: `pipeline.labels.imu_check`. Light imports only (no numpy):
-params are validated when they are loaded, whichever stage runs (`pipeline.core.config.SECTIONS`).
+The check and the reasons for its defaults: `pipeline.labels.imu_check`; the identification:
+`pipeline.labels.inertials`, `pipeline.labels.identify`. Light imports only (no numpy): params are validated
+when they are loaded, whichever stage runs (`pipeline.core.config.SECTIONS`).
 """
 
 from __future__ import annotations
@@ -51,13 +53,71 @@ class ImuCheckParams:
         return cls(**data)
 
 
+IDENTIFY_KEY = "label.identify"
+
+
+@dataclass(frozen=True)
+class IdentifyParams:
+    """Section ``label.identify`` of params.yaml (the comments there; `pipeline.labels.identify`)."""
+
+    step: int  # every step-th exact sample of each training log
+    weight: float  # each sample's weight in the posterior (the samples of a log are strongly correlated)
+    shrink: float  # a part is identified where the data shrink its mass's sd to at most this x the prior's
+    play_widths_n: tuple[float, ...]  # the sensor model's play operators (hysteresis) on force axes, N ...
+    play_widths_nm: tuple[float, ...]  # ... and torque axes, Nm (as many)
+
+    def __post_init__(self) -> None:
+        if isinstance(self.step, bool) or not isinstance(self.step, int) or self.step < 1:
+            raise ConfigError(f"{IDENTIFY_KEY}.step must be a positive integer, got {self.step!r}")
+        for name in ("weight", "shrink"):
+            v = getattr(self, name)
+            if isinstance(v, bool) or not isinstance(v, int | float) or not 0 < v < math.inf:
+                raise ConfigError(f"{IDENTIFY_KEY}.{name} must be a positive number, got {v!r}")
+            object.__setattr__(self, name, float(v))
+        if self.shrink >= 1:
+            raise ConfigError(f"{IDENTIFY_KEY}.shrink must be below 1, got {self.shrink!r}")
+        for name in ("play_widths_n", "play_widths_nm"):
+            v = getattr(self, name)
+            ok = isinstance(v, list | tuple) and all(
+                not isinstance(w, bool) and isinstance(w, int | float) and 0 < w < math.inf for w in v
+            )
+            if not ok:
+                raise ConfigError(f"{IDENTIFY_KEY}.{name} must be a list of positive numbers, got {v!r}")
+            object.__setattr__(self, name, tuple(float(w) for w in v))
+        if len(self.play_widths_n) != len(self.play_widths_nm):
+            raise ConfigError(f"{IDENTIFY_KEY}.play_widths_n and play_widths_nm must have as many widths")
+
+    def widths(self) -> list[list[float]]:
+        """The play operators' widths, one row per operator (K, 6: force axes N, torque axes Nm)."""
+        return [[f, f, f, t, t, t] for f, t in zip(self.play_widths_n, self.play_widths_nm, strict=True)]
+
+    @classmethod
+    def from_mapping(cls, data: Any) -> IdentifyParams:
+        """From the parsed mapping (exactly the dataclass's keys), or itself."""
+        if isinstance(data, cls):
+            return data
+        if not isinstance(data, dict):
+            raise ConfigError(f"{IDENTIFY_KEY} must be a mapping, got {data!r}")
+        names = {f.name for f in fields(cls)}
+        for key in sorted(set(data) ^ names):
+            raise ConfigError(f"{'unknown' if key in data else 'missing'} key {IDENTIFY_KEY}.{key}")
+        return cls(**data)
+
+
 def label_params(params: Params) -> LabelParams:
-    """Section ``label`` with its ``imu_check`` built (errors start with the params file, name the key)."""
+    """Section ``label`` with its ``imu_check`` and ``identify`` built (errors start with the params file,
+    name the key)."""
     cfg = stage_section(params, "label", LabelParams)
     try:
-        return replace(cfg, imu_check=ImuCheckParams.from_mapping(cfg.imu_check))
+        if cfg.inertials not in ("urdf", "identified"):
+            raise ConfigError(f"label.inertials must be 'urdf' or 'identified', got {cfg.inertials!r}")
+        return replace(
+            cfg,
+            imu_check=ImuCheckParams.from_mapping(cfg.imu_check),
+            identify=IdentifyParams.from_mapping(cfg.identify),
+        )
     except ConfigError as exc:
         raise ConfigError(f"{params.raw.get('__file__', 'params.yaml')}: {exc}") from None
 
 
-__all__ = ["ImuCheckParams", "label_params"]
+__all__ = ["IdentifyParams", "ImuCheckParams", "label_params"]

@@ -22,14 +22,17 @@ STAGE = "deploy_prepare"
 COMMAND = "deploy-prepare"
 
 
-def run(params: Any, logs_dir: str | Path, out: str | Path) -> list[Any]:
-    """Prepare every log of `logs_dir` into `out` (module docstring); the day's `DeployLog`s."""
+def run(params: Any, logs_dir: str | Path, out: str | Path, urdf: str | Path | None = None) -> list[Any]:
+    """Prepare every log of `logs_dir` into `out` (module docstring); the day's `DeployLog`s. `urdf`: the
+    URDF the labels are made with (the label stage's, ``models/identified/labels.urdf``), else
+    ``robot.urdf``."""
     import mlflow
 
     from pipeline.core.io import atomic_dir, write_text
     from pipeline.core.tracking import stage_run
     from pipeline.deploy.prepare import load_nominal_robot, not_simulated, prepare_logs, read_day, write_day
     from pipeline.logs.schema import NOT_SIMULATED
+    from pipeline.physics.robot import load_robot
     from pipeline.stages.ingest import find_logs
 
     t0 = time.perf_counter()
@@ -39,7 +42,7 @@ def run(params: Any, logs_dir: str | Path, out: str | Path) -> list[Any]:
     logs = find_logs(logs_dir)
     note = None if logs else not_simulated(logs_dir)  # a simulated day not simulated: say why
     with stage_run(f"{STAGE}@{out.name}", {"logs_dir": str(logs_dir)}):
-        robot = load_nominal_robot(params) if logs else None
+        robot = (load_robot(urdf) if urdf is not None else load_nominal_robot(params)) if logs else None
         with atomic_dir(out) as tmp:
             write_day(tmp, prepare_logs(params, robot, logs, logs_dir, tmp) if logs else [])
             if note is not None:
@@ -52,7 +55,7 @@ def _cmd(args: argparse.Namespace) -> int:
     from pipeline.core.config import load_params
     from pipeline.deploy.prepare import not_simulated
 
-    logs = run(load_params(args.params), args.logs, args.out)
+    logs = run(load_params(args.params), args.logs, args.out, args.urdf)
     note = None if logs else not_simulated(args.out)
     print(f"{args.out}: {note or f'{len(logs)} deployment log(s) ingested, smoothed and labelled'}")
     return 0
@@ -64,5 +67,11 @@ def add_cli(subparsers: Any) -> None:
     )
     p.add_argument("logs", type=Path, help="folder of the day's logs (data/deploy/<day>, deploy.real_logs)")
     p.add_argument("out", type=Path, help="the day's tables (data/deploy/tables/<day>)")
+    p.add_argument(
+        "--urdf",
+        type=Path,
+        default=None,
+        help="the URDF to label with (models/identified/labels.urdf, the training labels'), else robot.urdf",
+    )
     add_params_option(p)
     p.set_defaults(func=_cmd)

@@ -47,8 +47,10 @@ def run(
     truth_dir: str | Path | None = None,
     *,
     progress: bool | None = None,
+    urdf: str | Path | None = None,
 ) -> list[LogSummary]:
-    """Label every smoothed table of `in_dir` into `out_dir`, in one MLflow run."""
+    """Label every smoothed table of `in_dir` into `out_dir`, in one MLflow run; with the robot of `urdf`
+    (a URDF file: an identified model, `pipeline.stages.identify`) instead of ``robot.urdf``."""
     import mlflow
 
     from pipeline.core.config import repo_root, resolve_urdf
@@ -70,7 +72,7 @@ def run(
     tables = find_tables(src)
     if not tables:
         raise DataError(f"{src}: no smoothed *.parquet tables")
-    robot = load_robot(resolve_urdf(params.robot.urdf, repo_root()))
+    robot = load_robot(urdf if urdf is not None else resolve_urdf(params.robot.urdf, repo_root()))
     feet = robot_feet(robot, params.robot.foot_pairs)
     pairs = [f.pair for f in feet if f.pair is not None]
     cuts = find_cut_sets(robot, pairs, cfg.cut_max_sensors)
@@ -78,7 +80,8 @@ def run(
     lab = Labeller(robot, pairs, cuts, cfg, params.robot.gravity, feet, threads=1)
     summaries: list[LogSummary] = []
     start = time.perf_counter()
-    with stage_run(STAGE, {"label": asdict(cfg), "robot": asdict(params.robot)}):
+    run_params = {"label": asdict(cfg), "robot": asdict(params.robot), "labels_urdf": str(urdf or "")}
+    with stage_run(STAGE, run_params):
         with progress_bar(progress) as bar:
             task = bar.add_task("label", total=len(tables))
             truth = Path(truth_dir) if truth_dir else None
