@@ -25,7 +25,7 @@ import yaml
 
 from pipeline.core.config import load_params
 from pipeline.logs import schema as S
-from pipeline.stages import evaluate, export, ingest, label, report, simulate, smooth, train
+from pipeline.stages import evaluate, export, identify, ingest, label, report, simulate, smooth, train
 from tests.conftest import REPO, robot_source
 from tests.relabel import relabel_with_idyntree
 
@@ -65,6 +65,9 @@ def pipeline_run(request: pytest.FixtureRequest, tmp_path_factory: pytest.TempPa
         ingest.run(params, d["sim"], d["ingested"], progress=False)
         smooth.run(params, d["ingested"], d["smoothed"], progress=False)
         label.run(params, d["smoothed"], d["labelled"], truth_dir=d["ingested"], progress=False)
+        identified = identify.run(
+            params, d["smoothed"], d["labelled"], d["models"] / "identified", d["ingested"]
+        )
         trained = train.train_group(
             params, GROUP, d["labelled"], d["models"] / GROUP, tmp / "studies", progress=False
         )
@@ -75,7 +78,14 @@ def pipeline_run(request: pytest.FixtureRequest, tmp_path_factory: pytest.TempPa
         export.run(params, d["models"], d["reports"] / "metrics", d["labelled"], d["exported"])
     finally:
         patch.undo()
-    return {"dirs": d, "trained": trained, "result": result, "urdf": urdf, "tmp": tmp}
+    return {
+        "dirs": d,
+        "trained": trained,
+        "result": result,
+        "urdf": urdf,
+        "tmp": tmp,
+        "identified": identified,
+    }
 
 
 def test_every_stage_hands_over_to_the_next(pipeline_run: dict[str, Any]) -> None:
@@ -202,3 +212,66 @@ def test_labelled_sensor_errors_against_truth_are_small(pipeline_run: dict[str, 
     rmse = np.sqrt(np.mean((exp[ok] - true[ok]) ** 2))
     print(f"label force RMSE against truth: {rmse:.3f} N")
     assert rmse < 1.2
+
+
+def test_identification_without_known_loads_keeps_the_urdf(pipeline_run: dict[str, Any]) -> None:
+    """These logs hang no known load: the identification says so and the labels' URDF is robot.urdf's."""
+    from pipeline.physics.regressor import link_params
+    from pipeline.physics.robot import load_robot
+
+    res, out = pipeline_run["identified"], pipeline_run["dirs"]["models"] / "identified"
+    assert res.status == "urdf" and "known load" in res.reason
+    summary = json.loads((out / "identification.json").read_text())
+    assert summary["status"] == "urdf" and summary["labels"] == "urdf" and summary["parts"]
+    urdf, labels = load_robot(pipeline_run["urdf"]), load_robot(out / "labels.urdf")
+    links = [lk for lk, i in urdf.links.items() if i is not None and i.mass > 0]
+    np.testing.assert_array_equal(link_params(labels, links), link_params(urdf, links))
+    assert (out / "parts.png").stat().st_size > 0 and (out / "parts.csv").read_text().startswith("part,")
+
+
+def test_labels_from_a_written_urdf_follow_the_reading_regressor(
+    pipeline_run: dict[str, Any], tmp_path: Path
+) -> None:
+    """A URDF written with other inertial values (`write_inertials`), labelled by the label stage, gives the
+    labels ``label + Y (pi - pi_urdf)`` of the reading regressor: the identified model's two paths agree."""
+    from pipeline.labels.identify import to_inertial
+    from pipeline.labels.inertials import link_basis, with_change
+    from pipeline.physics.dynamics import ContactCase
+    from pipeline.physics.regressor import ReadingRegressor, link_params
+    from pipeline.physics.robot import load_robot
+    from pipeline.physics.urdf import resolve_urdf
+    from pipeline.physics.urdf_write import write_inertials
+
+    d = pipeline_run["dirs"]
+    robot = load_robot(pipeline_run["urdf"])
+    links = [lk for lk, i in robot.links.items() if i is not None and i.mass > 0]
+    pi = link_params(robot, links)
+    change = np.random.default_rng(3).normal(size=link_basis(pi).shape[1]) * np.tile(
+        [0.05, 0.002, 0.002, 0.002], len(links)
+    )
+    new = with_change(pi, change)
+    changed = {lk: to_inertial(new[10 * k : 10 * (k + 1)]) for k, lk in enumerate(links)}
+    write_inertials(resolve_urdf(pipeline_run["urdf"]), tmp_path / "model.urdf", changed)
+    np.testing.assert_allclose(
+        link_params(load_robot(tmp_path / "model.urdf"), links), new, rtol=0, atol=1e-12
+    )
+    params = load_params(pipeline_run["tmp"] / "params.yaml")
+    name = sorted(d["labelled"].glob("*pole_test.parquet"))[0].name
+    (tmp_path / "in").mkdir()
+    (tmp_path / "in" / name).symlink_to(d["smoothed"] / name)
+    label.run(params, tmp_path / "in", tmp_path / "out", progress=False, urdf=tmp_path / "model.urdf")
+    before, after = pd.read_parquet(d["labelled"] / name), pd.read_parquet(tmp_path / "out" / name)
+    sm = pd.read_parquet(d["smoothed"] / name)
+    rows = np.flatnonzero(before[S.CONTACTS].to_numpy() == before[S.CONTACTS].iloc[len(before) // 2])[::50][
+        :20
+    ]
+    contacts, fixed = before[S.CONTACTS].iloc[rows[0]], before[S.FIXED_LINK].iloc[rows[0]]
+    reg = ReadingRegressor(
+        robot, ContactCase.make(contacts.split(","), fixed, np.array([0, 0, -params.robot.gravity])), links
+    )
+    q, dq, ddq = (sm[S.joint_cols(k, robot.joint_names)].to_numpy()[rows] for k in (S.QS, S.DQS, S.DDQS))
+    y = reg(q, dq, ddq) @ (new - pi)  # (n, S, 6)
+    for k, s in enumerate(robot.sensors):
+        cols = S.wrench_cols(S.EXPECTED, s)
+        expected = before[cols].to_numpy()[rows] + y[:, k]
+        np.testing.assert_allclose(after[cols].to_numpy()[rows], expected, rtol=0, atol=1e-6)
