@@ -18,6 +18,17 @@ from pipeline.core.errors import ConfigError
 KEY = "label.imu_check"
 
 
+def _from_mapping(cls: Any, key: str, data: Any) -> Any:
+    """`cls` (a params dataclass of section `key`) from its parsed mapping, exactly its fields, or itself."""
+    if isinstance(data, cls):
+        return data
+    if not isinstance(data, dict):
+        raise ConfigError(f"{key} must be a mapping, got {data!r}")
+    for name in sorted(set(data) ^ {f.name for f in fields(cls)}):
+        raise ConfigError(f"{'unknown' if name in data else 'missing'} key {key}.{name}")
+    return cls(**data)
+
+
 @dataclass(frozen=True)
 class ImuCheckParams:
     """Section ``label.imu_check`` of params.yaml (the comments there; `pipeline.labels.imu_check`)."""
@@ -42,15 +53,7 @@ class ImuCheckParams:
     @classmethod
     def from_mapping(cls, data: Any) -> ImuCheckParams:
         """From the parsed mapping (exactly the dataclass's keys), or itself."""
-        if isinstance(data, cls):
-            return data
-        if not isinstance(data, dict):
-            raise ConfigError(f"{KEY} must be a mapping, got {data!r}")
-        names = {f.name for f in fields(cls)}
-        for key in sorted(set(data) ^ names):
-            what = "unknown" if key in data else "missing"
-            raise ConfigError(f"{what} key {KEY}.{key}")
-        return cls(**data)
+        return _from_mapping(cls, KEY, data)
 
 
 IDENTIFY_KEY = "label.identify"
@@ -94,14 +97,7 @@ class IdentifyParams:
     @classmethod
     def from_mapping(cls, data: Any) -> IdentifyParams:
         """From the parsed mapping (exactly the dataclass's keys), or itself."""
-        if isinstance(data, cls):
-            return data
-        if not isinstance(data, dict):
-            raise ConfigError(f"{IDENTIFY_KEY} must be a mapping, got {data!r}")
-        names = {f.name for f in fields(cls)}
-        for key in sorted(set(data) ^ names):
-            raise ConfigError(f"{'unknown' if key in data else 'missing'} key {IDENTIFY_KEY}.{key}")
-        return cls(**data)
+        return _from_mapping(cls, IDENTIFY_KEY, data)
 
 
 def label_params(params: Params) -> LabelParams:
