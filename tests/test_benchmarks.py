@@ -23,6 +23,7 @@ ELSEWHERE = {  # run on the outputs of a pipeline, in the test that runs one
 }
 NOT_RUN = {  # why a benchmark cannot run in seconds
     "benchmarks/group_edit.py": "it edits params.yaml of an up-to-date pipeline and times `dvc repro`",
+    "benchmarks/variant.py": "it writes a copy of the repository whose whole pipeline `dvc repro` then runs",
 }
 NEEDS_POSTGRES = {"benchmarks/search_scaling.py"}  # starts its own PostgreSQL server
 PLACEHOLDERS = {"N": "16"}  # `--hidden N`
