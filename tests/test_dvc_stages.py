@@ -54,8 +54,11 @@ def test_adding_recorded_logs_makes_the_deployment_stages_stale(tmp_path: Path) 
 
 
 def test_recorded_logs_only_dvc_repro_simulates_nothing(tmp_path: Path) -> None:
-    """`dvc repro simulate deploy_days` on a fresh clone with ingest.source on recorded logs (data/raw): no
-    log simulated, no URDF loaded (robot.urdf names an absent file), each folder a note saying why."""
+    """`dvc repro simulate deploy_days` on a fresh clone with ingest.source on recorded logs (data/raw) that
+    holds none yet: no log simulated, no URDF loaded (robot.urdf names an absent file), data/sim a note
+    saying why; the deployment days, labelled with the training labels' URDF (models/identified), wait for
+    the label stage, which stops at ingest with one line naming the empty folder (the steps of deploy_days
+    on recorded logs: tests/test_recorded.py)."""
     import os
     import time
 
@@ -79,13 +82,10 @@ def test_recorded_logs_only_dvc_repro_simulates_nothing(tmp_path: Path) -> None:
         text=True,
     )
     seconds = time.perf_counter() - start
-    assert proc.returncode == 0, proc.stderr[-2000:]
+    assert proc.returncode != 0 and "Traceback" not in proc.stdout + proc.stderr
+    assert "ftcal: error: data/raw: no logs found (*.mcap, *.mat)" in proc.stderr
     assert "simulate: data/sim: nothing simulated: ingest.source is data/raw, not data/sim" in proc.stdout
-    for folder in ("data/sim", "data/deploy/later", "data/deploy/drifted"):
-        assert [p.name for p in (clone / folder).iterdir()] == ["not_simulated.txt"], folder
-    for day in ("later", "drifted"):
-        tables = clone / "data" / "deploy" / "tables" / day
-        assert json.loads((tables / "logs.json").read_text()) == []
-        assert (tables / "not_simulated.txt").read_text().startswith("nothing simulated: ingest.source")
+    assert [p.name for p in (clone / "data/sim").iterdir()] == ["not_simulated.txt"]
+    assert not (clone / "data/deploy/tables").exists()
     assert not list(clone.rglob("*.mcap"))
     assert seconds < 60, f"dvc repro took {seconds:.0f} s"

@@ -246,9 +246,9 @@ def test_labels_from_a_written_urdf_follow_the_reading_regressor(
     robot = load_robot(pipeline_run["urdf"])
     links = [lk for lk, i in robot.links.items() if i is not None and i.mass > 0]
     pi = link_params(robot, links)
-    change = np.random.default_rng(3).normal(size=link_basis(pi).shape[1]) * np.tile(
-        [0.05, 0.002, 0.002, 0.002], len(links)
-    )
+    mass = pi[::10]  # kg: each link's mass changes by about 3 %, its centre of mass by about 3 mm
+    scale = np.repeat(mass, 4) * np.tile([0.03, 0.003, 0.003, 0.003], len(links))
+    change = np.random.default_rng(3).normal(size=link_basis(pi).shape[1]) * scale
     new = with_change(pi, change)
     changed = {lk: to_inertial(new[10 * k : 10 * (k + 1)]) for k, lk in enumerate(links)}
     write_inertials(resolve_urdf(pipeline_run["urdf"]), tmp_path / "model.urdf", changed)

@@ -19,6 +19,7 @@ from pipeline.evaluation.html import img as _img
 from pipeline.evaluation.html import table as _table
 from pipeline.evaluation.params import (
     DEPLOYMENT_PAGE,
+    IDENTIFIED_FIGURE,
     LABELS,
     NN7,
     NN13,
@@ -30,7 +31,7 @@ from pipeline.evaluation.params import (
     REPORT_FILE,
     TRUTH,
 )
-from pipeline.evaluation.sections import availability_section, cv_section, phase_section
+from pipeline.evaluation.sections import availability_section, cv_section, identification_section, phase_section
 from pipeline.evaluation.trust import excitation_html, fidelity_table, passed_over_html
 from pipeline.logs import schema as S
 
@@ -300,10 +301,12 @@ def render_html(
     cfg: EvaluateParams,
     figures: Mapping[str, Any],
     availability: Mapping[str, Any] | None = None,
+    identification: Mapping[str, Any] | None = None,
 ) -> str:
     """The report page: summary, flags and overview figures, the noise check, the exact-label
-    availability (`pipeline.evaluation.availability`, if given), then one section per calibrated group
-    (the others are named, with why, in the summary)."""
+    availability (`pipeline.evaluation.availability`, if given), the identified robot model (the label
+    stage's identification.json, if given; its figure ``figures["identified"]``), then one section per
+    calibrated group (the others are named, with why, in the summary)."""
     now = datetime.now(timezone.utc).strftime("%Y-%m-%d %H:%M UTC")
     groups = ", ".join(r.group for r in results)
     uncalibrated = _not_calibrated_box(results)
@@ -322,7 +325,9 @@ def render_html(
         f"<th>{_e(h)}</th>" for h in ["group", "quasi-static s", "stretches", "signal share", *models]
     )
     labels = availability_section(availability)
-    labels_link = "<a href='#labels'>Exact-label availability</a>" if labels else ""
+    labels += identification_section(identification, figures.get("identified"))
+    labels_link = "<a href='#labels'>Exact-label availability</a>" if availability else ""
+    labels_link += "<a href='#identified'>Identified robot model</a>" if identification else ""
     parts = [
         "<h1>FT sensor calibration: evaluation on the test logs</h1>",
         f"<p class='meta'>generated {now} · git {_e(_git_commit())} · groups: {_e(groups)} · "
@@ -363,20 +368,22 @@ def write_page(
     reports: Sequence[GroupReport],
     cfg: EvaluateParams,
     availability: Mapping[str, Any] | None = None,
+    identification: Mapping[str, Any] | None = None,
 ) -> list[str]:
     """The two overview figures and index.html into `out` (group figures are already under groups/);
-    `availability`: the exact-label counts of `pipeline.evaluation.availability`, if any."""
+    `availability`: the exact-label counts of `pipeline.evaluation.availability`, if any; `identification`:
+    the label stage's identified robot model (its figure already at ``plots/identified_parts.png``)."""
     from pipeline.evaluation.figures import plot_noise_summary, plot_overview
 
     overview, noise = f"{PLOTS_DIR}/rmse_overview.png", f"{PLOTS_DIR}/noise_amplification.png"
     (out / PLOTS_DIR).mkdir(parents=True, exist_ok=True)
     calibrated = [r for r in reports if r.not_calibrated is None]
+    ident = {"identified": IDENTIFIED_FIGURE} if identification and (out / IDENTIFIED_FIGURE).is_file() else {}
     if not calibrated:  # nothing scored: no figure (the page says why)
-        write_text(out / REPORT_FILE, render_html(reports, cfg, {}, availability))
+        write_text(out / REPORT_FILE, render_html(reports, cfg, ident, availability, identification))
         return [REPORT_FILE]
     plot_overview(calibrated, out / overview)
     plot_noise_summary(calibrated, cfg, out / noise)
-    write_text(
-        out / REPORT_FILE, render_html(reports, cfg, {"overview": overview, "noise": noise}, availability)
-    )
+    figures = {"overview": overview, "noise": noise} | ident
+    write_text(out / REPORT_FILE, render_html(reports, cfg, figures, availability, identification))
     return [overview, noise, REPORT_FILE]

@@ -31,6 +31,7 @@ METRICS_DIR = "metrics"
 REPORT_FILE = "index.html"
 DEPLOYMENT_PAGE = "deployment.html"  # the deployment tests' page beside it (pipeline.deploy.page)
 PLOTS_DIR = "plots"
+IDENTIFIED_FIGURE = f"{PLOTS_DIR}/identified_parts.png"  # the label stage's parts.png, copied by `report`
 PLOTS_DATA_DIR = "plots_data"
 TRAIN_METRICS = "metrics.json"  # in models/<group>/
 PREDICTIONS = "predictions.parquet"

@@ -158,3 +158,43 @@ def availability_section(avail: Mapping[str, Any] | None) -> str:
         + note
         + table(head, [[esc(c) for c in row[:2]] + row[2:] for row in rows], "num", raw_html=True)
     )
+
+
+def identification_section(ident: Mapping[str, Any] | None, figure: str | None) -> str:
+    """The robot model identified by the label stage (`pipeline.stages.identify`: its identification.json)
+    and its figure (a path relative to the page); empty without one."""
+    if not ident:
+        return ""
+    used = "the identified parameters" if ident.get("labels") == "identified" else "robot.urdf's parameters"
+    why = f": {esc(ident['reason'])}" if ident.get("reason") else ""
+    truth = any(p.get("mass_true") is not None for p in ident["parts"])
+    head = ["part (heaviest link)", "URDF kg", "identified kg", "sd kg", "jackknife sd kg", "identified"]
+    rows = [
+        [esc(p["name"]), fmt(p["mass_urdf"]), fmt(p["mass"]), fmt(p["sd"]), fmt(p["jackknife"])]
+        + ["yes" if p["identified"] else "no (URDF's)"]
+        + ([fmt(p["mass_true"])] if truth else [])
+        for p in ident["parts"]
+    ]
+    sensor_head = ["sensor", "labels' change"] + (["vs truth: URDF", "identified", "true inertials"] if truth else [])
+    sensor_rows = [
+        [esc(s), fmt(d["label_change"])]
+        + ([fmt(d["error_urdf"]), fmt(d["error_identified"]), fmt(d["error_true_inertials"])] if truth else [])
+        for s, d in ident["sensors"].items()
+    ]
+    note = (
+        f"<p class='note'>Every massive link's mass and first moment identified with a model of each sensor "
+        f"from {len(ident['logs'])} training logs ({ident['exact_samples']} exact samples; known loads in "
+        f"{len(ident['known_load_logs'])}): <b>{esc(ident['status'])}</b>{why}. The labels use {used} "
+        "(label.inertials). A part is identified where the data shrink its mass's sd to half the prior's "
+        "(10 % of the mass); the others keep the URDF's values. The labels' change and their error against "
+        "the true wrench (simulated logs) are RMS over the training logs' exact samples, 6 axes pooled, N and "
+        "Nm. The identified model: models/identified/model.urdf.</p>"
+    )
+    img = f"<img src='{esc(figure)}' alt='identified part masses'>" if figure else ""
+    return (
+        "<h2 id='identified'>Identified robot model</h2>"
+        + note
+        + table(head + (["true kg"] if truth else []), rows, "num", raw_html=True)
+        + table(sensor_head, sensor_rows, "num", raw_html=True)
+        + img
+    )

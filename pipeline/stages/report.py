@@ -46,12 +46,16 @@ def read_reports(reports_dir: Path, groups: list[str]) -> list[Any]:
 
 
 def run(
-    params: Any, reports_dir: str | Path, labelled_dir: str | Path | None = None
+    params: Any,
+    reports_dir: str | Path,
+    labelled_dir: str | Path | None = None,
+    identified_dir: str | Path | None = None,
 ) -> tuple[list[Any], list[str], float]:
     """Assemble the page (module docstring) in one MLflow run ``report``; returns (reports, files, s).
 
     Raises:
-        DataError: a group's report is missing or unusable, or `labelled_dir` holds no labelled table.
+        DataError: a group's report is missing or unusable, `labelled_dir` holds no labelled table, or
+            `identified_dir` no identification.json.
     """
     import mlflow
 
@@ -68,8 +72,9 @@ def run(
     out = Path(reports_dir)
     reports = read_reports(out, groups)
     availability = label_availability(Path(labelled_dir)) if labelled_dir is not None else None
+    identification = _identification(Path(identified_dir), out) if identified_dir is not None else None
     with stage_run(STAGE, {"groups": ",".join(groups)}):
-        files = write_page(out, reports, cfg, availability)
+        files = write_page(out, reports, cfg, availability, identification)
         if availability is not None:
             mlflow.log_dict(availability, "label_availability.json")
         mlflow.set_tags({f"recommended.{r.group}": r.recommended or "none" for r in reports})
@@ -78,10 +83,25 @@ def run(
     return reports, files, time.perf_counter() - t0
 
 
+def _identification(identified: Path, out: Path) -> Any:
+    """The label stage's identification.json of `identified`, its figure copied beside the page's."""
+    import shutil
+
+    from pipeline.core.io import read_json
+    from pipeline.evaluation.params import IDENTIFIED_FIGURE
+    from pipeline.stages.identify import SUMMARY
+
+    summary = read_json(identified / SUMMARY, "identified robot model", "missing (run `dvc repro label`)")
+    if (identified / "parts.png").is_file():
+        (out / IDENTIFIED_FIGURE).parent.mkdir(parents=True, exist_ok=True)
+        shutil.copyfile(identified / "parts.png", out / IDENTIFIED_FIGURE)
+    return summary
+
+
 def _cmd(args: argparse.Namespace) -> int:
     from pipeline.core.config import load_params
 
-    reports, _, seconds = run(load_params(args.params), args.reports, args.labelled)
+    reports, _, seconds = run(load_params(args.params), args.reports, args.labelled, args.identified)
     for r in reports:
         if r.not_calibrated is not None:
             print(f"{r.group}: not calibrated: {r.not_calibrated}")
@@ -105,6 +125,12 @@ def add_cli(subparsers: Any) -> None:
         type=Path,
         default=None,
         help="directory of labelled <log>.parquet tables (optional): adds the exact-label availability",
+    )
+    parser.add_argument(
+        "--identified",
+        type=Path,
+        default=None,
+        help="the label stage's identified robot model (models/identified, optional): adds its section",
     )
     add_params_option(parser)
     parser.set_defaults(func=_cmd)
