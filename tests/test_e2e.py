@@ -74,7 +74,7 @@ def pipeline_run(request: pytest.FixtureRequest, tmp_path_factory: pytest.TempPa
         result = evaluate.run(
             params, GROUP, d["models"] / GROUP, d["labelled"], d["reports"], d["ingested"], progress=False
         )
-        report.run(params, d["reports"])
+        report.run(params, d["reports"], identified_dir=d["models"] / "identified")
         export.run(params, d["models"], d["reports"] / "metrics", d["labelled"], d["exported"])
     finally:
         patch.undo()
@@ -227,6 +227,9 @@ def test_identification_without_known_loads_keeps_the_urdf(pipeline_run: dict[st
     links = [lk for lk, i in urdf.links.items() if i is not None and i.mass > 0]
     np.testing.assert_array_equal(link_params(labels, links), link_params(urdf, links))
     assert (out / "parts.png").stat().st_size > 0 and (out / "parts.csv").read_text().startswith("part,")
+    page = (pipeline_run["dirs"]["reports"] / "index.html").read_text()
+    assert "<h2 id='identified'>Identified robot model</h2>" in page and "no training log hangs" in page
+    assert (pipeline_run["dirs"]["reports"] / "plots" / "identified_parts.png").is_file()
 
 
 def test_labels_from_a_written_urdf_follow_the_reading_regressor(

@@ -31,7 +31,12 @@ from pipeline.evaluation.params import (
     REPORT_FILE,
     TRUTH,
 )
-from pipeline.evaluation.sections import availability_section, cv_section, identification_section, phase_section
+from pipeline.evaluation.sections import (
+    availability_section,
+    cv_section,
+    identification_section,
+    phase_section,
+)
 from pipeline.evaluation.trust import excitation_html, fidelity_table, passed_over_html
 from pipeline.logs import schema as S
 
@@ -378,7 +383,8 @@ def write_page(
     overview, noise = f"{PLOTS_DIR}/rmse_overview.png", f"{PLOTS_DIR}/noise_amplification.png"
     (out / PLOTS_DIR).mkdir(parents=True, exist_ok=True)
     calibrated = [r for r in reports if r.not_calibrated is None]
-    ident = {"identified": IDENTIFIED_FIGURE} if identification and (out / IDENTIFIED_FIGURE).is_file() else {}
+    shown = identification and (out / IDENTIFIED_FIGURE).is_file()
+    ident = {"identified": IDENTIFIED_FIGURE} if shown else {}
     if not calibrated:  # nothing scored: no figure (the page says why)
         write_text(out / REPORT_FILE, render_html(reports, cfg, ident, availability, identification))
         return [REPORT_FILE]

@@ -175,11 +175,12 @@ def identification_section(ident: Mapping[str, Any] | None, figure: str | None) 
         + ([fmt(p["mass_true"])] if truth else [])
         for p in ident["parts"]
     ]
-    sensor_head = ["sensor", "labels' change"] + (["vs truth: URDF", "identified", "true inertials"] if truth else [])
+    errors = ("error_urdf", "error_identified", "error_true_inertials") if truth else ()
+    sensor_head = ["sensor", "labels' change"] + (
+        ["vs truth: URDF", "identified", "true inertials"] if truth else []
+    )
     sensor_rows = [
-        [esc(s), fmt(d["label_change"])]
-        + ([fmt(d["error_urdf"]), fmt(d["error_identified"]), fmt(d["error_true_inertials"])] if truth else [])
-        for s, d in ident["sensors"].items()
+        [esc(s), fmt(d["label_change"]), *(fmt(d[k]) for k in errors)] for s, d in ident["sensors"].items()
     ]
     note = (
         f"<p class='note'>Every massive link's mass and first moment identified with a model of each sensor "
@@ -187,8 +188,8 @@ def identification_section(ident: Mapping[str, Any] | None, figure: str | None) 
         f"{len(ident['known_load_logs'])}): <b>{esc(ident['status'])}</b>{why}. The labels use {used} "
         "(label.inertials). A part is identified where the data shrink its mass's sd to half the prior's "
         "(10 % of the mass); the others keep the URDF's values. The labels' change and their error against "
-        "the true wrench (simulated logs) are RMS over the training logs' exact samples, 6 axes pooled, N and "
-        "Nm. The identified model: models/identified/model.urdf.</p>"
+        "the true wrench (simulated logs) are RMS over the training logs' exact samples, 6 axes pooled, N "
+        "and Nm. The identified model: models/identified/model.urdf.</p>"
     )
     img = f"<img src='{esc(figure)}' alt='identified part masses'>" if figure else ""
     return (
