@@ -36,9 +36,10 @@ class DeployLog:
     experiment: dict[str, str]
 
 
-def load_nominal_robot(params: Params) -> RobotModel:
-    """The robot of ``robot.urdf`` (what the calibration and the estimators know)."""
-    return load_robot(resolve_urdf(params.robot.urdf, repo_root()))
+def load_nominal_robot(params: Params, urdf: str | Path | None = None) -> RobotModel:
+    """The robot the calibration and the estimators know: that of `urdf` (the training labels' URDF,
+    ``models/identified/labels.urdf``) if given, else of ``robot.urdf``."""
+    return load_robot(urdf if urdf is not None else resolve_urdf(params.robot.urdf, repo_root()))
 
 
 def robot_cuts(params: Params, robot: RobotModel) -> tuple[list[Any], list[Any], list[Any]]:

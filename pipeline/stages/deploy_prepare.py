@@ -32,7 +32,6 @@ def run(params: Any, logs_dir: str | Path, out: str | Path, urdf: str | Path | N
     from pipeline.core.tracking import stage_run
     from pipeline.deploy.prepare import load_nominal_robot, not_simulated, prepare_logs, read_day, write_day
     from pipeline.logs.schema import NOT_SIMULATED
-    from pipeline.physics.robot import load_robot
     from pipeline.stages.ingest import find_logs
 
     t0 = time.perf_counter()
@@ -42,7 +41,7 @@ def run(params: Any, logs_dir: str | Path, out: str | Path, urdf: str | Path | N
     logs = find_logs(logs_dir)
     note = None if logs else not_simulated(logs_dir)  # a simulated day not simulated: say why
     with stage_run(f"{STAGE}@{out.name}", {"logs_dir": str(logs_dir)}):
-        robot = (load_robot(urdf) if urdf is not None else load_nominal_robot(params)) if logs else None
+        robot = load_nominal_robot(params, urdf) if logs else None
         with atomic_dir(out) as tmp:
             write_day(tmp, prepare_logs(params, robot, logs, logs_dir, tmp) if logs else [])
             if note is not None:

@@ -44,9 +44,17 @@ def days_of(tables: Path) -> list[Path]:
 
 
 def run(
-    params: Any, group: str, models: str | Path, exported: str | Path, tables: str | Path, out: str | Path
+    params: Any,
+    group: str,
+    models: str | Path,
+    exported: str | Path,
+    tables: str | Path,
+    out: str | Path,
+    urdf: str | Path | None = None,
 ) -> dict[str, Any]:
-    """The group's tests on every prepared day (module docstring); what OUT/result.json holds."""
+    """The group's tests on every prepared day (module docstring); what OUT/result.json holds. `urdf`: the
+    robot model of the estimators (the training labels', ``models/identified/labels.urdf``), else
+    ``robot.urdf``."""
     from dataclasses import replace
 
     import mlflow
@@ -85,7 +93,7 @@ def run(
     recorded = metrics.get("data", "simulated") != "simulated"
     if recorded:  # a real robot's calibration is not tested on the simulated robot's logs
         days = [d for d in days if d.name not in DAY_ORDER]
-    sensors, robot = group_models(models)[0], load_nominal_robot(params)
+    sensors, robot = group_models(models)[0], load_nominal_robot(params, urdf)
     result: dict[str, Any] = {"group": group, "deployed": deployed[group], "days": {}, "figures": {}}
     result |= {"recorded": recorded, REZEROED: {}, f"figures_{REZEROED}": {}}
     # the simulated days that were not simulated (recorded logs only), and why
@@ -134,7 +142,9 @@ def _rezero_days(
 def _cmd(args: argparse.Namespace) -> int:
     from pipeline.core.config import load_params
 
-    result = run(load_params(args.params), args.group, args.models, args.exported, args.tables, args.out)
+    result = run(
+        load_params(args.params), args.group, args.models, args.exported, args.tables, args.out, args.urdf
+    )
     if "not_calibrated" in result:
         print(f"{args.group}: not calibrated, nothing to test: {result['not_calibrated']}")
         return 0
@@ -161,6 +171,12 @@ def add_cli(subparsers: Any) -> None:
     p.add_argument("tables", type=Path, help="the prepared deployment days (data/deploy/tables)")
     p.add_argument(
         "out", type=Path, help="the group's results and figures (reports/deployment/groups/<group>)"
+    )
+    p.add_argument(
+        "--urdf",
+        type=Path,
+        default=None,
+        help="the estimators' robot model (models/identified/labels.urdf), else robot.urdf",
     )
     add_params_option(p)
     p.set_defaults(func=_cmd)

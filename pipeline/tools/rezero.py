@@ -69,10 +69,12 @@ def _sensors(deployment: Any, tables: list[Any], asked: list[str] | None) -> lis
 def run(
     params: Any, logs: list[str | Path], models: str | Path, *, start_s: float | None = None,
     duration_s: float | None = None, sensors: list[str] | None = None, out: str | Path | None = None,
+    urdf: str | Path | None = None,
 ) -> dict[str, Any]:  # fmt: skip
     """Re-zero the export in `models` from `logs` (module docstring); write and return the offsets file's
     content (`out`: its path, default ``<models>/offsets.json``; `duration_s` default
-    ``deploy.rezero.duration_s``)."""
+    ``deploy.rezero.duration_s``; `urdf`: the robot model the stretch is labelled with, as the training
+    labels were (``models/identified/labels.urdf``), default ``robot.urdf``)."""
     import tempfile
     from dataclasses import replace
 
@@ -90,7 +92,7 @@ def run(
             raise DataError(f"--duration {duration_s:g}: must be in (0, 3600] s")
         cfg = replace(cfg, duration_s=duration_s, min_s=min(cfg.min_s, duration_s))
     deployment = Deployment.load(models, offsets=False)
-    robot = load_nominal_robot(params)
+    robot = load_nominal_robot(params, urdf)
     _, _, cuts = robot_cuts(params, robot)
     warnings, tables, picked = [], [], []
     with tempfile.TemporaryDirectory(prefix="ftcal-rezero-") as work:
@@ -177,7 +179,7 @@ def _cmd(args: argparse.Namespace) -> int:
     models = models_dir(args.models)
     doc = run(
         params, args.logs, models, start_s=args.start, duration_s=args.duration, sensors=args.sensors,
-        out=args.out,
+        out=args.out, urdf=args.urdf,
     )  # fmt: skip
     _print(doc)
     return 0
@@ -202,5 +204,10 @@ def add_cli(subparsers: Any) -> None:
     )  # fmt: skip
     parser.add_argument("--sensors", nargs="+", default=None, help="re-zero these sensors only")
     parser.add_argument("--out", type=Path, default=None, help="offsets file (default: DIR/offsets.json)")
+    parser.add_argument(
+        "--urdf", type=Path, default=None,
+        help="the robot model to label the stretch with (models/identified/labels.urdf, as the training "
+        "labels), default robot.urdf",
+    )  # fmt: skip
     add_params_option(parser)
     parser.set_defaults(func=_cmd)
