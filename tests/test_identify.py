@@ -75,3 +75,79 @@ def test_identify_params_name_the_bad_key(key: str, value: object, message: str)
         IdentifyParams.from_mapping(GOOD | {key: value})
     with pytest.raises(ConfigError, match="unknown key label.identify.x"):
         IdentifyParams.from_mapping(GOOD | {"x": 1})
+
+
+@pytest.fixture(scope="module")
+def identified_run(tmp_path_factory: pytest.TempPathFactory) -> dict:
+    """Three short training logs (pole, known loads, balancing) of a robot whose URDF is 10 % / 2 cm off,
+    labelled, identified with label.inertials: identified (a weight of a few logs' worth)."""
+    import shutil
+
+    import yaml
+
+    from pipeline.core.config import load_params
+    from pipeline.stages import identify, ingest, label, simulate, smooth
+    from tests.conftest import REPO
+
+    tmp = tmp_path_factory.mktemp("identified")
+    data = yaml.safe_load((REPO / "params.yaml").read_text())
+    data["simulate"].update(workers=1, plots=False, mass_error=0.10, com_error_m=0.02)
+    loads = [{"link": "hands", "mass_kg": 2.0}, {"link": "feet", "mass_kg": 6.0}]
+    data["simulate"]["logs"] = [
+        {"type": "pole", "duration_s": 10, "role": "train"},
+        {"type": "known_load", "duration_s": 10, "role": "train", "loads": loads},
+        {"type": "balancing", "duration_s": 10, "role": "train", "foot": "l_foot"},
+    ]
+    data["label"]["inertials"] = "identified"
+    data["label"]["identify"]["weight"] = 0.02
+    (tmp / "params.yaml").write_text(yaml.safe_dump(data, sort_keys=False))
+    patch = pytest.MonkeyPatch()
+    patch.setenv("MLFLOW_TRACKING_URI", f"sqlite:///{tmp / 'mlflow.db'}")
+    try:
+        params = load_params(tmp / "params.yaml")
+        d = {k: tmp / k for k in ("sim", "ingested", "smoothed", "labelled", "identified")}
+        simulate.run(params, d["sim"], progress=False)
+        ingest.run(params, d["sim"], d["ingested"], progress=False)
+        smooth.run(params, d["ingested"], d["smoothed"], progress=False)
+        label.run(params, d["smoothed"], d["labelled"], truth_dir=d["ingested"], progress=False)
+        shutil.copytree(d["labelled"], tmp / "urdf_labels")
+        res = identify.run(params, d["smoothed"], d["labelled"], d["identified"], d["ingested"])
+    finally:
+        patch.undo()
+    return {"dirs": d, "res": res, "params": params, "tmp": tmp}
+
+
+def test_identified_labels_are_the_tables_relabelled_with_the_identified_model(identified_run: dict) -> None:
+    """The model is accepted (the lower legs identified), the labels are made again with model.urdf, and
+    the per-sensor errors against truth the step reports (first order, on every step-th exact sample) are
+    those of the relabelled tables themselves."""
+    import pandas as pd
+
+    from pipeline.logs import schema as S
+
+    d, res, step = identified_run["dirs"], identified_run["res"], identified_run["params"]
+    assert res.status == "identified" and {p.name for p in res.parts if p.identified} >= {"r_lower_leg"}
+    assert (d["identified"] / "labels.urdf").read_bytes() == (d["identified"] / "model.urdf").read_bytes()
+    every = step.raw["label"]["identify"]["step"]
+    for sensor in ("r_leg_ft", "l_arm_ft"):
+        errors, before_after = [], []
+        for table in sorted(d["labelled"].glob("*.parquet")):
+            lab, old = (
+                pd.read_parquet(table),
+                pd.read_parquet(identified_run["tmp"] / "urdf_labels" / table.name),
+            )
+            sm = pd.read_parquet(d["smoothed"] / table.name)
+            truth = pd.read_parquet(d["ingested"] / f"{table.stem}.truth.parquet").set_index(S.STAMP)
+            truth = truth.reindex(lab[S.STAMP].to_numpy())
+            names = S.sensors_of(lab.columns)
+            sw = np.column_stack([lab[S.switch_col(s)].to_numpy() for s in names]).astype(bool)
+            q, ddq = (sm[[c for c in sm.columns if c.startswith(f"{k}.")]].to_numpy() for k in (S.QS, S.DDQS))
+            rows = np.flatnonzero(sw.any(1) & np.isfinite(q).all(1) & np.isfinite(ddq).all(1))[::every]
+            rows = rows[lab[S.switch_col(sensor)].to_numpy()[rows].astype(bool)]
+            cols = S.wrench_cols(S.EXPECTED, sensor)
+            errors.append(lab[cols].to_numpy()[rows] - truth[S.wrench_cols(S.TRUE, sensor)].to_numpy()[rows])
+            before_after.append(np.nanmax(np.abs(lab[cols].to_numpy() - old[cols].to_numpy())))
+        rmse = float(np.sqrt(np.mean(np.concatenate(errors) ** 2)))
+        assert rmse == pytest.approx(res.sensors[sensor]["error_identified"], rel=0.02), sensor
+        changed = res.sensors[sensor]["label_change"] > 0
+        assert (max(before_after) > 1e-3) == changed, sensor  # the arms are not identified: unchanged
