@@ -59,6 +59,7 @@ from pipeline.labels.inertials import (  # noqa: E402
     feature_prior,
     link_basis,
     link_prior,
+    log_weights,
     normal_equations,
     sensor_columns,
     solve,
@@ -143,7 +144,7 @@ def identify(
         link_prior(pi_urdf),
         np.tile(np.concatenate([feature_prior(a, len(widths))[cols] for a in range(6)]), len(robot.sensors)),
     ]
-    return solve(eqs, prior, FREE * len(links), args.weight)
+    return solve(eqs, prior, FREE * len(links), log_weights(eqs, prior, args.weight))
 
 
 def print_label_errors(

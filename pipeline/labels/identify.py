@@ -35,6 +35,7 @@ from pipeline.labels.inertials import (
     feature_prior,
     link_basis,
     link_prior,
+    log_weights,
     normal_equations,
     sensor_columns,
     solve,
@@ -293,13 +294,14 @@ def identify_robot(
     eqs, stats, loaded, samples = _read_logs(src, stems, robot, links, cfg, gravity, both, progress)
     sensor_prior = [feature_prior(a, n_plays)[cols] for a in range(6)]
     prior = np.r_[link_prior(pi_urdf), np.tile(np.concatenate(sensor_prior), len(robot.sensors))]
-    free = solve(eqs, prior, n_p, cfg.weight)
+    weights = log_weights(eqs, prior, cfg.weight)
+    free = solve(eqs, prior, n_p, weights)
     parts = _part_table(robot, links, pi_urdf, free, pi_true, cfg.shrink)
     held = np.ones(n_p, dtype=bool)
     for part in (p for p in parts if p.identified):
         for k in (links.index(lk) for lk in part.links):
             held[FREE * k : FREE * (k + 1)] = False
-    post = solve(eqs, prior, n_p, cfg.weight, pinned=held) if (~held).any() else free
+    post = solve(eqs, prior, n_p, weights, pinned=held) if (~held).any() else free
     change = np.where(held, 0.0, post.delta)
     pi = with_change(pi_urdf, change)
     parts = [_with_mass(p, links, pi_urdf, change, post) if p.identified else p for p in parts]

@@ -229,11 +229,13 @@ class ExactSamples:
         return self.experiment.get("loads", "") not in ("", "[]")
 
 
-def normal_equations(log: ExactSamples, cols: list[int]) -> tuple[np.ndarray, np.ndarray]:
-    """(K, K), (K,): the log's weighted normal equations of the forward model, K = B + S 6 len(cols)
-    (the parameter changes, then per sensor and axis the coefficients of the features `cols`)."""
+def normal_equations(log: ExactSamples, cols: list[int]) -> tuple[np.ndarray, np.ndarray, float, int]:
+    """(K, K), (K,), b'b, n: the log's weighted normal equations of the forward model, K = B + S 6 len(cols)
+    (the parameter changes, then per sensor and axis the coefficients of the features `cols`), the weighted
+    sum of its squared targets and their number (what its residual's variance needs)."""
     n_s, n_y, f = len(log.sensors), log.Y.shape[3], len(cols)
     h, g = np.zeros((n_y + n_s * 6 * f,) * 2), np.zeros(n_y + n_s * 6 * f)
+    bb, count = 0.0, 0
     for k in range(n_s):
         use = log.sw[:, k] & np.isfinite(log.raw[:, k]).all(1) & np.isfinite(log.temp[:, k])
         if not use.any():
@@ -246,7 +248,8 @@ def normal_equations(log: ExactSamples, cols: list[int]) -> tuple[np.ndarray, np
             b = log.raw[use, k, a] - log.label[use, k, a]
             h[np.ix_(idx, idx)] += w2 * x.T @ x
             g[idx] += w2 * x.T @ b
-    return h, g
+            bb, count = bb + w2 * float(b @ b), count + len(b)
+    return h, g, bb, count
 
 
 @dataclass(frozen=True)
@@ -260,24 +263,42 @@ class Posterior:
     prior_sd: np.ndarray
 
 
+Equations = tuple[np.ndarray, np.ndarray, float, int]  # one log's `normal_equations`
+
+
+def log_weights(eqs: list[Equations], prior: np.ndarray, weight: float) -> np.ndarray:
+    """(logs,) each log's sample weight: `weight` x the median of the logs' residual variances over its own,
+    from a first solve with `weight` everywhere. A log the model fits worse (walking: accelerations the
+    smoothing lags behind the steps, a systematic error) weighs less, instead of pulling the masses."""
+    h = sum(e[0] for e in eqs)
+    theta = np.linalg.solve(weight * h + np.diag(prior), weight * sum(e[1] for e in eqs))
+    var = np.array([max(e[2] - 2 * theta @ e[1] + theta @ e[0] @ theta, 1e-12) / max(e[3], 1) for e in eqs])
+    return weight * np.median(var) / var
+
+
 def solve(
-    eqs: list[tuple[np.ndarray, np.ndarray]],
+    eqs: list[Equations],
     prior: np.ndarray,
     n_p: int,
-    weight: float,
+    weights: np.ndarray,
     pinned: np.ndarray | None = None,
 ) -> Posterior:
     """The posterior of the first `n_p` unknowns (the parameters' changes), from per-log normal equations
-    `eqs` and the prior precision `prior` (K,) of every unknown, each sample weighted `weight`. `pinned`
-    (n_p,) bool: the parameters held at the URDF's values (their prior made stiff)."""
+    `eqs` (`normal_equations`), the prior precision `prior` (K,) of every unknown and each log's sample
+    weight `weights` (logs,). `pinned` (n_p,) bool: the parameters held at the URDF's values (their prior
+    made stiff)."""
     prior = np.array(prior, dtype=float)
     if pinned is not None:
         prior[:n_p][pinned] = 1e12 * np.maximum(prior[:n_p][pinned], 1.0)
-    h, g = sum(e[0] for e in eqs), sum(e[1] for e in eqs)
-    cov = np.linalg.inv(weight * h + np.diag(prior))
-    loo = [np.linalg.solve(weight * (h - e[0]) + np.diag(prior), weight * (g - e[1])) for e in eqs]
+    h = sum(w * e[0] for w, e in zip(weights, eqs, strict=True))
+    g = sum(w * e[1] for w, e in zip(weights, eqs, strict=True))
+    cov = np.linalg.inv(h + np.diag(prior))
+    loo = [
+        np.linalg.solve(h - w * e[0] + np.diag(prior), g - w * e[1])
+        for w, e in zip(weights, eqs, strict=True)
+    ]
     return Posterior(
-        delta=(cov @ (weight * g))[:n_p],
+        delta=(cov @ g)[:n_p],
         cov=cov[:n_p, :n_p],
         loo=np.array([x[:n_p] for x in loo]).reshape(len(eqs), n_p),
         prior_sd=1.0 / np.sqrt(prior[:n_p]),
@@ -295,6 +316,7 @@ __all__ = [
     "FREE",
     "link_basis",
     "link_prior",
+    "log_weights",
     "with_change",
     "normal_equations",
     "sensor_columns",
