@@ -44,7 +44,7 @@ from pipeline.labels.inertials import (
 from pipeline.logs import schema as S
 from pipeline.logs.tables import read_table_metadata
 from pipeline.physics.cuts import components
-from pipeline.physics.regressor import PARAMS, link_params
+from pipeline.physics.regressor import PARAMS, link_params, skew, sym
 from pipeline.physics.robot import LinkInertial, RobotModel
 from pipeline.physics.urdf import RobotModelError, checked_inertial
 
@@ -131,7 +131,7 @@ class Identification:
         out = {}
         for k, link in enumerate(self.links):
             p = self.pi[PARAMS * k : PARAMS * (k + 1)]
-            if np.allclose(p, self.pi_urdf[PARAMS * k : PARAMS * (k + 1)], rtol=0, atol=0):
+            if np.array_equal(p, self.pi_urdf[PARAMS * k : PARAMS * (k + 1)]):
                 continue
             out[link] = to_inertial(p)
         return out
@@ -149,18 +149,13 @@ class Identification:
         }
 
 
-def _sym(i: np.ndarray) -> np.ndarray:
-    xx, xy, yy, xz, yz, zz = i
-    return np.array([[xx, xy, xz], [xy, yy, yz], [xz, yz, zz]])
-
-
 def to_inertial(p: np.ndarray) -> LinkInertial:
     """A link's 10 parameters (Pinocchio's order, about the link frame's origin) as mass, centre of mass and
     inertia about it (no check: `checked_inertial` checks)."""
     m = float(p[0])
     c = p[1:4] / m if m != 0 else np.zeros(3)
-    s = np.array([[0.0, -c[2], c[1]], [c[2], 0.0, -c[0]], [-c[1], c[0], 0.0]])
-    return LinkInertial(mass=m, com=c, inertia=_sym(p[4:]) - m * s.T @ s)
+    s = skew(c)
+    return LinkInertial(mass=m, com=c, inertia=sym(p[4:]) - m * s.T @ s)
 
 
 def training_stems(labelled: Path) -> list[str]:

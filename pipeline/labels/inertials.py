@@ -34,7 +34,7 @@ from pipeline.labels.table import experiment_gravity
 from pipeline.logs import schema as S
 from pipeline.logs.tables import read_table_metadata
 from pipeline.physics.dynamics import ContactCase
-from pipeline.physics.regressor import PARAMS, ReadingRegressor
+from pipeline.physics.regressor import PARAMS, ReadingRegressor, entries, skew, sym
 from pipeline.physics.robot import RobotModel
 
 UNITS = np.r_[np.full(3, 20.0), np.full(3, 4.0)]  # N, Nm: the features' unit per axis
@@ -96,14 +96,6 @@ def sensor_columns(model: str, n_features: int) -> list[int]:
 FREE = 4  # per link: the mass and the first moment; the rotational inertia about the centre of mass stays
 
 
-def _skew(v: np.ndarray) -> np.ndarray:
-    return np.array([[0.0, -v[2], v[1]], [v[2], 0.0, -v[0]], [-v[1], v[0], 0.0]])
-
-
-def _entries(m: np.ndarray) -> np.ndarray:
-    return np.array([m[0, 0], m[0, 1], m[1, 1], m[0, 2], m[1, 2], m[2, 2]])
-
-
 def link_basis(pi: np.ndarray) -> np.ndarray:
     """(10 L, 4 L) the directions of each link's mass and first moment ``h = m c`` (kg, kg m) with its
     rotational inertia about the centre of mass held: the inertia about the link frame's origin,
@@ -114,14 +106,14 @@ def link_basis(pi: np.ndarray) -> np.ndarray:
     out = np.zeros((len(pi), FREE * len(links)))
     for k, p in enumerate(links):
         m, h = p[0], p[1:4]
-        sh = _skew(h)
+        sh = skew(h)
         block = out[PARAMS * k : PARAMS * (k + 1), FREE * k : FREE * (k + 1)]
         block[0, 0] = 1.0
-        block[4:, 0] = _entries(-sh.T @ sh / m**2)
+        block[4:, 0] = entries(-sh.T @ sh / m**2)
         for a in range(3):
-            se = _skew(np.eye(3)[a])
+            se = skew(np.eye(3)[a])
             block[1 + a, 1 + a] = 1.0
-            block[4:, 1 + a] = _entries((se.T @ sh + sh.T @ se) / m)
+            block[4:, 1 + a] = entries((se.T @ sh + sh.T @ se) / m)
     return out
 
 
@@ -133,11 +125,11 @@ def with_change(pi: np.ndarray, change: np.ndarray) -> np.ndarray:
     out = np.array(pi, dtype=float).reshape(-1, PARAMS)
     for k, p in enumerate(out):
         m, h = p[0], p[1:4]
-        sh = _skew(h)
-        i_c = np.array([[p[4], p[5], p[7]], [p[5], p[6], p[8]], [p[7], p[8], p[9]]]) - sh.T @ sh / m
+        sh = skew(h)
+        i_c = sym(p[4:]) - sh.T @ sh / m
         m2, h2 = m + change[FREE * k], h + change[FREE * k + 1 : FREE * (k + 1)]
-        sh2 = _skew(h2)
-        out[k] = np.r_[m2, h2, _entries(i_c + sh2.T @ sh2 / m2)] if m2 > 0 else np.r_[m2, h2, p[4:]]
+        sh2 = skew(h2)
+        out[k] = np.r_[m2, h2, entries(i_c + sh2.T @ sh2 / m2)] if m2 > 0 else np.r_[m2, h2, p[4:]]
     return out.reshape(-1)
 
 

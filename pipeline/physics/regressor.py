@@ -32,17 +32,19 @@ PARAMS = 10  # inertial parameters per link
 PARAM_NAMES = ("m", "mcx", "mcy", "mcz", "Ixx", "Ixy", "Iyy", "Ixz", "Iyz", "Izz")
 
 
-def _skew(v: np.ndarray) -> np.ndarray:
+def skew(v: np.ndarray) -> np.ndarray:
+    """The 3x3 cross-product matrix S(v): ``S(v) @ w = v x w``."""
     return np.array([[0.0, -v[2], v[1]], [v[2], 0.0, -v[0]], [-v[1], v[0], 0.0]])
 
 
-def _sym(i: np.ndarray) -> np.ndarray:
+def sym(i: np.ndarray) -> np.ndarray:
     """The 3x3 symmetric matrix of the 6 inertia entries (xx, xy, yy, xz, yz, zz)."""
     xx, xy, yy, xz, yz, zz = i
     return np.array([[xx, xy, xz], [xy, yy, yz], [xz, yz, zz]])
 
 
-def _entries(m: np.ndarray) -> np.ndarray:
+def entries(m: np.ndarray) -> np.ndarray:
+    """The 6 inertia entries (xx, xy, yy, xz, yz, zz) of a symmetric 3x3 matrix, the inverse of `sym`."""
     return np.array([m[0, 0], m[0, 1], m[1, 1], m[0, 2], m[1, 2], m[2, 2]])
 
 
@@ -51,11 +53,11 @@ def move_params(pi: np.ndarray, placement: pin.SE3) -> np.ndarray:
     a: ``m' = m``, ``h' = R h + m p``, ``I'_o = R I_o R^T + S(Rh)^T S(p) + S(p)^T S(Rh) + m S(p)^T S(p)``
     (S the cross-product matrix), linear in `pi`."""
     r, p = placement.rotation, placement.translation
-    m, h, inertia = pi[0], pi[1:4], _sym(pi[4:])
+    m, h, inertia = pi[0], pi[1:4], sym(pi[4:])
     rh = r @ h
-    sp, srh = _skew(p), _skew(rh)
+    sp, srh = skew(p), skew(rh)
     moved = r @ inertia @ r.T + srh.T @ sp + sp.T @ srh + m * sp.T @ sp
-    return np.r_[m, rh + m * p, _entries(moved)]
+    return np.r_[m, rh + m * p, entries(moved)]
 
 
 def placement_map(placement: pin.SE3) -> np.ndarray:
@@ -122,4 +124,14 @@ class ReadingRegressor:
         return np.matmul(self._maps[None], out.reshape(n, s_count, 6, -1))
 
 
-__all__ = ["PARAMS", "PARAM_NAMES", "ReadingRegressor", "link_params", "move_params", "placement_map"]
+__all__ = [
+    "PARAMS",
+    "PARAM_NAMES",
+    "ReadingRegressor",
+    "entries",
+    "link_params",
+    "move_params",
+    "placement_map",
+    "skew",
+    "sym",
+]
