@@ -1,15 +1,16 @@
 """What the training logs can tell about the robot's inertial parameters, against the simulator's truth.
 
-Every label is the wrench the URDF predicts, so it carries the URDF's mass and centre-of-mass errors. Run in
-a pipeline directory after `dvc repro` on simulated logs (it reads params.yaml, data/smoothed, data/labelled
-and the truth tables data/ingested/*.truth.parquet). Per sensor, on its exact-label samples of every log,
-the labels' error against the true wrench (RMSE, 6 axes pooled, N and Nm):
+Every label is the wrench a robot model predicts, so it carries the model's mass and centre-of-mass errors.
+Run in a pipeline directory after `dvc repro` on simulated logs (it reads params.yaml, data/smoothed,
+data/labelled, the truth tables data/ingested/*.truth.parquet and the URDF the labels were made with,
+models/identified/labels.urdf: robot.urdf's or the identified model, `--labels-urdf`). Per sensor, on its
+exact-label samples of every log, the labels' error against the true wrench (RMSE, 6 axes pooled, N and Nm):
 
-1. ``urdf``: the labels as the label stage made them;
+1. ``labels``: the labels as the label stage made them;
 2. ``true inertials``: the same labels recomputed with the simulated robot's true inertial parameters,
-   ``label + Y (pi_true - pi_urdf)`` (``Y`` the reading regressor, `pipeline.physics.regressor`): what the
+   ``label + Y (pi_true - pi_labels)`` (``Y`` the reading regressor, `pipeline.physics.regressor`): what the
    estimated joint velocities and accelerations alone leave, the floor of any identification;
-3. ``identified``: the labels recomputed with identified parameters, ``label + Y delta``.
+3. ``identified``: the labels recomputed with parameters identified from them, ``label + Y delta``.
 
 The identification is the label stage's (`pipeline.labels.inertials`): every massive link's mass and first
 moment (prior: the URDF's, sd 10 % of the mass and 2 cm of centre of mass; the inertia about the centre of
@@ -27,7 +28,7 @@ reading: a map fitted on the reading would shrink the masses and itself together
 the simulator's true wrench in place of the raw reading (what the experiments identify with a perfect
 sensor), ``--reading oracle`` the exact static inverse of the simulated sensor applied to it (hysteresis
 and noise left). Every part is freed here (the label stage holds the parts the data do not identify). Per
-part (the links between FT joints), the mass: URDF, identified, posterior sd, leave-one-log-out
+part (the links between FT joints), the mass: the labels' URDF, identified, posterior sd, leave-one-log-out
 (jackknife) sd, true.
 
     python benchmarks/identify.py --run .
@@ -47,7 +48,7 @@ import numpy as np
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from pipeline.core.config import Params, load_params, repo_root, resolve_urdf  # noqa: E402
-from pipeline.labels.identify import training_stems  # noqa: E402
+from pipeline.labels.identify import part_table, training_stems  # noqa: E402
 from pipeline.labels.imu_params import label_params  # noqa: E402
 from pipeline.labels.inertials import (  # noqa: E402
     BASE_FEATURES,
@@ -56,18 +57,16 @@ from pipeline.labels.inertials import (  # noqa: E402
     ExactSamples,
     Posterior,
     Sources,
-    feature_prior,
     link_basis,
-    link_prior,
     log_weights,
     normal_equations,
+    prior_precision,
     sensor_columns,
     solve,
     with_change,
 )
 from pipeline.logs import schema as S  # noqa: E402
-from pipeline.physics.cuts import components  # noqa: E402
-from pipeline.physics.regressor import PARAMS, link_params  # noqa: E402
+from pipeline.physics.regressor import link_params  # noqa: E402
 from pipeline.physics.robot import RobotModel, load_robot  # noqa: E402
 from pipeline.sim.params import simulate_params  # noqa: E402
 from pipeline.sim.world import build_world  # noqa: E402
@@ -86,6 +85,11 @@ def parse() -> argparse.Namespace:
     ap.add_argument("--params", type=Path, help="default: RUN/params.yaml")
     for name in ("smoothed", "labelled", "ingested"):
         ap.add_argument(f"--{name}", type=Path, help=f"default: RUN/data/{name}")
+    ap.add_argument(
+        "--labels-urdf",
+        type=Path,
+        help="the labels' URDF (default: RUN/models/identified/labels.urdf if any, else robot.urdf)",
+    )
     ap.add_argument("--sensor", choices=list(SENSOR_MODELS), default="full", help="the sensor model")
     ap.add_argument("--reading", choices=list(READINGS), default="raw", help="what stands for the reading")
     ap.add_argument("--step", type=int, help="every step-th exact sample (default: label.identify.step)")
@@ -95,26 +99,23 @@ def parse() -> argparse.Namespace:
 
 
 def report_parts(
-    robot: RobotModel, links: list[str], pi_urdf: np.ndarray, pi_true: np.ndarray, post: Posterior
+    robot: RobotModel,
+    links: list[str],
+    pi_urdf: np.ndarray,
+    pi_true: np.ndarray,
+    post: Posterior,
+    shrink: float,
 ) -> None:
     """Per part (links between FT joints): its mass as the URDF, the identification (posterior and jackknife
     sd) and the truth say; the count of parts of at least 1 kg identified within 1 % last."""
     print("\npart (heaviest link)   URDF kg   identified kg   posterior sd   jackknife sd    true kg")
     close = heavy = 0
-    for part in components(robot, {ft.joint for ft in robot.sensors.values()}):
-        idx = [k for k, lk in enumerate(links) if lk in part]
-        if not idx:
-            continue
-        sel = np.zeros(FREE * len(links))
-        sel[[FREE * k for k in idx]] = 1.0
-        m_urdf, m_true = (sum(pi[PARAMS * k] for k in idx) for pi in (pi_urdf, pi_true))
-        m_id, sd, parts_loo = m_urdf + sel @ post.delta, np.sqrt(sel @ post.cov @ sel), post.loo @ sel
-        jack = np.sqrt((len(parts_loo) - 1) / len(parts_loo) * ((parts_loo - parts_loo.mean()) ** 2).sum())
-        name = max((links[k] for k in idx), key=lambda lk: robot.links[lk].mass)
-        print(f"{name:>20} {m_urdf:9.3f} {m_id:15.3f} {sd:14.3f} {jack:14.3f} {m_true:10.3f}")
-        if m_urdf >= 1.0:
+    for p in part_table(robot, links, pi_urdf, post, pi_true, shrink):
+        masses = f"{p.mass_urdf:9.3f} {p.mass:15.3f} {p.sd:14.3f} {p.jackknife:14.3f} {p.mass_true:10.3f}"
+        print(f"{p.name:>20} {masses}")
+        if p.mass_urdf >= 1.0:
             heavy += 1
-            close += abs(m_id - m_true) <= 0.01 * m_true
+            close += abs(p.mass - p.mass_true) <= 0.01 * p.mass_true
     print(f"parts of at least 1 kg identified within 1 % of the truth: {close} of {heavy}")
 
 
@@ -125,7 +126,7 @@ def identify(
     widths = np.asarray(args.cfg.widths(), dtype=float).reshape(-1, 6)
     cols = sensor_columns(args.sensor, BASE_FEATURES + len(widths))
     pi_urdf = link_params(robot, links)
-    eqs = []
+    basis, eqs = link_basis(pi_urdf), []
     for stem in training_stems(src.labelled):
         log = ExactSamples(
             src,
@@ -135,15 +136,12 @@ def identify(
             gravity=params.robot.gravity,
             step=args.step,
             widths=widths,
-            basis=link_basis(pi_urdf),
+            basis=basis,
             reading=READINGS[args.reading],
         )
         eqs.append(normal_equations(log, cols))
         print(f"{stem}: {len(log.sw)} exact samples", flush=True)
-    prior = np.r_[
-        link_prior(pi_urdf),
-        np.tile(np.concatenate([feature_prior(a, len(widths))[cols] for a in range(6)]), len(robot.sensors)),
-    ]
+    prior = prior_precision(pi_urdf, cols, len(widths), len(robot.sensors))
     return solve(eqs, prior, FREE * len(links), log_weights(eqs, prior, args.weight))
 
 
@@ -159,7 +157,7 @@ def print_label_errors(
     """Per sensor, the labels' RMSE against truth on every log's exact samples: as labelled, and with the
     parameter changes of `basis` (10 L, 2: the truth's, the identified)."""
     print("\nlabels against truth on exact samples, every log (RMSE, 6 axes pooled, N and Nm)")
-    print(f"{'sensor':>18} {'urdf':>8} {'true inertials':>15} {'identified':>11}")
+    print(f"{'sensor':>18} {'labels':>8} {'true inertials':>15} {'identified':>11}")
     errs: dict[tuple[str, str], list[np.ndarray]] = {}
     for stem in stems:
         none = np.zeros((0, 6))
@@ -193,7 +191,8 @@ def main() -> None:
             else (f"{dirs['ingested']}: no <log>.truth.parquet for {len(missing)} of {len(stems)} logs")
         )
         sys.exit(f"identify: {what} (it needs simulated logs after dvc repro)")
-    robot = load_robot(resolve_urdf(params.robot.urdf, repo_root()))
+    labels_urdf = args.labels_urdf or args.run / "models" / "identified" / "labels.urdf"
+    robot = load_robot(labels_urdf if labels_urdf.is_file() else resolve_urdf(params.robot.urdf, repo_root()))
     truth_robot = build_world(params, simulate_params(params)).truth_robot
     links = [lk for lk, i in robot.links.items() if i is not None and i.mass > 0]
     pi_urdf = link_params(robot, links)
@@ -205,7 +204,7 @@ def main() -> None:
     post = identify(src, robot, links, params, args)
     delta = with_change(pi_urdf, post.delta) - pi_urdf
     print_label_errors(src, stems, robot, links, np.column_stack([truth_delta, delta]), params, args.step)
-    report_parts(robot, links, pi_urdf, pi_urdf + truth_delta, post)
+    report_parts(robot, links, pi_urdf, pi_urdf + truth_delta, post, args.cfg.shrink)
 
 
 if __name__ == "__main__":

@@ -188,6 +188,7 @@ def test_identify_benchmark_runs_on_the_outputs(pipeline_run: dict[str, Any]) ->
     inertial parameters are closer to the true wrench than the URDF's for every sensor with exact samples."""
     d = pipeline_run["dirs"]
     args = ["--params", str(pipeline_run["tmp"] / "params.yaml"), "--quick"]
+    args += ["--labels-urdf", str(d["models"] / "identified" / "labels.urdf")]
     args += [f"--{n}={d[n]}" for n in ("smoothed", "labelled", "ingested")]
     proc = _benchmark("benchmarks/identify.py", args)
     last = "parts of at least 1 kg identified within 1 % of the truth"

@@ -32,11 +32,10 @@ from pipeline.labels.inertials import (
     FREE,
     ExactSamples,
     Sources,
-    feature_prior,
     link_basis,
-    link_prior,
     log_weights,
     normal_equations,
+    prior_precision,
     sensor_columns,
     solve,
     with_change,
@@ -178,7 +177,7 @@ def _parts(robot: RobotModel, links: list[str]) -> list[tuple[str, list[int]]]:
     return out
 
 
-def _part_table(
+def part_table(
     robot: RobotModel,
     links: list[str],
     pi_urdf: np.ndarray,
@@ -186,7 +185,9 @@ def _part_table(
     pi_true: np.ndarray | None,
     shrink: float,
 ) -> list[Part]:
-    """Every part's masses (`Part`) from the posterior `post` over the links' masses and first moments."""
+    """Every part's masses (`Part`) from the posterior `post` over the links' masses and first moments
+    (`pipeline.labels.inertials.Posterior`); `pi_true`: a simulated robot's true parameters, else None; a
+    part is identified where its mass's sd is at most `shrink` x the prior's."""
     parts = []
     for name, idx in _parts(robot, links):
         sel = np.zeros(FREE * len(links))
@@ -287,11 +288,10 @@ def identify_robot(
     n_plays = len(cfg.play_widths_n)
     cols = sensor_columns(SENSOR_MODEL, BASE_FEATURES + n_plays)
     eqs, stats, loaded, samples = _read_logs(src, stems, robot, links, cfg, gravity, both, progress)
-    sensor_prior = [feature_prior(a, n_plays)[cols] for a in range(6)]
-    prior = np.r_[link_prior(pi_urdf), np.tile(np.concatenate(sensor_prior), len(robot.sensors))]
+    prior = prior_precision(pi_urdf, cols, n_plays, len(robot.sensors))
     weights = log_weights(eqs, prior, cfg.weight)
     free = solve(eqs, prior, n_p, weights)
-    parts = _part_table(robot, links, pi_urdf, free, pi_true, cfg.shrink)
+    parts = part_table(robot, links, pi_urdf, free, pi_true, cfg.shrink)
     held = np.ones(n_p, dtype=bool)
     for part in (p for p in parts if p.identified):
         for k in (links.index(lk) for lk in part.links):
@@ -350,4 +350,4 @@ def _with_mass(p: Part, links: list[str], pi_urdf: np.ndarray, change: np.ndarra
     )
 
 
-__all__ = ["Identification", "Part", "identify_robot", "to_inertial", "training_stems"]
+__all__ = ["Identification", "Part", "identify_robot", "part_table", "to_inertial", "training_stems"]

@@ -144,6 +144,14 @@ def link_prior(pi: np.ndarray) -> np.ndarray:
     return np.concatenate(out)
 
 
+def prior_precision(pi: np.ndarray, cols: list[int], n_plays: int, n_sensors: int) -> np.ndarray:
+    """(4 L + S 6 len(cols),) the prior precision of every unknown in `normal_equations`' order: the links'
+    masses and first moments around the URDF's `pi` (10 L,), then per sensor and axis the coefficients of
+    the features `cols` (with `n_plays` play operators)."""
+    sensor = np.concatenate([feature_prior(a, n_plays)[cols] for a in range(6)])
+    return np.r_[link_prior(pi), np.tile(sensor, n_sensors)]
+
+
 @dataclass(frozen=True)
 class Sources:
     """Where one log's tables are: the smoothed (joint states), the labelled, and for simulated logs the
@@ -311,6 +319,7 @@ __all__ = [
     "log_weights",
     "with_change",
     "normal_equations",
+    "prior_precision",
     "sensor_columns",
     "solve",
 ]
