@@ -230,21 +230,21 @@ def _read_logs(
     stems: list[str],
     robot: RobotModel,
     links: list[str],
-    cfg: IdentifyParams,
     gravity: float,
+    step: int,
+    widths: np.ndarray,
+    cols: list[int],
     both: np.ndarray,
     progress: Any,
 ) -> tuple[list[Any], dict[str, SensorStats], list[str], int]:
-    """Per log the normal equations over the first 4 L columns of `both` (10 L, B: `link_basis`, and the
-    truth's direction last for a simulated robot); per sensor the labels' statistics over all B; the logs
-    with known loads; the number of exact samples."""
+    """Per log the normal equations (sensor features `cols`, play widths `widths` (K, 6)) over the first 4 L
+    columns of `both` (10 L, B: `link_basis`, and the truth's direction last for a simulated robot); per
+    sensor the labels' statistics over all B; the logs with known loads; the number of exact samples."""
     n_p = FREE * len(links)
-    widths = np.asarray(cfg.widths(), dtype=float).reshape(-1, 6)
-    cols = sensor_columns(SENSOR_MODEL, BASE_FEATURES + len(widths))
     stats = {s: SensorStats(np.zeros((both.shape[1],) * 2), np.zeros(both.shape[1])) for s in robot.sensors}
     eqs, loaded, samples = [], [], 0
     for stem in stems:
-        log = ExactSamples(src, stem, robot, links, gravity=gravity, step=cfg.step, widths=widths, basis=both)
+        log = ExactSamples(src, stem, robot, links, gravity=gravity, step=step, widths=widths, basis=both)
         for k, s in enumerate(log.sensors):
             on = log.sw[:, k]
             stats[s].add(log.Y[on, k], None if log.true is None else log.label[on, k] - log.true[on, k])
@@ -275,9 +275,7 @@ def identify_robot(
     """
     stems = training_stems(src.labelled)
     if not stems:
-        raise DataError(
-            f"{src.labelled}: no training log (experiment metadata role 'train') to identify from"
-        )
+        raise DataError(f"{src.labelled}: no training log (experiment metadata role 'train') to identify")
     links = [lk for lk, i in robot.links.items() if i is not None and i.mass > 0]
     pi_urdf = link_params(robot, links)
     pi_true = link_params(truth_robot, links) if truth_robot is not None else None
@@ -285,10 +283,12 @@ def identify_robot(
     n_p = basis.shape[1]
     # the statistics of the labels' change also carry the truth's direction, as a last column
     both = basis if pi_true is None else np.column_stack([basis, pi_true - pi_urdf])
-    n_plays = len(cfg.play_widths_n)
-    cols = sensor_columns(SENSOR_MODEL, BASE_FEATURES + n_plays)
-    eqs, stats, loaded, samples = _read_logs(src, stems, robot, links, cfg, gravity, both, progress)
-    prior = prior_precision(pi_urdf, cols, n_plays, len(robot.sensors))
+    widths = np.asarray(cfg.widths(), dtype=float).reshape(-1, 6)
+    cols = sensor_columns(SENSOR_MODEL, BASE_FEATURES + len(widths))
+    eqs, stats, loaded, samples = _read_logs(
+        src, stems, robot, links, gravity, cfg.step, widths, cols, both, progress
+    )
+    prior = prior_precision(pi_urdf, cols, len(widths), len(robot.sensors))
     weights = log_weights(eqs, prior, cfg.weight)
     free = solve(eqs, prior, n_p, weights)
     parts = part_table(robot, links, pi_urdf, free, pi_true, cfg.shrink)
