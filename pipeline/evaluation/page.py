@@ -330,9 +330,10 @@ def render_html(
         f"<th>{_e(h)}</th>" for h in ["group", "quasi-static s", "stretches", "signal share", *models]
     )
     labels = availability_section(availability)
-    labels += identification_section(identification, figures.get("identified"))
-    labels_link = "<a href='#labels'>Exact-label availability</a>" if availability else ""
-    labels_link += "<a href='#identified'>Identified robot model</a>" if identification else ""
+    labels_link = "<a href='#labels'>Exact-label availability</a>" if labels else ""
+    identified = identification_section(identification, figures.get("identified"))
+    labels_link += "<a href='#identified'>Identified robot model</a>" if identified else ""
+    labels += identified
     parts = [
         "<h1>FT sensor calibration: evaluation on the test logs</h1>",
         f"<p class='meta'>generated {now} · git {_e(_git_commit())} · groups: {_e(groups)} · "
