@@ -59,27 +59,25 @@ def synthetic_models(
 
 
 def synthetic_linear(models_dir: Path, name: str = "play", seed: int = 0) -> list[GroupModel]:
-    """Write models/<group>/ with a random `name` model (``affine``, or ``play`` with the widths of the
-    params' train.defaults) in baselines.json for every group; return the export adapter's view."""
+    """Write models/<group>/ with a random `name` model (``affine``, ``play`` with the widths or ``arx`` with
+    the time constants of the params' train.defaults, at 100 Hz) in baselines.json for every group; return
+    the export adapter's view."""
     from pipeline.calib.linear import LinearBaseline, monomial_powers
     from pipeline.calib.params import TrainParams
     from pipeline.core.config import stage_section
 
     gp = stage_section(load_params(ROOT / "params.yaml"), "train", TrainParams).group("r_arm_ft")
     widths = None if name != "play" else np.asarray(gp.play_widths(), dtype=np.float64)
+    tcs = None if name != "arx" else np.asarray(gp.arx_time_constants(), dtype=np.float64)
     rng = np.random.default_rng(seed)
     out = []
     for group, sensors in GROUPS.items():
-        n, p = len(sensors), 8 + (0 if widths is None else widths.size)
+        n = len(sensors)
         offset = np.tile(np.r_[np.zeros(6), 30.0], (n, 1))
         model = LinearBaseline(
-            name,
-            offset,
-            np.tile(SCALE[:7], (n, 1)),
-            monomial_powers(7, 1),
-            rng.normal(size=(n, 6, p)),
-            widths,
+            name, offset, np.tile(SCALE[:7], (n, 1)), monomial_powers(7, 1), np.zeros(0), widths, tcs, 0.01
         )
+        model.weights = rng.normal(size=(n, 6, 8 + 6 * model.n_operators))
         d = models_dir / group
         d.mkdir(parents=True, exist_ok=True)
         write_json(d / "baselines.json", {name: model.to_dict()})

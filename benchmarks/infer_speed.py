@@ -16,6 +16,8 @@ search may pick 64, 100 or 128) and measures, on one thread:
    sample per call) and the groups' graphs (laid out for batches, as `ftcal calibrate` runs them);
 5. for scale, the same call of a graph that only copies its input (onnxruntime's per-call floor, from C
    and from Python, on this machine at this load).
+6. the linear families fused for the 8 sensors through the C API: affine (memoryless), play and arx (with
+   memory: their state carried from call to call).
 
 Both agree on the outputs first. Then 1. and 2. for the real export's fused graph (``--export DIR``,
 default ``exported/`` when present; ``--export ''`` skips it), on random inputs of plausible size (the
@@ -275,7 +277,7 @@ def _measure(args: argparse.Namespace, work: Path) -> None:
     rows_t = [torch.tensor(r, dtype=torch.float32).reshape(1, -1) for r in pool]
     results["torch eager float32"] = latencies(torch_all, rows_t, args.calls)
 
-    for name in ("affine", "play"):  # the linear families, memoryless and with memory, in the same run
+    for name in ("affine", "play", "arx"):  # the linear families, memoryless and with memory, in the same run
         linear_doc = synthetic_export(work / name, synthetic_linear(work / f"{name}_models", name))
         linear = linear_doc["graphs"][linear_doc["fused"]]
         state = int(linear["state"]["shape"][0]) if "state" in linear else 0
@@ -288,7 +290,7 @@ def _measure(args: argparse.Namespace, work: Path) -> None:
     _print(results, 8)
     verdicts = [_verdict("synthetic, C API", results["onnxruntime C API float32"])]
     verdicts.append(_verdict("synthetic, Python", results["onnxruntime float32 bound"]))
-    for k in ("affine", "play"):
+    for k in ("affine", "play", "arx"):
         verdicts.append(_verdict(f"synthetic {k}, C API", results[f"{k} 8 sensors C API float32"]))
     if args.export:
         about, n_sensors, real = _real_export(Path(args.export), args.calls, args.rows, work)

@@ -387,11 +387,11 @@ def test_the_export_records_which_boards_it_belongs_to(setup: dict, tmp_path: Pa
     assert f"records no serial of {LEG}, {FRONT}, {REAR}: cannot check" in capsys.readouterr().err
 
 
-@pytest.fixture(scope="module")
-def memory_export(setup: dict, tmp_path_factory: pytest.TempPathFactory) -> Path:
-    """The same trained groups exported with their play models (memory) recommended."""
-    tmp = tmp_path_factory.mktemp("calibrate_memory")
-    report = _metrics_dir(tmp, {LEG: "play", PAIR: "play"})
+@pytest.fixture(scope="module", params=["play", "arx"])
+def memory_export(setup: dict, tmp_path_factory: pytest.TempPathFactory, request: Any) -> tuple[str, Path]:
+    """The same trained groups exported with a model with memory recommended: (its name, the export)."""
+    tmp = tmp_path_factory.mktemp(f"calibrate_{request.param}")
+    report = _metrics_dir(tmp, {LEG: request.param, PAIR: request.param})
     patch = pytest.MonkeyPatch()
     patch.setenv("MLFLOW_TRACKING_URI", f"sqlite:///{tmp / 'mlflow.db'}")
     try:
@@ -399,7 +399,7 @@ def memory_export(setup: dict, tmp_path_factory: pytest.TempPathFactory) -> Path
         E.run(params, setup["models"], report, setup["labelled"], tmp / "exported")
     finally:
         patch.undo()
-    return tmp / "exported"
+    return request.param, tmp / "exported"
 
 
 def _spike(sensor: str, t: np.ndarray, w: np.ndarray) -> None:
@@ -409,9 +409,9 @@ def _spike(sensor: str, t: np.ndarray, w: np.ndarray) -> None:
 
 
 def test_calibrate_with_memory_is_causal_and_carries_the_state(
-    setup: dict, memory_export: Path, tmp_path: Path
+    setup: dict, memory_export: tuple[str, Path], tmp_path: Path
 ) -> None:
-    """A play model's calibration of every raw message equals the project's model run over the sensor's
+    """A play or arx model's calibration of every raw message equals the project's model run over the sensor's
     messages in stamp order from the log's first (the state carried across ~15 chunks); a message changed
     6 s into the log changes no earlier output, and later ones too (the state remembers it)."""
     logs = {"plain": setup["log"], "spiked": tmp_path / "spiked.mcap"}
@@ -419,11 +419,11 @@ def test_calibrate_with_memory_is_causal_and_carries_the_state(
     got = {}
     for name, log in logs.items():
         out = tmp_path / f"{name}_calibrated.mcap"
-        assert main(_cli(setup, log, out, models=memory_export)) == 0
+        assert main(_cli(setup, log, out, models=memory_export[1])) == 0
         got[name] = _decoded(out)
     decoded = _decoded(setup["log"])
     for sensor, group in ((LEG, LEG), (FRONT, PAIR)):
-        model = read_group(setup["models"] / group, "play")
+        model = read_group(setup["models"] / group, memory_export[0])
         slot = model.sensors.index(sensor)
         expected = _expected(decoded, sensor, model.n_inputs)  # in log-time order: sorted by stamp here
         raw = [(_stamp(m.ros_msg), _vec(m.ros_msg.wrench.force) + _vec(m.ros_msg.wrench.torque), e)
@@ -444,3 +444,20 @@ def test_calibrate_with_memory_is_causal_and_carries_the_state(
 
 def _wrenches(messages: list[Any]) -> np.ndarray:
     return np.array([_vec(m.ros_msg.wrench.force) + _vec(m.ros_msg.wrench.torque) for m in messages])
+
+
+def test_filters_refuse_a_log_at_another_rate(
+    setup: dict, memory_export: tuple[str, Path], tmp_path: Path, capsys: Any
+) -> None:
+    """An arx model's filters were trained at 100 Hz: a 50 Hz log is refused, naming the topic and both
+    periods, and nothing is written; a play model reads the path alone and calibrates it."""
+    name, export = memory_export
+    log, out = tmp_path / "slow.mcap", tmp_path / "slow_calibrated.mcap"
+    write_log(log, SENSORS, 4.0, rate_hz=50.0, seed=4, serials=SERIALS)
+    code = main(_cli(setup, log, out, models=export))
+    err = capsys.readouterr().err
+    if name == "arx":
+        assert code != 0 and not out.exists()
+        assert f"/ft/{LEG}/wrench: messages 20 ms apart" in err and "run at 10 ms" in err, err
+    else:
+        assert code == 0 and out.exists()

@@ -27,7 +27,7 @@ from pipeline.export.trained import read_group
 from pipeline.stages import export as E
 from tests.test_train import LEG, PAIR
 
-MODELS = ("raw", "affine", "poly1", "poly2", "play", "nn7", "nn13")
+MODELS = ("raw", "affine", "poly1", "poly2", "play", "arx", "nn7", "nn13")
 SCALE = np.array([60.0, 60.0, 200.0, 4.0, 4.0, 1.5, 4.0, 1, 1, 1, 1, 1, 1])  # per input: N, Nm, degC, ...
 
 

@@ -79,6 +79,7 @@ TRAIN_PARAMS = {
         "ridge": 1.0e-6,
         "play_widths_n": [10.0, 30.0],
         "play_widths_nm": [0.5, 1.5],
+        "arx_time_constants_s": [0.5, 5.0],
     },
     "groups": {LEG: {"sensor": LEG}, PAIR: {"pair": PAIR, "normalisation": "standard"}},
 }
@@ -383,7 +384,7 @@ def test_end_to_end_resumes_registers_and_repeats(
 
     m = a.metrics
     for split in ("val", "test"):
-        assert set(m[split]) == {"raw", "affine", "poly1", "poly2", "play", "nn7", "nn13"}
+        assert set(m[split]) == {"raw", "affine", "poly1", "poly2", "play", "arx", "nn7", "nn13"}
         for errors in m[split].values():
             assert {FRONT, REAR, PAIR, "rmse", "rmse_labelled"} <= set(errors)
             assert errors["rmse"] == errors[PAIR]["rmse"]
@@ -405,7 +406,7 @@ def test_end_to_end_resumes_registers_and_repeats(
         assert first["epoch"] == -1 and first["val_rmse"] == pytest.approx(errors["affine"], rel=1e-3)
     # The synthetic distortion is nearly affine: every calibration beats the raw wrench by far.
     raw = m["test"]["raw"]["rmse"]
-    for name in ("affine", "poly1", "poly2", "play", "nn7", "nn13"):
+    for name in ("affine", "poly1", "poly2", "play", "arx", "nn7", "nn13"):
         assert m["test"][name]["rmse"] < raw / 3, (name, m["test"][name]["rmse"], raw)
 
     # Model files: weights-only, and the same predictions as in predictions.parquet.
@@ -485,7 +486,7 @@ def test_cli_single_sensor_group(
     assert code == 0, captured.err
     assert captured.out.startswith(f"{LEG}: test RMSE of {LEG}")
     metrics = json.loads((out / "metrics.json").read_text())
-    assert set(metrics["test"]) == {"raw", "affine", "poly1", "poly2", "play", "nn7"}
+    assert set(metrics["test"]) == {"raw", "affine", "poly1", "poly2", "play", "arx", "nn7"}
     assert metrics["kind"] == "sensor" and metrics["headline"] == LEG
     assert sorted(p.name for p in out.iterdir()) == [
         "baselines.json",

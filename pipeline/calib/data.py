@@ -31,7 +31,7 @@ from pipeline.calib.params import GroupParams
 from pipeline.calib.scores import wrench_errors
 from pipeline.core.config import Params
 from pipeline.core.errors import ConfigError, DataError
-from pipeline.core.play import play_memory
+from pipeline.core.lowpass import memory_of, nominal_period
 from pipeline.logs import schema as S
 
 ROLE_TRAIN, ROLE_TEST = "train", "test"
@@ -53,6 +53,7 @@ class Group:
     tested: tuple[str, ...] | None = None  # the sensors with exact labels of their own on the test logs
     left_out: tuple[tuple[str, str], ...] = ()  # (sensor, why) of the sensors without any exact label
     widths: tuple[tuple[float, ...], ...] | None = None  # the play model's widths (K, 6), None: no play model
+    time_constants: tuple[float, ...] | None = None  # the arx model's filters (J,) s, None: no arx model
 
     @property
     def headlines(self) -> tuple[str, ...]:
@@ -106,18 +107,15 @@ class GroupData:
     cut_labels: np.ndarray | None = None  # (N, C, 6) cut-set sums, NaN where the switch is 0
     cut_switches: np.ndarray | None = None  # (N, C) bool
     poses: np.ndarray | None = None  # (N, P, 12) the cut sets' moving members' poses (CutTerm)
-    memory: np.ndarray | None = None  # (N, S, 6 K) a play model's memory (`linear.play_memory`), else None
+    memory: np.ndarray | None = None  # (N, S, 6 K + 6 J) the play and arx models' memory (`memory_of`)
+    period: np.ndarray | None = None  # (N,) s the sample period of each sample's log (with memory)
 
     def __len__(self) -> int:
         return len(self.log)
 
     def subset(self, mask: np.ndarray) -> GroupData:
-        return GroupData(
-            **{
-                f.name: (None if getattr(self, f.name) is None else getattr(self, f.name)[mask])
-                for f in fields(self)
-            }
-        )
+        values = {f.name: getattr(self, f.name) for f in fields(self)}
+        return GroupData(**{k: None if v is None else v[mask] for k, v in values.items()})
 
     @property
     def alpha_sum(self) -> np.ndarray | None:
@@ -202,7 +200,12 @@ def expand_feet(gp: GroupParams, logs: Sequence[LogInfo]) -> GroupParams:
 
 def resolve_group(gp: GroupParams, params: Params, logs: Sequence[LogInfo]) -> Group:
     """The group `gp` trains, checked against the labelled tables (see `_resolve_group`)."""
-    return replace(_resolve_group(gp, params, logs), n_inputs=max(gp.inputs), widths=gp.play_widths())
+    return replace(
+        _resolve_group(gp, params, logs),
+        n_inputs=max(gp.inputs),
+        widths=gp.play_widths(),
+        time_constants=gp.arx_time_constants(),
+    )
 
 
 def _resolve_group(gp: GroupParams, params: Params, logs: Sequence[LogInfo]) -> Group:
@@ -379,8 +382,10 @@ def _read_log(log: LogInfo, group: Group, index: int) -> GroupData:
                 data.cut_switches[:, c] &= np.isfinite(data.poses[:, p]).all(axis=1)
                 p += 1
         data.poses = np.nan_to_num(data.poses)
-    if group.widths is not None:  # over every reading of the log, before the samples are picked
-        data.memory = play_memory(data.x, np.asarray(group.widths))
+    if group.widths is not None or group.time_constants is not None:  # over every reading, before any pick
+        period = nominal_period(data.time)
+        data.memory = memory_of(data.x, group.widths, group.time_constants, period)
+        data.period = np.full(n, period)
     ok &= np.isfinite(data.x[:, :, : group.n_inputs]).all(axis=(1, 2))
     data = data.subset(ok)
     exact = [(n, data.labels[:, s], data.switches[:, s]) for s, n in enumerate(group.sensors)]
@@ -393,17 +398,12 @@ def _read_log(log: LogInfo, group: Group, index: int) -> GroupData:
 
 
 def concat(parts: Sequence[GroupData]) -> GroupData:
-    first = parts[0]
-    return GroupData(
-        **{
-            f.name: (
-                None
-                if getattr(first, f.name) is None
-                else np.concatenate([getattr(p, f.name) for p in parts])
-            )
-            for f in fields(GroupData)
-        }
-    )
+    """The samples of `parts`, one after the other."""
+
+    def joined(name: str) -> np.ndarray | None:
+        return None if getattr(parts[0], name) is None else np.concatenate([getattr(p, name) for p in parts])
+
+    return GroupData(**{f.name: joined(f.name) for f in fields(GroupData)})
 
 
 def derive_seed(seed: int, *parts: str | int) -> int:

@@ -30,7 +30,7 @@ from pipeline.calib.imu_gate import refuse_flagged_imu
 from pipeline.calib.linear import LinearBaseline, fit_linear_baseline
 from pipeline.calib.params import LS_AFFINE, GroupParams, TrainParams, baseline_inputs
 from pipeline.calib.records import flatten_metrics
-from pipeline.calib.registry import AFFINE, PLAY, poly_name
+from pipeline.calib.registry import AFFINE, ARX, PLAY, poly_name
 from pipeline.calib.search import NetResult
 from pipeline.calib.training import NetSetting
 from pipeline.core.config import Params, stage_section
@@ -141,7 +141,7 @@ def fit_baselines(
 
 def fit_affine(gp: GroupParams, group: Group, train: GroupData, seed: int) -> LinearBaseline:
     """The affine baseline of `fit_baselines` alone: the map the group's networks correct."""
-    alone = replace(gp, poly_orders=(), play_widths_n=(), play_widths_nm=())
+    alone = replace(gp, poly_orders=(), play_widths_n=(), play_widths_nm=(), arx_time_constants_s=())
     return fit_baselines(alone, group, train, seed)[AFFINE]
 
 
@@ -208,6 +208,11 @@ def _fit_group_baselines(
     if group.widths is not None:
         widths, memory = np.asarray(group.widths), train.memory
         out[PLAY] = fit_linear_baseline(PLAY, order=1, ridge=0.0, widths=widths, memory=memory, **args)
+    if group.time_constants is not None:  # at the training logs' (median) sample period
+        tcs, period = np.asarray(group.time_constants), float(np.median(train.period))
+        out[ARX] = fit_linear_baseline(
+            ARX, order=1, ridge=0.0, time_constants=tcs, period=period, memory=train.memory, **args
+        )
     return out
 
 
@@ -224,7 +229,12 @@ def _fit_baselines_by_part(
     parts += [([s], None) for s in range(len(group.sensors)) if s not in taken]
     fitted: list[tuple[list[int], dict[str, LinearBaseline]]] = []
     for members, c in parts:
-        sub = Group(group.name, tuple(group.sensors[s] for s in members), widths=group.widths)
+        sub = Group(
+            group.name,
+            tuple(group.sensors[s] for s in members),
+            widths=group.widths,
+            time_constants=group.time_constants,
+        )
         part = GroupData(
             train.log,
             train.stamp,
@@ -233,6 +243,7 @@ def _fit_baselines_by_part(
             train.labels[:, members],
             train.switches[:, members],
             memory=None if train.memory is None else train.memory[:, members],
+            period=train.period,
         )
         if c is not None:
             sub = replace(sub, pair=group.cuts[c].label, transforms=group.cuts[c].fixed)
@@ -257,13 +268,11 @@ def _fit_baselines_by_part(
         stack = sorted(
             (s, b, k) for members, models in fitted for k, s in enumerate(members) for b in [models[name]]
         )
-        out[name] = LinearBaseline(
-            name,
-            np.stack([b.offset[k] for _, b, k in stack]),
-            np.stack([b.scale[k] for _, b, k in stack]),
-            stack[0][1].powers,
-            np.stack([b.weights[k] for _, b, k in stack]),
-            stack[0][1].widths,
+        out[name] = replace(
+            stack[0][1],
+            offset=np.stack([b.offset[k] for _, b, k in stack]),
+            scale=np.stack([b.scale[k] for _, b, k in stack]),
+            weights=np.stack([b.weights[k] for _, b, k in stack]),
         )
     return out
 

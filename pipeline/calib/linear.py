@@ -1,5 +1,5 @@
 """Linear models of a sensor group: the affine map the networks correct, polynomials of order 1-4, and the
-affine map with play operators (memory).
+affine map with play operators or low-pass filters of the raw wrench (memory).
 
 Every model here is ``f = f_raw + W phi(x)``, linear in its parameters W, fitted in closed form on the same
 switched least-squares objective as the networks (`pipeline.calib.losses`, thesis eqs. 5.4-5.12), with the
@@ -7,14 +7,18 @@ virtual pushes' prior (`pipeline.calib.pushes`): ``affine`` (phi = [f, T, 1], le
 the in-situ affine calibration with temperature), ``poly<n>`` (phi = every monomial up to order n of
 the 7 standardised inputs, ridge; Mohamed et al. 2023 with na = nb = 0) and ``play`` (phi = the affine
 features and, per raw wrench axis and play width r, the play operator's state ``z = (f_a - y) / r`` in
-[-1, 1], `pipeline.core.play`: a Prandtl-Ishlinskii model of the sensor's hysteresis, least squares; output
-axis a reads the play states of raw axis a only).
+[-1, 1], `pipeline.core.play`: a Prandtl-Ishlinskii model of the sensor's hysteresis, least squares) and
+``arx`` (phi = the affine features and, per raw wrench axis and time constant tau, the reading's departure
+``f_a - y`` from its first-order low-pass y, `pipeline.core.lowpass`: a lagged linear map of the raw wrench's
+history, least squares). Output axis a of a model with memory reads the states of raw axis a only.
 
-The play model has memory: a sample's features depend on the play outputs y of the sample before
-(``memory``, (N, S, 6 K): per width k and axis a, column ``6 k + a``, in the wrench's unit; NaN at a fresh
-start, where y starts at the sample's own reading). `play_memory` computes it over one log's samples in time
-order, each sensor's over the samples where its wrench is finite (a missing reading neither moves nor resets
-the operators, as in the exported graph). A virtual push moves the present reading with that memory held.
+The play and arx models have memory: a sample's features depend on the operators' outputs y of the sample
+before (``memory``, (N, S, M): its first 6 K columns the play outputs, per width k and axis a column
+``6 k + a``, its last 6 J the filter outputs, per time constant j and axis a, in the wrench's unit; NaN at a
+fresh start, where y starts at the sample's own reading; a group's memory holds both and serves each model).
+`pipeline.core.lowpass.memory_of` computes it over one log's samples in time order, each sensor's over the
+samples where its wrench is finite (a missing reading neither moves nor resets the operators). A virtual push
+moves the present reading with that memory held.
 Arrays are (N, S, ...) over N samples and S sensors; wrenches N and Nm.
 """
 
@@ -31,7 +35,8 @@ import numpy as np
 from pipeline.calib.pushes import PushPrior, linear_push_gram, push_gram
 from pipeline.calib.scores import WRENCH
 from pipeline.core.errors import DataError
-from pipeline.core.play import play_features, play_memory
+from pipeline.core.lowpass import alphas, lowpass_features, memory_of
+from pipeline.core.play import play_features
 
 AFFINE_INPUTS = 7  # raw wrench + temperature: the inputs of the affine map and the polynomials (6 where
 # a group trains on the wrench alone: `fit_linear_baseline(n_inputs=6)`, the networks' affine map then 6 wide)
@@ -106,11 +111,13 @@ def _monomial_plan(powers: np.ndarray) -> list[tuple[int, int, int]]:
 @dataclass
 class LinearBaseline:
     """``f_s = f_raw,s + W_s phi(x_s)`` per sensor s, phi = monomials of the standardised 7 inputs, and
-    with play `widths` the play states of the raw wrench after them.
+    with play `widths` the play states of the raw wrench after them, with `time_constants` its departures from
+    its low-pass filters after those.
 
     `offset`/`scale` (S, 7) standardise each sensor's inputs; `powers` (P, 7) are the monomial
-    exponents (order 1: [1, f, T], the affine model); `weights` (S, 6, P [+ 6 K]) the fitted W_s; `widths`
-    (K, 6) the play widths per raw axis (N, Nm), None for a memoryless model.
+    exponents (order 1: [1, f, T], the affine model); `weights` (S, 6, P [+ 6 K] [+ 6 J]) the fitted W_s;
+    `widths` (K, 6) the play widths per raw axis (N, Nm), `time_constants` (J,) the filters' (s) at `period`
+    (s, the training logs' sample period), None for a memoryless model.
     """
 
     name: str
@@ -119,26 +126,40 @@ class LinearBaseline:
     powers: np.ndarray
     weights: np.ndarray
     widths: np.ndarray | None = None
+    time_constants: np.ndarray | None = None
+    period: float | None = None
 
     @property
     def memory(self) -> bool:
-        """Whether the model reads the play outputs of the sample before (its `memory`)."""
-        return self.widths is not None
+        """Whether the model reads the operators' outputs of the sample before (its `memory`)."""
+        return self.widths is not None or self.time_constants is not None
+
+    @property
+    def n_operators(self) -> int:
+        """Operators per raw axis: K play widths and J filters."""
+        return sum(len(v) for v in (self.widths, self.time_constants) if v is not None)
 
     def features(self, x: np.ndarray, s: int, memory: np.ndarray | None = None) -> np.ndarray:
-        """(N, P [+ 6 K]) features of sensor s from its raw inputs x (N, >= 7; >= 6 for a wrench-only model)
-        and, with memory, the play outputs before each sample (N, 6 K) (module docstring)."""
+        """(N, P [+ 6 K] [+ 6 J]) features of sensor s from its raw inputs x (N, >= 7; >= 6 for a wrench-only
+        model) and, with memory, the operators' outputs before each sample (N, M >= 6 K + 6 J: the play
+        outputs first, the filters' last; module docstring)."""
         k = self.offset.shape[1]  # 7, or 6 without temperature
-        phi = _monomials((x[:, :k] - self.offset[s]) / self.scale[s], self.powers)
-        if self.widths is None:
-            return phi
+        phi = [_monomials((x[:, :k] - self.offset[s]) / self.scale[s], self.powers)]
+        if not self.memory:
+            return phi[0]
         if memory is None:
-            raise ValueError(f"{self.name}: a model with memory needs the play outputs before each sample")
-        return np.concatenate([phi, play_features(x[:, :WRENCH], memory, self.widths)], axis=1)
+            raise ValueError(f"{self.name}: a model with memory needs its operators' outputs before a sample")
+        if self.widths is not None:
+            phi.append(play_features(x[:, :WRENCH], memory[:, : self.widths.size], self.widths))
+        if self.time_constants is not None:
+            j = WRENCH * len(self.time_constants)
+            gains = alphas(self.time_constants, float(self.period))
+            phi.append(lowpass_features(x[:, :WRENCH], memory[:, memory.shape[1] - j :], gains))
+        return np.concatenate(phi, axis=1)
 
     def predict(self, x: np.ndarray, memory: np.ndarray | None = None) -> np.ndarray:
-        """(N, S, 6) calibrated wrenches from raw inputs x (N, S, >= 7) (with memory: and the play outputs
-        before each sample, (N, S, 6 K), `play_memory`)."""
+        """(N, S, 6) calibrated wrenches from raw inputs x (N, S, >= 7) (with memory: and the operators'
+        outputs before each sample, (N, S, M), `memory_of`)."""
         return np.stack(
             [
                 x[:, s, :WRENCH]
@@ -148,10 +169,10 @@ class LinearBaseline:
             axis=1,
         )
 
-    def predict_log(self, x: np.ndarray) -> np.ndarray:
-        """(N, S, 6) calibrated wrenches of one log's samples x (N, S, >= 7) in time order, the memory
-        starting afresh at its first sample (`play_memory`)."""
-        return self.predict(x, play_memory(x, self.widths) if self.widths is not None else None)
+    def predict_log(self, x: np.ndarray, period: float | None = None) -> np.ndarray:
+        """(N, S, 6) calibrated wrenches of one log's samples x (N, S, >= 7) in time order, `period` s apart
+        (None: the training logs' period), the memory starting afresh at its first sample (`memory_of`)."""
+        return self.predict(x, memory_of(x, self.widths, self.time_constants, period or self.period))
 
     def affine_map(self, s: int) -> tuple[np.ndarray, np.ndarray]:
         """Sensor s's model as ``f_raw + weight @ x[:7] + bias``: (weight (6, 7), bias (6,)); order 1 only."""
@@ -180,12 +201,19 @@ class LinearBaseline:
                 "y = clip(y before, f_a - widths[k][a], f_a + widths[k][a]) (y starts at f_a)"
             )
             out["widths"] = self.widths.tolist()
+        if self.time_constants is not None:
+            out["model"] += (
+                ", then per time constant j and raw axis a the departure f_a - y, y = y before + alpha_j "
+                "(f_a - y before), alpha_j = 1 - exp(-period / time_constants[j]) (y starts at f_a)"
+            )
+            out["time_constants"] = self.time_constants.tolist()
+            out["period"] = self.period
         return out
 
     @classmethod
     def from_dict(cls, entry: Mapping[str, Any]) -> LinearBaseline:
         """Inverse of `to_dict` (KeyError, ValueError or TypeError if `entry` is not one)."""
-        widths = entry.get("widths")
+        widths, time_constants = entry.get("widths"), entry.get("time_constants")
         return cls(
             str(entry["name"]),
             np.asarray(entry["offset"], dtype=np.float64),
@@ -193,6 +221,8 @@ class LinearBaseline:
             np.asarray(entry["powers"], dtype=np.int64),
             np.asarray(entry["weights"], dtype=np.float64),
             None if widths is None else np.asarray(widths, dtype=np.float64).reshape(-1, WRENCH),
+            None if time_constants is None else np.asarray(time_constants, dtype=np.float64).reshape(-1),
+            None if time_constants is None else float(entry["period"]),
         )
 
 
@@ -213,6 +243,8 @@ def fit_linear_baseline(
     seed: int = 0,
     widths: np.ndarray | None = None,
     memory: np.ndarray | None = None,
+    time_constants: np.ndarray | None = None,
+    period: float | None = None,
 ) -> LinearBaseline:
     """Minimise the switched loss of `switched_loss` over W in closed form (normal equations).
 
@@ -230,8 +262,9 @@ def fit_linear_baseline(
         x: (N, S, >= 7) raw inputs; labels (N, S, 6); switches (N, S) bool; other arrays as in
             `switched_loss` (numpy). `ridge` is per sample, on standardised features.
         n_inputs: the inputs the model reads, 7 (wrench and temperature) or 6 (the wrench alone).
-        widths: (K, 6) play widths per raw axis (N, Nm): the play model, with `memory` (N, S, 6 K) the play
-            outputs before each sample (`play_memory` of each sample's log); None: memoryless.
+        widths: (K, 6) play widths per raw axis (N, Nm): the play model; time_constants (J,) s: the arx
+            model's filters at `period` s; with either `memory` (N, S, M) the operators' outputs before each
+            sample (`memory_of` of each sample's log; module docstring); both None: memoryless.
 
     Raises:
         DataError: no sample has a switch set.
@@ -245,8 +278,9 @@ def fit_linear_baseline(
     offset = inputs.mean(axis=0)
     scale = np.where(inputs.std(axis=0) > TINY_SCALE, inputs.std(axis=0), 1.0)
     powers = monomial_powers(n_inputs, order)
-    p = len(powers) + (0 if widths is None else np.size(widths))
-    model = LinearBaseline(name, offset, scale, powers, np.zeros((n_sensors, WRENCH, p)), widths)
+    model = LinearBaseline(name, offset, scale, powers, np.zeros(0), widths, time_constants, period)
+    p = len(powers) + WRENCH * model.n_operators
+    model.weights = np.zeros((n_sensors, WRENCH, p))
     phis = [model.features(x[:, s], s, None if memory is None else memory[:, s]) for s in range(n_sensors)]
     normal, rhs = _normal_equations(phis, x, labels, switches, lambdas)
     if use_sum:
@@ -264,7 +298,7 @@ def fit_linear_baseline(
             normal[s * k : (s + 1) * k, s * k : (s + 1) * k] += push.weight * np.kron(eye, gram)
             if push.free_lever:
                 _free_lever(normal[s * k : (s + 1) * k, s * k : (s + 1) * k], gram, push.weight, model, s)
-    allowed = None if widths is None else np.tile(_own_axis(len(powers), len(widths)), n_sensors)
+    allowed = np.tile(_own_axis(len(powers), model.n_operators), n_sensors) if model.memory else None
     model.weights = _solve_informed(normal, rhs, allowed).reshape(n_sensors, WRENCH, p)
     return model
 
@@ -297,16 +331,17 @@ def _free_lever(block: np.ndarray, gram: np.ndarray, weight: float, model: Linea
     block[np.ix_(idx, idx)] += h * (d[:, None] * sym * d[None, :])
 
 
-def _own_axis(static: int, n_widths: int) -> np.ndarray:
-    """(6 (static + 6 K),) bool, one sensor's unknowns row-major (output axis, feature): every static
-    feature, and of the play states only those of the output's own raw axis. A sensor's hysteresis is per
-    axis (the simulated sensors': h_a play(v_a), v = C w), so its own axis's states model it; another axis's
-    wide operator is near linear in that axis over motions narrower than it and would stand in for a static
-    coupling that the virtual pushes (memory held) do not see. Measured on the default data with every axis's
-    states allowed: l_foot_front_ft's ty read 0.41 Nm per unit of fx's 90 N state, which took 0.25 off its
-    ty slope at the 10-40 N pushes of a later day (Test D failed); with its own axis only, every foot sensor
-    passed and the headlines' error against the truth fell (0.776 -> 0.745 Nm/N pooled, l_foot)."""
-    axis = np.tile(np.arange(WRENCH), n_widths)  # the raw axis of each play state
+def _own_axis(static: int, n_operators: int) -> np.ndarray:
+    """(6 (static + 6 K),) bool, one sensor's unknowns row-major (output axis, feature): every static feature,
+    and of the K operators' states (play, filters) only those of the output's own raw axis. A sensor's
+    hysteresis is per axis (the simulated sensors': h_a play(v_a), v = C w), so its own axis's states
+    model it; another axis's wide operator is near linear in that axis over motions narrower than it and
+    would stand in for a static coupling that the virtual pushes (memory held) do not see. Measured on the
+    default data with every axis's states allowed: l_foot_front_ft's ty read 0.41 Nm per unit of fx's 90 N
+    state, which took 0.25 off its ty slope at the 10-40 N pushes of a later day (Test D failed); with its
+    own axis only, every foot sensor passed and the headlines' error against the truth fell (0.776 ->
+    0.745 Nm/N pooled, l_foot)."""
+    axis = np.tile(np.arange(WRENCH), n_operators)  # the raw axis of each operator's state
     rows = [np.r_[np.ones(static, dtype=bool), axis == o] for o in range(WRENCH)]
     return np.concatenate(rows)
 

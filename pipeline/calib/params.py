@@ -141,6 +141,7 @@ class GroupParams:
     ridge: float  # ridge penalty per sample (standardised features)
     play_widths_n: tuple[float, ...]  # the play model's widths on force axes, N (empty: no play model) ...
     play_widths_nm: tuple[float, ...]  # ... and on torque axes, Nm (as many)
+    arx_time_constants_s: tuple[float, ...]  # the arx model's low-pass filters, s (empty: no arx model)
 
     def __post_init__(self) -> None:
         key = f"train.groups.{self.name}"
@@ -224,7 +225,7 @@ class GroupParams:
         self._check_search(key)
 
     def _check_widths(self, key: str) -> None:
-        for attr in ("play_widths_n", "play_widths_nm"):
+        for attr in ("play_widths_n", "play_widths_nm", "arx_time_constants_s"):
             value = getattr(self, attr)
             if (
                 not isinstance(value, list | tuple)
@@ -290,6 +291,10 @@ class GroupParams:
         if not self.play_widths_n:
             return None
         return tuple((f, f, f, t, t, t) for f, t in zip(self.play_widths_n, self.play_widths_nm, strict=True))
+
+    def arx_time_constants(self) -> tuple[float, ...] | None:
+        """The arx model's filters' time constants, s; None: the group trains no arx model."""
+        return self.arx_time_constants_s or None
 
     def hyperparameters(self) -> dict[str, Any]:
         """The searchable values of these params."""

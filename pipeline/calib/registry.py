@@ -3,8 +3,9 @@ pages find a family by the name of one of its models.
 
 A model's name is its family's key, followed for a numbered family by its number: ``raw``, ``affine``,
 ``poly2`` (a polynomial of order 2), ``play`` (the affine map with play-operator features of the raw
-wrench: memory), ``nn7`` (a network of 7 inputs per sensor). The families, simplest first (the order in
-which cross-validation walks them, `pipeline.calib.params.select_by_folds`):
+wrench: memory), ``arx`` (the affine map with low-pass departures of the raw wrench: memory), ``nn7`` (a
+network of 7 inputs per sensor). The families, simplest first (the order in which cross-validation walks
+them, `pipeline.calib.params.select_by_folds`):
 
 | family | kind | memory | fitted by | exported as |
 |---|---|---|---|---|
@@ -12,12 +13,15 @@ which cross-validation walks them, `pipeline.calib.params.select_by_folds`):
 | affine | linear | no | closed form (`pipeline.calib.linear`) | a linear part |
 | poly<n> | linear | no | closed form, ridge | a linear part (monomials) |
 | play | linear | yes | closed form | a linear part with play state |
+| arx | linear | yes | closed form | a linear part with filter state |
 | nn<k> | network | no | Optuna + Adam (`pipeline.calib.search`) | an MLP |
 
 A family with memory calibrates a sample from its present inputs and a state carried from sample to sample
-(the play operators' outputs, `pipeline.core.play`): trained on whole logs in time order, its state starts
-afresh at each log's (or segment's) first sample and carries across gaps, as the exported graph does with
-its ``state`` input and output (`pipeline.export.graph`).
+(the play operators' or the filters' outputs, `pipeline.core.lowpass`): trained on whole logs in time order,
+its state starts afresh at each log's (or segment's) first sample and carries across gaps, as the exported
+graph does with its ``state`` input and output (`pipeline.export.graph`). The play model ranks before the
+arx model: a play operator reads the path of the wrench alone, whatever the rate, while a filter is tied to
+the training logs' sample period; the arx model is deployed only where it wins clearly.
 
 Light on purpose (no torch, no onnx): params and pages import it.
 """
@@ -57,11 +61,13 @@ FAMILIES = (
            ((1, "#d9b36c"), (2, "#e0894a"), (3, "#c8553d"), (4, "#8c2d04"))),
     Family("play", 3, LINEAR, True, False, "affine map and play operators of the raw wrench (memory: "
            "hysteresis)", "#9467bd"),
-    Family("nn", 4, NETWORK, False, True, "neural network (a Lipschitz-bounded correction of the affine map)",
+    Family("arx", 4, LINEAR, True, False, "affine map and low-pass departures of the raw wrench (memory: a "
+           "lagged linear map, ARX with fixed poles)", "#17becf"),
+    Family("nn", 5, NETWORK, False, True, "neural network (a Lipschitz-bounded correction of the affine map)",
            "#1f77b4", ((13, "#d62728"),)),
 )  # fmt: skip
 BY_KEY = {f.key: f for f in FAMILIES}
-RAW, AFFINE, POLY, PLAY, NN = (f.key for f in FAMILIES)
+RAW, AFFINE, POLY, PLAY, ARX, NN = (f.key for f in FAMILIES)
 OTHER_COLOUR = "#7f7f7f"  # a name of no family (the oracle and the labels have their own colours)
 
 
@@ -76,7 +82,7 @@ def poly_name(order: int) -> str:
 
 
 def patterns() -> list[str]:
-    """Every family's model name, simplest first: raw, affine, poly<n>, play, nn<n>."""
+    """Every family's model name, simplest first: raw, affine, poly<n>, play, arx, nn<n>."""
     return [f"{f.key}<n>" if f.numbered else f.key for f in sorted(FAMILIES, key=lambda f: f.rank)]
 
 

@@ -7,7 +7,7 @@
   pair's mapped to the sole frame as its sum is. No memoryless calibration can go below it.
 
 A memoryless model may sit a little below the oracle legitimately: fitted on moving data, it absorbs part of
-the hysteresis's minor-loop gain. A model with memory (`pipeline.calib.registry`: the play family) goes below
+the hysteresis's minor-loop gain. A model with memory (`pipeline.calib.registry`: play, arx) goes below
 it honestly, down to the noise floor, by undoing the hysteresis from the reading's path. Below the noise
 floor any model can only be reading a prior over the robot's motions (its training relation), not the
 sensor. `prior_notes` says which, per headline and model, where a model beats the oracle against the truth
@@ -124,8 +124,8 @@ def prior_box(results: Sequence[GroupReport], models: Sequence[str]) -> str:
         "<b>Below the oracle:</b> the oracle inverts each simulated sensor's static distortion exactly, so a "
         "memoryless model below it is either absorbing the hysteresis's minor-loop gain (between the oracle "
         "and the noise floor, the white noise raw - distorted of the simulator's truth) or reading a prior "
-        "over the robot's motions, not the sensor (below the noise floor). A model with memory (play) may "
-        "go down to the noise floor: it undoes the hysteresis from the reading's path; below it, it too "
-        "reads a prior."
+        "over the robot's motions, not the sensor (below the noise floor). A model with memory (play, arx) "
+        "may go down to the noise floor: it undoes the hysteresis from the reading's path; below it, it too "
+        "reads a prior (or averages the noise over time, which a push sees as lag)."
     )
     return f"<div class='flags'>{head}<ul>{''.join(f'<li>{n}</li>' for n in notes)}</ul></div>"

@@ -232,7 +232,7 @@ _SUMMARY_NOTE = (
     "against the labels and against the truth (green: met, red: not). The oracle inverts each simulated "
     "sensor's static distortion exactly: its error is the white noise and the hysteresis, the floor of every "
     "memoryless model; the <i>noise floor</i> is the white noise alone (raw - distorted of the simulator's "
-    "truth), the floor of a model with memory (play), which can undo the hysteresis. <i>deploy</i>: the "
+    "truth), the floor of a model with memory (play, arx), which can undo the hysteresis. <i>deploy</i>: the "
     "simplest model "
     "unless a more complex one is better on validation by more than train.selection_margin, if not "
     "noise-flagged, else the next of the validation ranking. Labels exist "

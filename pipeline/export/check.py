@@ -288,3 +288,24 @@ def assert_within(
                 f"{r[measure]:.3g} {unit} (max |diff| {r['max_abs_diff']:.3g} N/Nm) > export.{key} = "
                 f"{tolerance[dtype]:g} on {r['samples']} test samples"
             )
+
+
+RATE_TOLERANCE = 0.2  # a log's message period may differ from a graph's filters' by this fraction
+
+
+def check_rate(topic: str, stamps_ns: np.ndarray, period_s: float) -> bool:
+    """Whether the messages of `topic` (their stamps, ns) were checked: False with fewer than 10 steps; a
+    DataError if they are not about `period_s` apart, the period a graph's filters (the arx family,
+    `pipeline.core.lowpass`) were trained at."""
+    steps = np.diff(np.sort(np.asarray(stamps_ns, dtype=np.int64))) / 1e9
+    steps = steps[steps > 0]
+    if len(steps) < 10:
+        return False
+    median = float(np.median(steps))
+    if abs(median / period_s - 1.0) > RATE_TOLERANCE:
+        raise DataError(
+            f"{topic}: messages {median * 1e3:.3g} ms apart, but its calibration's filters (arx) run at "
+            f"{period_s * 1e3:.3g} ms, the period of its training logs: retrain at this rate, or deploy a "
+            "model without filters"
+        )
+    return True

@@ -12,8 +12,9 @@ beside the files, which `ftcal calibrate` and a lab's own loader read:
 
 Each input/output entry: ``index`` (column of the tensor), ``column`` (labelled-table name), ``sensor``,
 ``topic`` and ``field`` (where a ROS 2 log carries the value), ``unit``. A graph whose models have memory
-(the ``play`` family) has a ``state`` entry: its input and output names, shape, initial value and how to
-carry it (`pipeline.export.linear`), and per column the sensor, raw axis and play width it belongs to.
+(the ``play`` and ``arx`` families) has a ``state`` entry: its input and output names, shape, initial value
+and how to carry it (`pipeline.export.linear`), per column the sensor, raw axis and play width or filter time
+constant it belongs to, and with filters the sample period their rows must have (``period_s``).
 ``offsets`` describes the graph's second input (`pipeline.export.graph`: subtracted from ``inputs``,
 default zeros) and the file a re-zeroing writes beside the manifest (`pipeline.export.offsets`);
 ``serials`` the sensor boards the calibration belongs to (`pipeline.export.identity`).
@@ -132,23 +133,26 @@ def graph_entry(
 
 def _state(models: Sequence[GroupModel]) -> dict[str, Any]:
     """{"state": ...} of a graph with memory (module docstring), else {}."""
-    from pipeline.export.linear import STATE, STATE_OUT, state_layout
+    from pipeline.export.linear import STATE, STATE_OUT, state_layout, state_period
 
     layout = state_layout(models)
     if not layout:
         return {}
-    return {
-        "state": {
-            "input": STATE,
-            "output": STATE_OUT,
-            "shape": [len(layout)],
-            "initial": "NaN (the input's default): each play operator starts at its sensor's first reading",
-            "carry": f"feed {STATE_OUT} of a call as {STATE} of the next; the rows of a call are "
-            "consecutive samples of the sensors, in stamp order (1 per call in a control loop); a sensor's "
-            "columns may be carried alone (NaN restarts it: after a re-zeroing, a reboot of its board)",
-            "columns": layout,
-        }
+    period = state_period(models)
+    state: dict[str, Any] = {
+        "input": STATE,
+        "output": STATE_OUT,
+        "shape": [len(layout)],
+        "initial": "NaN (the input's default): each operator starts at its sensor's first reading",
+        "carry": f"feed {STATE_OUT} of a call as {STATE} of the next; the rows of a call are "
+        "consecutive samples of the sensors, in stamp order (1 per call in a control loop); a sensor's "
+        "columns may be carried alone (NaN restarts it: after a re-zeroing, a reboot of its board)",
+        "columns": layout,
     }
+    if period is not None:  # the filters (arx) assume their training logs' rate
+        state["period_s"] = period
+        state["carry"] += f"; the filters' rows must be {period:g} s apart (the training logs' sample period)"
+    return {"state": state}
 
 
 def _axes(imu_axes: Mapping[str, Sequence[str] | None] | None, sensor: str) -> list[str] | None:

@@ -15,11 +15,12 @@ Each sensor's output depends on its own inputs only (``separable`` in the manife
 family here), so a group's graph is fed one sensor's messages in that sensor's slot (and the same rows
 in the other slots, whose outputs are discarded).
 
-A graph with memory (a ``state`` entry in the manifest: the play models) is run on each sensor's wrench
-messages in stamp order, one call per sensor and chunk, carrying that sensor's state columns from chunk to
-chunk (a fresh state at the log's first message), so that every output depends on that message and the
-earlier ones only. Every wrench message moves the state, also one without its temperature yet (its output
-is not written: uncalibrated), as the training's memory moves with every reading.
+A graph with memory (a ``state`` entry in the manifest: the play and arx models) is run on each sensor's
+wrench messages in stamp order, one call per sensor and chunk, carrying that sensor's state columns from
+chunk to chunk (a fresh state at the log's first message), so that every output depends on that message and
+the earlier ones only. Every wrench message moves the state, also one without its temperature yet (its
+output is not written: uncalibrated), as the training's memory moves with every reading. Filters (arx) are
+refused on messages at another rate than their training logs' (`pipeline.export.check.check_rate`).
 """
 
 from __future__ import annotations
@@ -32,6 +33,7 @@ from typing import Any
 import numpy as np
 
 from pipeline.core.errors import DataError
+from pipeline.export.check import check_rate
 from pipeline.export.offsets import Offsets
 from pipeline.logs.imu_axes import to_sensor_frame
 
@@ -274,6 +276,7 @@ class CausalCalibrator:
         self._states: dict[str, dict[int, np.ndarray]] = {
             p.group: {} for p in plans if deployment.state_columns(p.group) is not None
         }  # group -> slot -> its carried state (graphs with memory)
+        self._rated: set[tuple[str, int]] = set()  # (group, slot) whose rate matched their filters'
         self.uncalibrated: dict[str, int] = {p.sensor: 0 for p in plans}
         self.calibrated: dict[str, int] = {p.sensor: 0 for p in plans}
 
@@ -362,16 +365,8 @@ class CausalCalibrator:
                 self.calibrated[plan.sensor] += len(wrench)
                 if not len(wrench):
                     continue
-                out.append(
-                    Calibrated(
-                        plan,
-                        b.stamp_ns[ok],
-                        b.log_time_ns[ok],
-                        b.publish_time_ns[ok],
-                        b.fields["frame_id"][ok],
-                        wrench,
-                    )
-                )
+                times = (b.stamp_ns[ok], b.log_time_ns[ok], b.publish_time_ns[ok])
+                out.append(Calibrated(plan, *times, b.fields["frame_id"][ok], wrench))
         return out
 
     def _run_group(self, group: str, items: Sequence[tuple[Any, SensorPlan, np.ndarray, np.ndarray]]) -> list:
@@ -386,6 +381,12 @@ class CausalCalibrator:
         if group not in self._states:
             y = self.deployment.predict(group, joined)
         else:
+            period = self.deployment.groups()[group]["state"].get("period_s")
+            for plan in {p.slot: p for _, p, _, _ in items}.values() if period else ():
+                if (group, plan.slot) not in self._rated and check_rate(
+                    plan.wrench_topic, np.concatenate(stamps[plan.slot]), float(period)
+                ):
+                    self._rated.add((group, plan.slot))
             order = {slot: np.argsort(np.concatenate(t), kind="stable") for slot, t in stamps.items()}
             sorted_y = self.deployment.predict(
                 group, {slot: x[order[slot]] for slot, x in joined.items()}, self._states[group]

@@ -1,7 +1,7 @@
 """The one adapter between the train stage's output directory and the export: what a graph needs.
 
 `read_group(models/<group>, name)` reads one model of a group (a network ``nn<k>``, a polynomial
-``poly<n>``, the ``affine`` baseline, the ``play`` model, or ``raw``: its family's kind in
+``poly<n>``, the ``affine`` baseline, the ``play`` and ``arx`` models, or ``raw``: its family's kind in
 `pipeline.calib.registry` says which form) and returns a `GroupModel`: per sensor, the plain arrays of the
 model (float64) in one of three forms, and the project's own predictor for the reference check. Nothing
 else of `pipeline.calib` or `pipeline.stages.train` is used by the export (but the registry), so a change of
@@ -11,9 +11,9 @@ Every model of this project is *separable*: sensor s's calibrated wrench depends
 (a foot pair's two networks are side by side; the baselines' W_s act per sensor). Each part below is
 therefore one sensor's map, inputs in the order of `pipeline.calib.models` (raw wrench fx..tz N/Nm,
 temperature degC, [accelerometer m/s^2, gyroscope rad/s]), output its calibrated wrench (6, N/Nm, sensor
-frame). A model with memory (``play``) maps a sensor's inputs and its own state (the play outputs of its
-previous sample) to its wrench and next state; its reference takes rows that are consecutive samples of
-one log, the state starting afresh at the first (`pipeline.core.play.play_memory`).
+frame). A model with memory (``play``, ``arx``) maps a sensor's inputs and its own state (the play operators'
+and filters' outputs of its previous sample) to its wrench and next state; its reference takes rows that are
+consecutive samples of one log, the state starting afresh at the first (`pipeline.core.lowpass.memory_of`).
 """
 
 from __future__ import annotations
@@ -75,18 +75,24 @@ class NetworkPart:
 class LinearPart:
     """``f = x[:6] + weights @ phi((x[:k] - offset) / scale)``, phi the monomials of `powers` (P, k);
     k = 7 (wrench, temperature), or 6 (the wrench alone); with play `widths` (K, 6), phi continues with the
-    play states of the raw wrench (`pipeline.core.play.play_features`: column 6 k + a, width k, axis a)."""
+    play states of the raw wrench (`pipeline.core.play.play_features`: column 6 k + a, width k, axis a), with
+    `time_constants` (J,) with its departures from its low-pass filters at `period`
+    (`pipeline.core.lowpass.lowpass_features`: column 6 j + a)."""
 
     offset: np.ndarray  # (k,)
     scale: np.ndarray  # (k,)
     powers: np.ndarray  # (P, k) int exponents, constant monomial first
-    weights: np.ndarray  # (6, P [+ 6 K])
-    widths: np.ndarray | None = None  # (K, 6) N / Nm: the play operators (None: memoryless)
+    weights: np.ndarray  # (6, P [+ 6 K] [+ 6 J])
+    widths: np.ndarray | None = None  # (K, 6) N / Nm: the play operators (None: none)
+    time_constants: np.ndarray | None = None  # (J,) s: the filters (None: none)
+    period: float | None = None  # s: the sample period the filters run at
 
     @property
     def state_size(self) -> int:
-        """Values of state this part carries from sample to sample (6 K play outputs; 0 memoryless)."""
-        return 0 if self.widths is None else int(self.widths.size)
+        """Values of state this part carries from sample to sample (6 K play outputs and 6 J filter outputs;
+        0 memoryless)."""
+        play = 0 if self.widths is None else int(self.widths.size)
+        return play + (0 if self.time_constants is None else WRENCH * len(self.time_constants))
 
 
 @dataclass(frozen=True)
@@ -106,8 +112,8 @@ class GroupModel:
     """
 
     group: str
-    name: str  # nn7, nn13, affine, poly<n>, play, raw
-    family: str  # its family's key in `pipeline.calib.registry` (raw, affine, poly, play, nn)
+    name: str  # nn7, nn13, affine, poly<n>, play, arx, raw
+    family: str  # its family's key in `pipeline.calib.registry` (raw, affine, poly, play, arx, nn)
     sensors: tuple[str, ...]
     n_inputs: int  # per sensor: 6, 7 or 13
     parts: tuple[Part, ...]  # one per sensor
@@ -243,7 +249,8 @@ def _linear(model_dir: Path, name: str, group: str, sensors: tuple[str, ...]) ->
         raise DataError(f"{path}: {name} has {baseline.weights.shape[0]} sensors, metrics.json {n_sensors}")
     b = baseline
     parts = tuple(
-        LinearPart(b.offset[s], b.scale[s], b.powers, b.weights[s], b.widths) for s in range(n_sensors)
+        LinearPart(b.offset[s], b.scale[s], b.powers, b.weights[s], b.widths, b.time_constants, b.period)
+        for s in range(n_sensors)
     )
 
     def reference(x: np.ndarray) -> np.ndarray:  # rows: consecutive samples of one log (with memory)
@@ -254,6 +261,8 @@ def _linear(model_dir: Path, name: str, group: str, sensors: tuple[str, ...]) ->
     info: dict[str, Any] = {"order": order, "monomials": len(baseline.powers)}
     if baseline.widths is not None:
         info["play_widths"] = baseline.widths.tolist()
+    if baseline.time_constants is not None:
+        info["time_constants_s"], info["period_s"] = baseline.time_constants.tolist(), baseline.period
     return GroupModel(
         group,
         name,

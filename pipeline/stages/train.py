@@ -4,11 +4,11 @@
 table"), splits them by whole logs, fits the baselines, trains the 7- and 13-input networks with an
 Optuna search, scores every model and writes ``OUT_DIR``:
 
-- ``metrics.json``: per model (raw, affine, poly1-4, play, nn7, nn13: `pipeline.calib.registry`),
+- ``metrics.json``: per model (raw, affine, poly1-4, play, arx, nn7, nn13: `pipeline.calib.registry`),
   validation and test errors against the labels (MSE/MAE/RMSE global, force, torque, per axis; per sensor
   and, for a foot, of the sum in the sole frame; a group of several sensors: also each cut set's sum),
   ``cv``: every model's validation error on each cross-validation fold, their mean and spread, and
-  ``best_on_validation``: the model to deploy, the simplest (raw < affine < poly < play < nn7 < nn13)
+  ``best_on_validation``: the model to deploy, the simplest (raw < affine < poly < play < arx < nn7 < nn13)
   unless a more complex one's mean fold error is lower by more than ``train.selection_margin`` and by more
   than the spread of its per-fold improvements (`pipeline.calib.crossval`).
 - ``nn7.json`` + ``nn7.pt``, ``nn13.json`` + ``nn13.pt``: the best networks (`calib.models.load_model`
