@@ -10,9 +10,9 @@ bank of first-order filters): its state is 6 values per time constant, not a win
 play operator, a filter depends on the rate: a model trained on samples `period` apart runs on samples as far
 apart (the export's manifest says so).
 
-`memory_step` is one step of either operator on each column, ``y = clip(s + alpha (x - s), x - r, x + r)``
-with s the output before (x itself at a fresh start, a NaN): a play operator of width r has alpha = 0, a
-filter an infinite r.
+`pipeline.core.play.memory_step` is one step of either operator on each column, ``y = clip(s + alpha (x - s),
+x - r, x + r)`` with s the output before (x itself at a fresh start, a NaN): a play operator of width r has
+alpha = 0, a filter an infinite r.
 
 Shapes: x (N, m) or (N, S, >= 6) over N consecutive samples; time constants (J,) s; period s.
 """
@@ -24,7 +24,7 @@ from typing import Any
 import numpy as np
 from scipy.signal import lfilter
 
-from pipeline.core.play import play_memory
+from pipeline.core.play import memory_step, play_memory
 
 WRENCH = 6
 
@@ -68,13 +68,6 @@ def lowpass_memory(x: np.ndarray, time_constants: np.ndarray, period: float) -> 
         tiled = np.tile(x[rows, s, :WRENCH], len(gains) // WRENCH)
         out[rows[1:], s] = lowpass_outputs(tiled, gains)[:-1]
     return out
-
-
-def memory_step(previous: np.ndarray, x: np.ndarray, radius: np.ndarray, alpha: np.ndarray) -> np.ndarray:
-    """The operators' outputs after one more sample (module docstring), elementwise; a NaN in `previous` is a
-    fresh start."""
-    start = np.where(np.isnan(previous), x, previous)
-    return np.minimum(np.maximum(start + alpha * (x - start), x - radius), x + radius)
 
 
 def lowpass_features(wrench: np.ndarray, previous: np.ndarray, gains: np.ndarray) -> np.ndarray:

@@ -14,6 +14,8 @@ Shapes: x (N, m) over N consecutive samples of m signals; widths scalar or (m,),
 
 from __future__ import annotations
 
+from typing import Any
+
 import numpy as np
 
 _SCAN_BLOCK = 32  # block length of the play-operator scan (fastest of 8..64 for 1e5 x 6 samples)
@@ -100,11 +102,19 @@ def play_outputs(x: np.ndarray, width: np.ndarray | float) -> np.ndarray:
     return x - np.asarray(width, dtype=float) * play_operator(x, width)
 
 
+def memory_step(previous: np.ndarray, x: np.ndarray, radius: Any, alpha: Any) -> np.ndarray:
+    """The outputs after one more sample of play operators and first-order filters alike, elementwise:
+    ``clip(s + alpha (x - s), x - radius, x + radius)`` with s the output before, or x itself at a fresh start
+    (a NaN in `previous`). A play operator of width r is radius r, alpha 0; a filter (`pipeline.core.lowpass`)
+    an infinite radius and its step gain."""
+    start = np.where(np.isnan(previous), x, previous)
+    return np.minimum(np.maximum(start + alpha * (x - start), x - radius), x + radius)
+
+
 def play_step(previous: np.ndarray, x: np.ndarray, width: np.ndarray | float) -> np.ndarray:
     """The output after one more sample: ``clip(previous, x - width, x + width)``, elementwise; a NaN in
     `previous` is a fresh start (the output is then x itself)."""
-    previous = np.where(np.isnan(previous), x, previous)
-    return np.minimum(np.maximum(previous, x - width), x + width)
+    return memory_step(previous, x, width, 0.0)
 
 
 def play_memory(x: np.ndarray, widths: np.ndarray) -> np.ndarray:

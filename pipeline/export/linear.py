@@ -76,7 +76,7 @@ def state_period(models: Sequence[GroupModel]) -> float | None:
 
 
 def folded(part: LinearPart) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """(A (6, k), c (6,), B (6, 6 K) or (6, 0)) of an affine or play part (module docstring)."""
+    """(A (6, k), c (6,), B (6, M) or (6, 0)) of an affine, play or arx part (module docstring)."""
     k = part.powers.shape[1]
     order = np.argmax(part.powers[1:], axis=1)  # the input each linear column multiplies
     linear = np.zeros((WRENCH, k))
