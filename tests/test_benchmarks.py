@@ -20,6 +20,7 @@ from tests.test_readme import DOCS, ROOT, commands
 ELSEWHERE = {  # run on the outputs of a pipeline, in the test that runs one
     "benchmarks/calibrate_agreement.py": "tests/test_e2e.py",
     "benchmarks/identify.py": "tests/test_e2e.py",
+    "benchmarks/recurrent.py": "tests/test_e2e.py",
 }
 NOT_RUN = {  # why a benchmark cannot run in seconds
     "benchmarks/group_edit.py": "it edits params.yaml of an up-to-date pipeline and times `dvc repro`",
