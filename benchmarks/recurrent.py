@@ -34,7 +34,7 @@ from torch import nn
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from pipeline.calib.data import find_logs, load_group_data  # noqa: E402
+from pipeline.calib.data import GroupData, find_logs, load_group_data  # noqa: E402
 from pipeline.calib.fit import prepare  # noqa: E402
 from pipeline.calib.linear import LinearBaseline  # noqa: E402
 from pipeline.calib.scores import WRENCH  # noqa: E402
@@ -64,7 +64,7 @@ class Correction(nn.Module):
         return self.head(y) * self.scale, h
 
 
-def _logs(data, names: list[str]) -> list[dict[str, np.ndarray]]:
+def _logs(data: GroupData, names: list[str]) -> list[dict[str, np.ndarray]]:
     """Per log of `data` (a one-sensor GroupData), in time order: x (N, 7), labels (N, 6), exact, stamp."""
     out = []
     for k in dict.fromkeys(data.log.tolist()):
@@ -156,11 +156,12 @@ def _group(dirs: dict[str, Path], params, name: str, hidden: int, epochs: int, q
     nan = np.full(WRENCH, np.nan)
     keys = zip(frame[S.LOG], frame[S.STAMP], strict=True)
     gru = np.array([runs.get(log, {}).get(int(t), nan) for log, t in keys])
-    out = {"group": name, "samples": int(np.isfinite(true).all(axis=1).sum())}
+    ok = np.isfinite(true).all(axis=1) & np.isfinite(gru).all(axis=1)  # the same samples for every model
+    out = {"group": name, "samples": int(ok.sum()), "unmatched": int((~np.isfinite(gru).all(axis=1)).sum())}
     for model in ("affine", "play", "oracle"):
-        pred = frame[S.wrench_cols(f"{S.PRED}.{model}", sensor)].to_numpy(np.float64)
-        out[model] = float(np.sqrt(np.nanmean((pred - true) ** 2)))
-    out["gru"] = float(np.sqrt(np.nanmean((gru - true) ** 2)))
+        pred = frame[S.prediction_cols(model, sensor)].to_numpy(np.float64)
+        out[model] = float(np.sqrt(np.mean((pred[ok] - true[ok]) ** 2)))
+    out["gru"] = float(np.sqrt(np.mean((gru[ok] - true[ok]) ** 2)))
     rng = np.random.default_rng(params.seed)
     longest = max(test, key=lambda g: len(g["x"]))
     if quick:
@@ -200,6 +201,7 @@ def main() -> None:
     for r in rows:
         print(f"{r['group']:<12} {r['affine']:7.3f} {r['play']:7.3f} {r['gru']:7.3f} {r['oracle']:7.3f}  "
               f"gru {r['push_gru']}  play {r['push_play']}")  # fmt: skip
+        print(f"{'':<12} on {r['samples']} test samples ({r['unmatched']} without the GRU's output)")
     print(f"{time.perf_counter() - t0:.0f} s")
     print(f"largest ratio gru / play (RMSE against truth): {max(r['gru'] / r['play'] for r in rows):.3f}")
 
