@@ -33,7 +33,7 @@ from typing import Any
 import numpy as np
 
 from pipeline.core.errors import DataError
-from pipeline.export.check import check_rate
+from pipeline.export.check import check_rate, run, run_state, session
 from pipeline.export.offsets import Offsets
 from pipeline.logs.imu_axes import to_sensor_frame
 
@@ -109,7 +109,6 @@ class Deployment:
         `path`/offsets.json if it exists; False, none; a path, that file's (it must exist). Raises DataError
         naming the file."""
         from pipeline.export import offsets as O
-        from pipeline.export.check import session
         from pipeline.export.manifest import MANIFEST_FILE, read_manifest, sha256_file
 
         path = Path(path)
@@ -188,7 +187,6 @@ class Deployment:
         none, repeats rows of another; separable models make their outputs irrelevant). A graph with memory
         takes each slot's rows as its consecutive samples, one call per slot, from `state` (slot -> its
         state columns, updated in place; None or a slot not in it: a fresh start)."""
-        from pipeline.export.check import run, run_state
 
         entry = self.groups()[group]
         n_slots = len(entry["sensors"])
