@@ -82,7 +82,10 @@ def test_repo_root_from_a_subdirectory(monkeypatch: pytest.MonkeyPatch) -> None:
 def test_every_section_is_validated_at_load(tmp_path: Path, real_dict: dict[str, Any]) -> None:
     """A typo in any stage's section (or a misspelt section) is reported when params.yaml is loaded."""
     cases = [
-        ({**real_dict, "smooth": {"window": 31}}, "missing key smooth.max_gap_s"),
+        (
+            {**real_dict, "smooth": {"window": 31, "polyorder": 3, "choices": []}},
+            "missing key smooth.max_gap_s",
+        ),
         ({**real_dict, "evaluate": {**real_dict["evaluate"], "zoom": 1}}, "unknown key evaluate.zoom"),
         ({**real_dict, "evalute": {}}, "unknown key evalute"),
     ]

@@ -64,7 +64,7 @@ def ideal_run(tmp_path_factory: pytest.TempPathFactory, mlflow_store: None) -> P
     )
     sim["sensors"].update({"noise_force": 0.0, "noise_torque": 0.0})
     sim["timing"].update({"jitter_s": 0.0, "drop_rate": 0.0, "duplicate_rate": 0.0, "ft_offset_s": 0.0})
-    data["smooth"].update({"window": 7, "polyorder": 6})  # noise-free positions: a short, high-order fit
+    data["smooth"].update({"window": 7, "polyorder": 6, "choices": []})  # noise-free: a short, high-order fit
     path = tmp / "ideal.yaml"
     path.write_text(yaml.safe_dump(data, sort_keys=False))
     return pipeline_through_label(tmp, path)
@@ -147,11 +147,15 @@ def test_declared_contacts_and_switches(default_run: Path) -> None:
     table, _ = labelled(default_run, "02_half_foot_r_foot_rear_test")
     assert set(table[S.CONTACTS]) == {"r_foot_rear"} and set(table[S.FIXED_LINK]) == {"r_sole"}
     ok = table[S.switch_col("r_leg_ft")] == 1
-    assert ok.mean() > 0.9  # all but the smoothing margins
+    assert ok.mean() >= 1 - 61 / len(ok)  # all but the smoothing margins (half the widest window each end)
+    smoothed = pd.read_parquet(default_run / "smoothed" / "02_half_foot_r_foot_rear_test.parquet")
+    every = smoothed.set_index(S.STAMP)[S.ok_col(S.KINEMATICS_STREAM)].reindex(table[S.STAMP]).to_numpy()
+    every = pd.Series(every, index=table.index)  # every joint smoothed (a joint's margin is its window's)
     for part in ("r_foot_front_ft", "r_foot_rear_ft", "r_foot"):
-        assert (table[S.switch_col(part)] == table[S.switch_col("r_leg_ft")]).all()
+        assert (table[S.switch_col(part)][every] == table[S.switch_col("r_leg_ft")][every]).all()
+        assert table[S.switch_col(part)][every].all()
     table, _ = labelled(default_run, "01_balancing_l_foot_train")
-    assert not table[S.switch_col("l_foot_front_ft")].any() and table[S.switch_col("l_foot")].mean() > 0.9
+    assert not table[S.switch_col("l_foot_front_ft")].any() and table[S.switch_col("l_foot")].mean() > 0.85
     # NaN exactly where the switch is 0
     for name in ("l_foot_front_ft", "l_foot", "l_leg_ft"):
         nan = table[S.wrench_cols(S.EXPECTED, name)].isna().all(axis=1)

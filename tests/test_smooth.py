@@ -136,6 +136,78 @@ def test_params_validation() -> None:
         SmoothParams(window=5, polyorder=5, max_gap_s=0.05)
     with pytest.raises(ConfigError, match="smooth.max_gap_s"):
         SmoothParams(window=5, polyorder=3, max_gap_s=0)
+    with pytest.raises(ConfigError, match=r"smooth.choices\[1\] window must be an odd"):
+        SmoothParams(window=5, polyorder=3, max_gap_s=0.05, choices=[[21, 5], [20, 3]])
+    with pytest.raises(ConfigError, match=r"smooth.choices\[0\] must be a \[window, polyorder\] pair"):
+        SmoothParams(window=5, polyorder=3, max_gap_s=0.05, choices=[21])
+    with pytest.raises(ConfigError, match="lists a setting twice"):
+        SmoothParams(window=5, polyorder=3, max_gap_s=0.05, choices=[[21, 5], [21, 5]])
+    cfg = SmoothParams(window=41, polyorder=5, max_gap_s=0.05, choices=[[61, 7], [21, 5]])
+    assert (cfg.widest, cfg.narrowest, cfg.settings) == (61, 21, ((61, 7), (21, 5)))
+
+
+# --- the setting chosen per joint -----------------------------------------------------------------
+
+CHOICES = ((61, 7), (51, 5), (41, 5), (31, 5), (31, 7), (21, 5))  # params.yaml's kind of list
+NOISE = 6e-5  # rad: the simulator's encoder noise with its quantum
+
+
+def _motion(t: np.ndarray, fast: bool) -> tuple[np.ndarray, np.ndarray]:
+    """(q, ddq) rad, rad/s^2: a slow swing (a known load's posture change), with a 3 Hz ripple of 3 mrad
+    (a gait's steps: 1 rad/s^2) if `fast`."""
+    w, v, ripple = 2 * np.pi * 0.2, 2 * np.pi * 3.0, 0.003 if fast else 0.0
+    q = 0.3 * np.sin(w * t) + ripple * np.sin(v * t)
+    return q, -0.3 * w * w * np.sin(w * t) - ripple * v * v * np.sin(v * t)
+
+
+def _acceleration_errors(fast: bool, seed: int) -> tuple[np.ndarray, float, tuple[int, int]]:
+    """The true RMS acceleration error of every setting of CHOICES, the chosen one's, and the choice."""
+    n = 3000
+    t = np.arange(n) / RATE
+    q, ddq = _motion(t, fast)
+    noisy = (q + np.random.default_rng(seed).standard_normal(n) * NOISE)[:, None]
+    inner = slice(40, n - 40)
+    fits = [savgol_filter(noisy[:, 0], w, p, deriv=2, delta=1 / RATE)[inner] for w, p in CHOICES]
+    each = np.array([np.sqrt(np.mean((fit - ddq[inner]) ** 2)) for fit in fits])
+    res = smooth_kinematics(uniform_stamps(n), noisy, 41, 5, 0.05, CHOICES)
+    (setting,) = res.chosen
+    return each, float(np.sqrt(np.mean((res.ddq[inner, 0] - ddq[inner]) ** 2))), setting
+
+
+@pytest.mark.parametrize("fast", [False, True])
+@pytest.mark.parametrize("seed", [1, 2])
+def test_chosen_setting_is_near_the_best_against_the_true_acceleration(fast: bool, seed: int) -> None:
+    each, chosen, setting = _acceleration_errors(fast, seed)
+    assert chosen <= 1.1 * each.min(), (setting, chosen, dict(zip(CHOICES, each.round(4), strict=True)))
+    assert chosen < 0.25 * each.max()  # the settings differ by far: a wrong choice would show
+    if fast:  # bias rules: a narrow window
+        assert setting[0] <= 31
+    else:  # noise rules: a wide one
+        assert setting[0] >= 51
+
+
+def test_each_joint_gets_its_own_setting_and_its_own_ok_margin() -> None:
+    n = 2000
+    t = np.arange(n) / RATE
+    rng = np.random.default_rng(5)
+    q = np.column_stack([_motion(t, False)[0], _motion(t, True)[0]]) + rng.standard_normal((n, 2)) * NOISE
+    res = smooth_kinematics(uniform_stamps(n), q, 41, 5, 0.05, CHOICES)
+    for k in range(2):  # a joint alone gets what it gets beside the other, bit for bit
+        alone = smooth_kinematics(uniform_stamps(n), q[:, k : k + 1], 41, 5, 0.05, CHOICES)
+        np.testing.assert_array_equal(alone.ddq[:, 0], res.ddq[:, k])
+        (setting,) = alone.chosen
+        half = setting[0] // 2
+        assert res.joint_ok[half : n - half, k].all() and not res.joint_ok[:half, k].any()
+        expected = savgol_filter(q[:, k], *setting, deriv=2, delta=1 / RATE)
+        np.testing.assert_allclose(res.ddq[:, k], expected, rtol=1e-9, atol=1e-9 * np.abs(expected).max())
+    assert len(res.chosen) == 2  # a slow joint and a fast one: two settings
+
+
+def test_a_still_quantised_joint_takes_the_first_listed_setting() -> None:
+    q = np.full((500, 1), 0.25)  # an encoder that never moves: every setting is exact
+    res = smooth_kinematics(uniform_stamps(500), q, 41, 5, 0.05, CHOICES)
+    assert res.chosen == {CHOICES[0]: 1}
+    np.testing.assert_allclose(res.ddq[:, 0], 0.0, atol=1e-6)  # order 7's coefficients: 1e-7 rad/s^2
 
 
 def test_stage_adds_kinematics_and_keeps_everything(
@@ -156,7 +228,12 @@ def test_stage_adds_kinematics_and_keeps_everything(
     t = (after[S.STAMP].to_numpy() - T0) / 1e9
     w = 2 * np.pi * 0.5
     cfg = yaml.safe_load(params.read_text())["smooth"]
-    h = cfg["window"] // 2  # samples at each end where the fitted polynomial is one-sided
+    meta = read_table_metadata(out / "log.parquet")
+    chosen = meta["ftcal.smooth"]["chosen"]  # joint segments per "window/order" setting
+    assert sum(chosen.values()) == len(JOINTS) and {tuple(c) for c in cfg["choices"]} >= {
+        tuple(map(int, key.split("/"))) for key in chosen
+    }
+    h = max(int(key.split("/")[0]) for key in chosen) // 2  # samples at each end where a fit is one-sided
     for k, j in enumerate(JOINTS):
         np.testing.assert_allclose(after[S.joint_col(S.QS, j)], joint_position(t, k), atol=1e-4)
         np.testing.assert_allclose(
@@ -164,8 +241,18 @@ def test_stage_adds_kinematics_and_keeps_everything(
         )
     ok = after[S.ok_col(S.KINEMATICS_STREAM)].to_numpy()
     assert ok[h:-h].all() and not ok[:h].any() and not ok[-h:].any()
-    meta = read_table_metadata(out / "log.parquet")
     assert meta["ftcal.smooth"]["window"] == cfg["window"] and meta["ftcal.smooth"]["segments"] == 1
     assert meta["ftcal.experiment"]["type"] == "walking"
     assert meta["ftcal.schema"]["kind"] == "smoothed"
     assert set(SENSORS) == set(S.sensors_of(after.columns))
+
+
+def test_a_noise_free_encoder_gets_the_least_biased_setting() -> None:
+    """Without noise the reference's residual is its bias: taken for noise, it would make a wide window look
+    best (a gait's steps smoothed away); bounded by the 6th differences, the narrowest setting is kept."""
+    n = 3000
+    q, ddq = _motion(np.arange(n) / RATE, True)
+    res = smooth_kinematics(uniform_stamps(n), q[:, None], 41, 5, 0.05, CHOICES)
+    assert res.chosen == {(21, 5): 1}
+    inner = slice(40, n - 40)
+    assert np.sqrt(np.mean((res.ddq[inner, 0] - ddq[inner]) ** 2)) < 0.02  # rad/s^2; 61/7: 0.12

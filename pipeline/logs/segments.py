@@ -11,8 +11,9 @@ joint-state stamp):
   later stage, and the split by whole logs, sees several logs. Samples between segments are dropped.
 
 Segments may not overlap, must lie inside the window when both are given (errors name the key at once),
-must lie inside the recording and hold samples, and consecutive segments must be at least the smoothing
-window apart (``smooth.window`` joint-state steps): those are checked once the log is read. Smoothing never
+must lie inside the recording and hold samples, and consecutive segments must be at least the widest
+smoothing window apart (``smooth.window`` or of ``smooth.choices``, joint-state steps): those are checked
+once the log is read. Smoothing never
 crosses a table, so no test sample's kinematics are computed from a training segment's samples.
 """
 
@@ -204,8 +205,8 @@ class SplitTables:
             if seg.start_s - prev.end_s < gap:
                 raise DataError(
                     f"{self.where}: {SEGMENTS}[{seg.index}] starts {seg.start_s - prev.end_s:.3f} s after "
-                    f"{SEGMENTS}[{prev.index}] ends: segments must be at least the smoothing window apart "
-                    f"(smooth.window = {min_gap_samples} samples = {gap:.3f} s)"
+                    f"{SEGMENTS}[{prev.index}] ends: segments must be at least the widest smoothing window "
+                    f"apart (smooth.window, smooth.choices: {min_gap_samples} samples = {gap:.3f} s)"
                 )
 
     def commit(self, metadata: Mapping[bytes, Any]) -> None:

@@ -23,6 +23,7 @@ from __future__ import annotations
 
 import math
 import time
+from collections.abc import Sequence
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
 
@@ -34,6 +35,9 @@ from pipeline.core.errors import ConfigError, DataError
 from pipeline.logs import schema as S
 
 STAGE = "smooth"
+DIFFERENCES = 6  # order of the differences that bound the encoder noise's variance (white noise: exact)
+DIFFERENCES_BOUND = 4.0  # the noise variance is at most this multiple of the differences' estimate
+TIE_RAD2_S4 = 1e-12  # (rad/s^2)^2: estimated acceleration errors this close are one (a still joint's are 0)
 
 
 @dataclass(frozen=True)
@@ -43,16 +47,49 @@ class SmoothParams:
     window: int  # samples, odd, > polyorder
     polyorder: int  # >= 2 (accelerations), < window
     max_gap_s: float  # s: stamp steps above this split the series into separately smoothed segments
+    choices: tuple[tuple[int, int], ...] = ()  # (window, polyorder) settings chosen among per joint/segment
 
     def __post_init__(self) -> None:
         w, p, g = self.window, self.polyorder, self.max_gap_s
-        if isinstance(w, bool) or not isinstance(w, int) or w < 3 or w % 2 == 0:
-            raise ConfigError(f"smooth.window must be an odd integer >= 3, got {w!r}")
-        if isinstance(p, bool) or not isinstance(p, int) or not 2 <= p < w:
-            raise ConfigError(f"smooth.polyorder must be an integer in [2, window), got {p!r}")
+        _check_setting("smooth.window", "smooth.polyorder", w, p)
         if isinstance(g, bool) or not isinstance(g, int | float) or not math.isfinite(g) or g <= 0:
             raise ConfigError(f"smooth.max_gap_s must be a positive number of seconds, got {g!r}")
         object.__setattr__(self, "max_gap_s", float(g))
+        if not isinstance(self.choices, list | tuple):
+            raise ConfigError(
+                f"smooth.choices must be a list of [window, polyorder] pairs, got {self.choices}"
+            )
+        settings = []
+        for k, pair in enumerate(self.choices):
+            if not isinstance(pair, list | tuple) or len(pair) != 2:
+                raise ConfigError(f"smooth.choices[{k}] must be a [window, polyorder] pair, got {pair!r}")
+            _check_setting(f"smooth.choices[{k}] window", f"smooth.choices[{k}] polyorder", *pair)
+            settings.append((int(pair[0]), int(pair[1])))
+        if len(set(settings)) != len(settings):
+            raise ConfigError(f"smooth.choices lists a setting twice: {self.choices!r}")
+        object.__setattr__(self, "choices", tuple(settings))
+
+    @property
+    def settings(self) -> tuple[tuple[int, int], ...]:
+        """The (window, polyorder) settings a joint's segment is smoothed with: the choices, or the one."""
+        return self.choices or ((self.window, self.polyorder),)
+
+    @property
+    def widest(self) -> int:
+        """The widest window of the settings, samples."""
+        return max(w for w, _ in self.settings)
+
+    @property
+    def narrowest(self) -> int:
+        """The narrowest window of the settings, samples: a shorter segment is not smoothed."""
+        return min(w for w, _ in self.settings)
+
+
+def _check_setting(window_key: str, order_key: str, w: object, p: object) -> None:
+    if isinstance(w, bool) or not isinstance(w, int) or w < 3 or w % 2 == 0:
+        raise ConfigError(f"{window_key} must be an odd integer >= 3, got {w!r}")
+    if isinstance(p, bool) or not isinstance(p, int) or not 2 <= p < w:
+        raise ConfigError(f"{order_key} must be an integer in [2, window), got {p!r}")
 
 
 # --- pure functions ------------------------------------------------------------------------------
@@ -77,17 +114,19 @@ def _interp_rows(x_new: np.ndarray, x: np.ndarray, y: np.ndarray) -> np.ndarray:
 
 
 def savgol_uniform(
-    t_s: np.ndarray, q: np.ndarray, window: int, polyorder: int
-) -> tuple[np.ndarray, np.ndarray, np.ndarray] | None:
-    """SG smoothing of one gap-free segment.
+    t_s: np.ndarray, q: np.ndarray, settings: Sequence[tuple[int, int]]
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray] | None:
+    """SG smoothing of one gap-free segment, each joint with the setting of `settings` that `choose_settings`
+    picks for it (the one setting, if one is given).
 
     Args:
         t_s: (M,) s, increasing sample times (any origin).
         q: (M, J) positions (rad).
-        window, polyorder: SG window (samples, odd) and polynomial order.
+        settings: (window, polyorder) pairs: SG window (samples, odd) and polynomial order.
 
     Returns:
-        (q, dq, ddq), each (M, J), in rad, rad/s, rad/s^2, or None if the segment is shorter than the window.
+        (q, dq, ddq, chosen): the first three (M, J) in rad, rad/s, rad/s^2, chosen (J,) the index in
+        `settings` of each joint's setting; None if the segment is shorter than every window.
     """
     from scipy.signal import savgol_filter  # here: params validation imports this module, not scipy
 
@@ -95,15 +134,72 @@ def savgol_uniform(
         return None
     dt = float(np.median(np.diff(t_s)))
     n = int(round((t_s[-1] - t_s[0]) / dt)) + 1
-    if n < window or len(t_s) < window:
+    usable = [k for k, (w, _) in enumerate(settings) if w <= min(n, len(t_s))]
+    if not usable:
         return None
     grid = t_s[0] + np.arange(n) * dt
     uniform = _interp_rows(grid, t_s, q)
-    out = []
-    for deriv in (0, 1, 2):
-        g = savgol_filter(uniform, window, polyorder, deriv=deriv, delta=dt, axis=0, mode="interp")
-        out.append(_interp_rows(t_s, grid, g))
-    return out[0], out[1], out[2]
+    if len(usable) == 1:
+        chosen = np.full(q.shape[1], usable[0])
+    else:
+        chosen = np.asarray(usable)[choose_settings(uniform, [settings[k] for k in usable], dt)]
+    out = [np.empty_like(q) for _ in range(3)]
+    for k in np.unique(chosen):
+        cols = np.flatnonzero(chosen == k)
+        w, p = settings[k]
+        for deriv, dst in enumerate(out):
+            g = savgol_filter(uniform[:, cols], w, p, deriv=deriv, delta=dt, axis=0, mode="interp")
+            dst[:, cols] = _interp_rows(t_s, grid, g)
+    return out[0], out[1], out[2], chosen
+
+
+def choose_settings(uniform: np.ndarray, settings: Sequence[tuple[int, int]], dt: float) -> np.ndarray:
+    """Per joint, the index in `settings` of the SG setting with the least estimated error of its
+    accelerations, the one quantity of the labels the smoothing decides (the dynamics are linear in it).
+
+    uniform: (M, J) positions (rad) on a uniform grid of step dt (s), M >= every window. A setting's
+    acceleration error is its bias squared plus its noise variance. The least-biased setting, the narrowest
+    window with its highest order, is the reference r: the encoder noise variance s2 of each joint is its
+    residual's mean square divided by 1 - h_r (h_r the centre weight of r's smoothing: the residual of a
+    linear least-squares smoother keeps that share of white noise), at most 4 times the estimate from its
+    6th differences (a noise-free encoder's residual is r's bias); a setting c's noise variance is
+    ``s2 |k_c|^2``, k_c its acceleration kernel; its bias squared (against r's) is the mean square of
+    ``a_c - a_r`` less the noise that difference carries, ``s2 |k_c - k_r|^2``. Means over the samples where
+    every setting's fit is two-sided. A bias beats noise on a fast motion (a gait's steps: a narrow window),
+    noise beats bias on a slow one (a known load: a wide window), per joint. Settings within 2 % of the
+    least error (or within 1e-6 rad/s^2 of it) go to the first listed: a choice does not hang on the last
+    bits of the estimate.
+    """
+    from scipy.signal import savgol_coeffs, savgol_filter
+
+    widest = max(w for w, _ in settings)
+    narrowest = min(w for w, _ in settings)
+    ref = (narrowest, max(p for w, p in settings if w == narrowest))
+    half = widest // 2
+    inner = slice(half, len(uniform) - half) if len(uniform) > 2 * half else slice(None)
+
+    def kernel(setting: tuple[int, int], deriv: int) -> np.ndarray:  # (widest,), centred, zero-padded
+        w, p = setting
+        c = savgol_coeffs(w, p, deriv=deriv, delta=dt, use="dot")
+        return np.pad(c, (widest - w) // 2)
+
+    def fit(setting: tuple[int, int], deriv: int) -> np.ndarray:
+        w, p = setting
+        return savgol_filter(uniform, w, p, deriv=deriv, delta=dt, axis=0, mode="interp")[inner]
+
+    h_ref = kernel(ref, 0)[half]
+    s2 = np.mean((uniform[inner] - fit(ref, 0)) ** 2, axis=0) / (1.0 - h_ref)  # (J,) rad^2
+    # a noise-free encoder's residual is r's bias, not noise: at most a multiple of the differences' estimate
+    diff = np.mean(np.diff(uniform, DIFFERENCES, axis=0) ** 2, axis=0)
+    s2 = np.minimum(s2, DIFFERENCES_BOUND * diff / math.comb(2 * DIFFERENCES, DIFFERENCES))
+    a_ref, k_ref = fit(ref, 2), kernel(ref, 2)
+    risk = np.empty((len(settings), uniform.shape[1]))
+    for k, setting in enumerate(settings):
+        k_c = kernel(setting, 2)
+        bias2 = np.mean((fit(setting, 2) - a_ref) ** 2, axis=0) - s2 * np.sum((k_c - k_ref) ** 2)
+        risk[k] = np.maximum(bias2, 0.0) + s2 * np.sum(k_c**2)  # (rad/s^2)^2
+    near = risk <= risk.min(axis=0) * 1.02 + TIE_RAD2_S4
+    return np.argmax(near, axis=0)
 
 
 @dataclass
@@ -119,6 +215,7 @@ class SmoothResult:
     segments: int = 0
     short_segments: int = 0  # too short to smooth: NaN, not ok
     periods_s: list[float] = field(default_factory=list)  # median step per smoothed segment
+    chosen: dict[tuple[int, int], int] = field(default_factory=dict)  # (window, order): joint segments
 
 
 def validity_groups(valid: np.ndarray) -> list[tuple[np.ndarray, np.ndarray]]:
@@ -132,13 +229,21 @@ def validity_groups(valid: np.ndarray) -> list[tuple[np.ndarray, np.ndarray]]:
 
 
 def smooth_kinematics(
-    stamps_ns: np.ndarray, q: np.ndarray, window: int, polyorder: int, max_gap_s: float
+    stamps_ns: np.ndarray,
+    q: np.ndarray,
+    window: int,
+    polyorder: int,
+    max_gap_s: float,
+    choices: Sequence[tuple[int, int]] = (),
 ) -> SmoothResult:
     """Savitzky-Golay positions, velocities, accelerations of joint positions q (N, J) rad at stamps (N,) ns.
 
     Each joint is smoothed on its finite samples, segments split at stamp steps > max_gap_s (s) smoothed
-    separately (see the module docstring). ``ok`` (N,) is ``joint_ok`` (N, J) of every joint.
+    separately (see the module docstring), with `window` and `polyorder`, or, given `choices` ((window,
+    polyorder) pairs), with the one `choose_settings` picks per joint and segment. ``ok`` (N,) is
+    ``joint_ok`` (N, J) of every joint.
     """
+    settings = tuple(choices) or ((window, polyorder),)
     stamps_ns = np.asarray(stamps_ns, dtype=np.int64)
     q = np.asarray(q, dtype=np.float64)
     n, j = q.shape
@@ -156,20 +261,22 @@ def smooth_kinematics(
         part_q = q if every else q[np.ix_(rows, cols)]
         for start, stop in segments(stamps_ns[rows], max_gap_ns):
             res.segments += 1
-            smoothed = savgol_uniform(t_s[rows[start:stop]], part_q[start:stop], window, polyorder)
+            smoothed = savgol_uniform(t_s[rows[start:stop]], part_q[start:stop], settings)
             if smoothed is None:
                 res.short_segments += 1
                 continue
             at = rows[start:stop]
-            for out, values in zip((res.q, res.dq, res.ddq), smoothed, strict=True):
+            for out, values in zip((res.q, res.dq, res.ddq), smoothed[:3], strict=True):
                 if every:
                     out[start:stop] = values
                 else:
                     out[np.ix_(at, cols)] = values
             # within half a window of a segment's ends the fit is one-sided (mode "interp"): its
             # derivatives extrapolate, so those samples keep their values but are not ok for labelling
-            half = window // 2
-            res.joint_ok[np.ix_(at[half : len(at) - half], cols)] = True
+            for col, k in zip(cols, smoothed[3], strict=True):
+                half = settings[k][0] // 2
+                res.joint_ok[at[half : len(at) - half], col] = True
+                res.chosen[settings[k]] = res.chosen.get(settings[k], 0) + 1
             res.periods_s.append(float(np.median(np.diff(t_s[at]))))
     res.ok = res.joint_ok.all(axis=1) if j else res.ok
     return res
@@ -214,7 +321,7 @@ def smooth_table(src: Path, dst: Path, cfg: SmoothParams) -> SmoothReport:
         else np.empty((0, len(joints)))
     )
     del base
-    res = smooth_kinematics(stamps, q, cfg.window, cfg.polyorder, cfg.max_gap_s)
+    res = smooth_kinematics(stamps, q, cfg.window, cfg.polyorder, cfg.max_gap_s, cfg.choices)
     extra = S.smoothed_extra_columns(joints)
     meta = read_table_metadata(pf)
     never = [jt for k, jt in enumerate(joints) if len(stamps) and not res.joint_ok[:, k].any()]
@@ -224,6 +331,7 @@ def smooth_table(src: Path, dst: Path, cfg: SmoothParams) -> SmoothReport:
         "short_segments": res.short_segments,
         "samples_not_ok": int((~res.ok).sum()),
         "median_period_s": float(np.median(res.periods_s)) if res.periods_s else None,
+        "chosen": {f"{w}/{p}": n for (w, p), n in sorted(res.chosen.items())},  # joint segments per setting
         "joints_never_ok": never,  # no ok sample: absent from the log (or never a smoothable stretch)
     }
     kv = {k.encode(): v for k, v in meta.items() if k != S.META_SCHEMA.decode()}

@@ -37,11 +37,12 @@ _STAGING = ".{name}.{pid}.ingest-tmp"  # staging directory beside the output, pe
 
 
 def smoothing_window(params: Params) -> int:
-    """`smooth.window` (samples), the least gap between a log's segments; 0 without a smooth section."""
+    """The widest smoothing window (samples, `smooth.window` or the widest of `smooth.choices`), the least gap
+    between a log's segments; 0 without a smooth section."""
     from pipeline.core.config import stage_section
     from pipeline.logs.smoothing import SmoothParams
 
-    return stage_section(params, "smooth", SmoothParams).window if "smooth" in params.raw else 0
+    return stage_section(params, "smooth", SmoothParams).widest if "smooth" in params.raw else 0
 
 
 # --- one log -------------------------------------------------------------------------------------
@@ -56,7 +57,9 @@ class RobotLogSpec:
     joints: Sequence[str]  # URDF joint order
     sensors: Sequence[str]  # URDF FT sensor names
     robot_names: Sequence[str]  # names the logs' `experiment.robot` may use for this robot
-    min_gap_samples: int = 0  # least gap between a log's segments, joint-state steps (smooth.window)
+    min_gap_samples: int = (
+        0  # least gap between a log's segments, joint-state steps (widest smoothing window)
+    )
 
 
 def find_logs(source_dir: Path, sidecar_suffix: str = ".yaml") -> list[Path]:

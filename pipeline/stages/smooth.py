@@ -51,8 +51,8 @@ def run(params: Any, in_dir: str | Path, out_dir: str | Path, *, progress: bool 
             reports.append(report)
             bar.advance(task)
         warnings = [
-            f"{Path(r.source).name}: {r.short_segments} segment(s) shorter than the window "
-            f"({cfg.window} samples): {r.samples_not_ok} samples not smoothed"
+            f"{Path(r.source).name}: {r.short_segments} segment(s) shorter than the narrowest window "
+            f"({cfg.narrowest} samples): {r.samples_not_ok} samples not smoothed"
             for r in reports
             if r.short_segments
         ]
