@@ -74,7 +74,7 @@ class SmoothParams:
 
     @property
     def settings(self) -> tuple[tuple[int, int], ...]:
-        """The (window, polyorder) settings a joint's segment is smoothed with: the choices, or the one."""
+        """The (window, polyorder) settings a segment is smoothed with: the choices, or the one."""
         return self.choices or ((self.window, self.polyorder),)
 
     @property
