@@ -40,9 +40,9 @@ LOGS = [
     {"type": "walking", "duration_s": 12, "role": "train"},
     {"type": "walking", "duration_s": 10, "role": "test"},
 ]
-SEGMENTS = [  # s of the pole run: two training segments and a test one, 0.5 s apart (> 21 samples)
-    {"start_s": 0.5, "end_s": 6.0, "role": "train"},
-    {"start_s": 6.5, "end_s": 12.0, "role": "train"},
+SEGMENTS = [  # s of the pole run: two training segments and a test one, 1 s apart (> 61 samples, the widest
+    {"start_s": 0.5, "end_s": 6.0, "role": "train"},  # smoothing window of smooth.choices)
+    {"start_s": 7.0, "end_s": 12.0, "role": "train"},
     {"start_s": 13.0, "end_s": 19.5, "role": "test"},
 ]
 GROUPS = ["r_arm_ft", "l_arm_ft", "legs"]  # the default groups: on iCub 2.x each arm, legs and feet

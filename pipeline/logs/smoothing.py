@@ -199,7 +199,7 @@ def choose_setting(uniform: np.ndarray, settings: Sequence[tuple[int, int]], dt:
     a_ref, k_ref = fit(ref, 2), kernel(ref, 2)
     # the median of noise alone in a sum of squares over the joints: Wilson-Hilferty's, with the sum's
     # effective degrees of freedom (1 joint: 0.47 of the mean, many alike: the mean)
-    dof = np.sum(s2) ** 2 / max(np.sum(s2**2), np.finfo(float).tiny)
+    dof = max(1.0, np.sum(s2) ** 2 / max(np.sum(s2**2), np.finfo(float).tiny))  # 1 to J (still joints: 0)
     median_share = (1.0 - 2.0 / (9.0 * dof)) ** 3
     total = np.empty(len(settings))
     for k, setting in enumerate(settings):
