@@ -80,7 +80,8 @@ def test_identify_params_name_the_bad_key(key: str, value: object, message: str)
 @pytest.fixture(scope="module")
 def identified_run(tmp_path_factory: pytest.TempPathFactory) -> dict:
     """Three short training logs (pole, known loads, balancing) of a robot whose URDF is 10 % / 2 cm off,
-    labelled, identified with label.inertials: identified (a weight of a few logs' worth)."""
+    labelled, identified with label.inertials: identified (a weight and a shrink threshold of a few
+    logs' worth)."""
     import shutil
 
     import yaml
@@ -99,7 +100,7 @@ def identified_run(tmp_path_factory: pytest.TempPathFactory) -> dict:
         {"type": "balancing", "duration_s": 10, "role": "train", "foot": "l_foot"},
     ]
     data["label"]["inertials"] = "identified"
-    data["label"]["identify"]["weight"] = 0.02
+    data["label"]["identify"].update(weight=0.02, shrink=0.5)  # 30 s of logs: their own weight and threshold
     (tmp / "params.yaml").write_text(yaml.safe_dump(data, sort_keys=False))
     patch = pytest.MonkeyPatch()
     patch.setenv("MLFLOW_TRACKING_URI", f"sqlite:///{tmp / 'mlflow.db'}")
