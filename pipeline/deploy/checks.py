@@ -143,6 +143,7 @@ def push_torques(
 ) -> tuple[dict[str, Any], dict[str, Any]]:
     """Test C on a pushed pole log: per leg joint, RMSE and max error of the torque from the raw and from
     the calibrated leg sensor against the truth during the pushes. Returns (results, series for figures)."""
+    from pipeline.labels.table import experiment_gravity
     from pipeline.physics.torques import limb_joints, sensor_joint_torques
     from pipeline.sim.push import push_profile
 
@@ -151,7 +152,7 @@ def push_torques(
         c for k in (S.QS, S.DQS, S.DDQS) for c in S.joint_cols(k, robot.joint_names))])  # fmt: skip
     q, dq, ddq = (smooth[S.joint_cols(k, robot.joint_names)].to_numpy() for k in (S.QS, S.DQS, S.DDQS))
     time_s = table[S.TIME].to_numpy()
-    gravity = [float(v) for v in log.experiment.get("gravity", f"0 0 {-params.robot.gravity}").split()]
+    gravity = experiment_gravity(log.labelled, log.experiment, params.robot.gravity)
     fixed = str(table[S.FIXED_LINK].iloc[0])
     _, who = push_profile(time_s, dp.push, len(dp.torque_limbs))
     pushed = who >= 0
