@@ -67,7 +67,8 @@ def test_the_urdf_writer_refuses_an_unknown_link_and_bad_xml(tmp_path: Path) -> 
         ("weight", -1.0, "weight must be a positive number"),
         ("shrink", 1.0, "shrink must be below 1"),
         ("play_widths_nm", [0.5, 1.0], "as many widths"),
-        ("play_widths_n", [-1.0], "list of positive numbers"),
+        ("play_widths_n", [-1.0], "list of distinct positive numbers"),
+        ("play_widths_n", [10.0, 10.0], "list of distinct positive numbers"),
     ],
 )
 def test_identify_params_name_the_bad_key(key: str, value: object, message: str) -> None:

@@ -14,6 +14,7 @@ from typing import Any
 from pipeline.calib.pushes import PushPrior
 from pipeline.calib.registry import complexity
 from pipeline.core.errors import ConfigError
+from pipeline.core.play import checked_widths, width_rows
 
 INPUT_SIZES = (6, 7, 13)  # raw wrench (+ temperature (+ accelerometer + gyroscope))
 NORMALISATIONS = ("max", "standard")
@@ -225,20 +226,19 @@ class GroupParams:
         self._check_search(key)
 
     def _check_widths(self, key: str) -> None:
-        for attr in ("play_widths_n", "play_widths_nm", "arx_time_constants_s"):
-            value = getattr(self, attr)
-            if (
-                not isinstance(value, list | tuple)
-                or any(not _is_number(v) or v <= 0 for v in value)
-                or len(set(value)) != len(value)
-            ):
-                raise ConfigError(f"{key}.{attr} must be a list of distinct positive numbers, got {value!r}")
-            object.__setattr__(self, attr, tuple(float(v) for v in value))
-        if len(self.play_widths_n) != len(self.play_widths_nm):
+        widths = checked_widths(key, self.play_widths_n, self.play_widths_nm)
+        object.__setattr__(self, "play_widths_n", widths[0])
+        object.__setattr__(self, "play_widths_nm", widths[1])
+        value = self.arx_time_constants_s
+        if (
+            not isinstance(value, list | tuple)
+            or any(not _is_number(v) or v <= 0 for v in value)
+            or len(set(value)) != len(value)
+        ):
             raise ConfigError(
-                f"{key}.play_widths_nm must have as many widths as play_widths_n "
-                f"({len(self.play_widths_n)}), got {list(self.play_widths_nm)!r}"
+                f"{key}.arx_time_constants_s must be a list of distinct positive numbers, got {value!r}"
             )
+        object.__setattr__(self, "arx_time_constants_s", tuple(float(v) for v in value))
 
     def _check_search(self, key: str) -> None:
         if not isinstance(self.search, Mapping):
@@ -288,9 +288,7 @@ class GroupParams:
     def play_widths(self) -> tuple[tuple[float, ...], ...] | None:
         """The play model's widths, one row per operator (K, 6: force axes N, torque axes Nm); None: the
         group trains no play model."""
-        if not self.play_widths_n:
-            return None
-        return tuple((f, f, f, t, t, t) for f, t in zip(self.play_widths_n, self.play_widths_nm, strict=True))
+        return width_rows(self.play_widths_n, self.play_widths_nm) if self.play_widths_n else None
 
     def arx_time_constants(self) -> tuple[float, ...] | None:
         """The arx model's filters' time constants, s; None: the group trains no arx model."""

@@ -10,13 +10,19 @@ distortion (`pipeline.sim.distortion`); a calibration with memory (the ``play`` 
 `play_step` sample by sample as the exported graphs do.
 
 Shapes: x (N, m) over N consecutive samples of m signals; widths scalar or (m,), in x's unit, > 0.
+
+The widths a params section gives (the play model's, `train.defaults`; the identification's sensor model's,
+`label.identify`) are checked by `checked_widths` and laid out per operator by `width_rows`.
 """
 
 from __future__ import annotations
 
+import math
 from typing import Any
 
 import numpy as np
+
+from pipeline.core.errors import ConfigError
 
 _SCAN_BLOCK = 32  # block length of the play-operator scan (fastest of 8..64 for 1e5 x 6 samples)
 
@@ -141,3 +147,28 @@ def play_features(wrench: np.ndarray, previous: np.ndarray, widths: np.ndarray) 
     widths = np.asarray(widths, dtype=np.float64).reshape(-1)
     tiled = np.tile(np.asarray(wrench, dtype=np.float64), len(widths) // 6)
     return (tiled - play_step(previous, tiled, widths)) / widths
+
+
+def checked_widths(key: str, force_n: Any, torque_nm: Any) -> tuple[tuple[float, ...], tuple[float, ...]]:
+    """The play widths of a params section, ``<key>.play_widths_n`` (force axes, N) and
+    ``<key>.play_widths_nm`` (torque axes, Nm), as tuples of floats. Raises ConfigError naming the key
+    unless each is a list of distinct positive numbers and they are as many."""
+    out = []
+    for name, value in (("play_widths_n", force_n), ("play_widths_nm", torque_nm)):
+        ok = isinstance(value, list | tuple) and all(
+            isinstance(w, int | float) and not isinstance(w, bool) and 0 < w < math.inf for w in value
+        )
+        if not ok or len(set(value)) != len(value):
+            raise ConfigError(f"{key}.{name} must be a list of distinct positive numbers, got {value!r}")
+        out.append(tuple(float(w) for w in value))
+    if len(out[0]) != len(out[1]):
+        raise ConfigError(
+            f"{key}.play_widths_nm must have as many widths as play_widths_n ({len(out[0])}), "
+            f"got {list(out[1])!r}"
+        )
+    return out[0], out[1]
+
+
+def width_rows(force_n: tuple[float, ...], torque_nm: tuple[float, ...]) -> tuple[tuple[float, ...], ...]:
+    """One row of widths per play operator (K, 6: the force axes' width N, then the torque axes' Nm)."""
+    return tuple((f, f, f, t, t, t) for f, t in zip(force_n, torque_nm, strict=True))

@@ -14,6 +14,7 @@ from typing import Any
 
 from pipeline.core.config import LabelParams, Params, stage_section
 from pipeline.core.errors import ConfigError
+from pipeline.core.play import checked_widths, width_rows
 
 KEY = "label.imu_check"
 
@@ -79,20 +80,13 @@ class IdentifyParams:
             object.__setattr__(self, name, float(v))
         if self.shrink >= 1:
             raise ConfigError(f"{IDENTIFY_KEY}.shrink must be below 1, got {self.shrink!r}")
-        for name in ("play_widths_n", "play_widths_nm"):
-            v = getattr(self, name)
-            ok = isinstance(v, list | tuple) and all(
-                not isinstance(w, bool) and isinstance(w, int | float) and 0 < w < math.inf for w in v
-            )
-            if not ok:
-                raise ConfigError(f"{IDENTIFY_KEY}.{name} must be a list of positive numbers, got {v!r}")
-            object.__setattr__(self, name, tuple(float(w) for w in v))
-        if len(self.play_widths_n) != len(self.play_widths_nm):
-            raise ConfigError(f"{IDENTIFY_KEY}.play_widths_n and play_widths_nm must have as many widths")
+        widths = checked_widths(IDENTIFY_KEY, self.play_widths_n, self.play_widths_nm)
+        object.__setattr__(self, "play_widths_n", widths[0])
+        object.__setattr__(self, "play_widths_nm", widths[1])
 
-    def widths(self) -> list[list[float]]:
+    def widths(self) -> tuple[tuple[float, ...], ...]:
         """The play operators' widths, one row per operator (K, 6: force axes N, torque axes Nm)."""
-        return [[f, f, f, t, t, t] for f, t in zip(self.play_widths_n, self.play_widths_nm, strict=True)]
+        return width_rows(self.play_widths_n, self.play_widths_nm)
 
     @classmethod
     def from_mapping(cls, data: Any) -> IdentifyParams:
