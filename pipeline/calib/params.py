@@ -14,7 +14,7 @@ from typing import Any
 from pipeline.calib.pushes import PushPrior
 from pipeline.calib.registry import complexity
 from pipeline.core.errors import ConfigError
-from pipeline.core.play import checked_widths, width_rows
+from pipeline.core.play import checked_widths, distinct_positive, width_rows
 
 INPUT_SIZES = (6, 7, 13)  # raw wrench (+ temperature (+ accelerometer + gyroscope))
 NORMALISATIONS = ("max", "standard")
@@ -229,16 +229,8 @@ class GroupParams:
         widths = checked_widths(key, self.play_widths_n, self.play_widths_nm)
         object.__setattr__(self, "play_widths_n", widths[0])
         object.__setattr__(self, "play_widths_nm", widths[1])
-        value = self.arx_time_constants_s
-        if (
-            not isinstance(value, list | tuple)
-            or any(not _is_number(v) or v <= 0 for v in value)
-            or len(set(value)) != len(value)
-        ):
-            raise ConfigError(
-                f"{key}.arx_time_constants_s must be a list of distinct positive numbers, got {value!r}"
-            )
-        object.__setattr__(self, "arx_time_constants_s", tuple(float(v) for v in value))
+        taus = distinct_positive(self.arx_time_constants_s, f"{key}.arx_time_constants_s")
+        object.__setattr__(self, "arx_time_constants_s", taus)
 
     def _check_search(self, key: str) -> None:
         if not isinstance(self.search, Mapping):

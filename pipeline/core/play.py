@@ -12,7 +12,8 @@ distortion (`pipeline.sim.distortion`); a calibration with memory (the ``play`` 
 Shapes: x (N, m) over N consecutive samples of m signals; widths scalar or (m,), in x's unit, > 0.
 
 The widths a params section gives (the play model's, `train.defaults`; the identification's sensor model's,
-`label.identify`) are checked by `checked_widths` and laid out per operator by `width_rows`.
+`label.identify`) are checked by `checked_widths` (each list by `distinct_positive`) and laid out per
+operator by `width_rows`.
 """
 
 from __future__ import annotations
@@ -149,24 +150,29 @@ def play_features(wrench: np.ndarray, previous: np.ndarray, widths: np.ndarray) 
     return (tiled - play_step(previous, tiled, widths)) / widths
 
 
+def distinct_positive(value: object, key: str) -> tuple[float, ...]:
+    """A params list of distinct positive finite numbers (play widths; the arx model's time constants) as
+    floats, else ConfigError naming `key`."""
+    ok = isinstance(value, list | tuple) and all(
+        isinstance(v, int | float) and not isinstance(v, bool) and 0 < v < math.inf for v in value
+    )
+    if not ok or len(set(value)) != len(value):
+        raise ConfigError(f"{key} must be a list of distinct positive numbers, got {value!r}")
+    return tuple(float(v) for v in value)
+
+
 def checked_widths(key: str, force_n: Any, torque_nm: Any) -> tuple[tuple[float, ...], tuple[float, ...]]:
     """The play widths of a params section, ``<key>.play_widths_n`` (force axes, N) and
     ``<key>.play_widths_nm`` (torque axes, Nm), as tuples of floats. Raises ConfigError naming the key
     unless each is a list of distinct positive numbers and they are as many."""
-    out = []
-    for name, value in (("play_widths_n", force_n), ("play_widths_nm", torque_nm)):
-        ok = isinstance(value, list | tuple) and all(
-            isinstance(w, int | float) and not isinstance(w, bool) and 0 < w < math.inf for w in value
-        )
-        if not ok or len(set(value)) != len(value):
-            raise ConfigError(f"{key}.{name} must be a list of distinct positive numbers, got {value!r}")
-        out.append(tuple(float(w) for w in value))
-    if len(out[0]) != len(out[1]):
+    force = distinct_positive(force_n, f"{key}.play_widths_n")
+    torque = distinct_positive(torque_nm, f"{key}.play_widths_nm")
+    if len(force) != len(torque):
         raise ConfigError(
-            f"{key}.play_widths_nm must have as many widths as play_widths_n ({len(out[0])}), "
-            f"got {list(out[1])!r}"
+            f"{key}.play_widths_nm must have as many widths as play_widths_n ({len(force)}), "
+            f"got {list(torque)!r}"
         )
-    return out[0], out[1]
+    return force, torque
 
 
 def width_rows(force_n: tuple[float, ...], torque_nm: tuple[float, ...]) -> tuple[tuple[float, ...], ...]:
