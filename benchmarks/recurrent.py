@@ -1,11 +1,13 @@
 """Would a recurrent network calibrate better than the play model? Measured on a run of simulated logs.
 
 For each single-sensor group of the run (``models/<group>`` with a ``play`` model), a GRU correction of the
-group's own affine map (``baselines.json``'s ``affine``, fitted with the virtual pushes, held fixed) is
-trained on the group's training logs, whole logs in time order: truncated back-propagation over chunks of
-consecutive samples, the hidden state carried from chunk to chunk and reset at each log's start (as a
-runtime carries it), the switched loss on the exact samples (``sw.<sensor>``), per axis scaled by the label's
-spread, the epoch kept that is best on the run's validation logs (its `train` split, seeded from params).
+group's own affine map (``baselines.json``'s ``affine``, fitted with the virtual pushes, held fixed; with
+``--base play`` of its play model, run over each log from a fresh state: what a recurrent network adds to the
+hysteresis the play operators already carry) is trained on the group's training logs, whole logs in time
+order: truncated back-propagation over chunks of consecutive samples, the hidden state carried from chunk to
+chunk and reset at each log's start (as a runtime carries it), the switched loss on the exact samples
+(``sw.<sensor>``), per axis scaled by the label's spread, the epoch kept that is best on the run's validation
+logs (its `train` split, seeded from params).
 On the test logs, run from a fresh state over every sample, it is scored against the true wrench on every
 test sample (the evaluate stage's own join, `pipeline.evaluation.inputs.load_group`), beside the run's
 affine, play and recommended models and the oracle, the 6 axes pooled (N and Nm). Then a held push: +20 N
@@ -14,6 +16,7 @@ on the raw fx for 100 samples from each of 200 seeded onsets, the calibrated fx'
 the GRU and the play model.
 
     python benchmarks/recurrent.py [--run .] [--groups r_arm_ft l_arm_ft] [--hidden 16] [--epochs 40]
+    python benchmarks/recurrent.py --base play
     python benchmarks/recurrent.py --quick   # 1 epoch, hidden 4, the first group: every step, no figure
 
 Needs a run of simulated logs after `dvc repro` (truth tables in data/ingested). The last line is the
@@ -26,6 +29,7 @@ import argparse
 import json
 import sys
 import time
+from collections.abc import Callable
 from pathlib import Path
 
 import numpy as np
@@ -46,6 +50,7 @@ from pipeline.logs import schema as S  # noqa: E402
 CHUNK = 512  # samples per step of truncated back-propagation
 PUSH_N, HELD, ONSETS = 20.0, 100, 200  # the held push: N on fx, samples, onsets
 DIRS = (("labelled", "data/labelled"), ("ingested", "data/ingested"), ("models", "models"))
+Base = Callable[[np.ndarray], np.ndarray]  # one log's raw inputs (N, 7) in time order -> calibrated (N, 6)
 
 
 class Correction(nn.Module):
@@ -75,20 +80,20 @@ def _logs(data: GroupData, names: list[str]) -> list[dict[str, np.ndarray]]:
     return out
 
 
-def _run(net: Correction, base: LinearBaseline, log: dict, mu: np.ndarray, sd: np.ndarray) -> np.ndarray:
-    """(N, 6) the calibrated wrench of one log from a fresh state: the affine map plus the GRU's."""
+def _run(net: Correction, base: Base, log: dict, mu: np.ndarray, sd: np.ndarray) -> np.ndarray:
+    """(N, 6) the calibrated wrench of one log from a fresh state: the base model's plus the GRU's."""
     z = torch.tensor((log["x"] - mu) / sd, dtype=torch.float32)[None]
     with torch.no_grad():
         corr = net(z)[0][0].numpy().astype(np.float64)
-    return base.predict(log["x"][:, None])[:, 0] + corr
+    return base(log["x"]) + corr
 
 
-def _train(logs: list[dict], val: list[dict], base: LinearBaseline, hidden: int, epochs: int, seed: int):
+def _train(logs: list[dict], val: list[dict], base: Base, hidden: int, epochs: int, seed: int):
     """The GRU correction trained on `logs`, the epoch best on `val` kept (module docstring)."""
     torch.manual_seed(seed)
     x = np.concatenate([g["x"] for g in logs])
     mu, sd = x.mean(axis=0), np.where(x.std(axis=0) > 1e-9, x.std(axis=0), 1.0)
-    targets = [g["labels"] - base.predict(g["x"][:, None])[:, 0] for g in logs]  # what the GRU must add
+    targets = [g["labels"] - base(g["x"]) for g in logs]  # what the GRU must add
     exact = np.concatenate([t[g["exact"]] for t, g in zip(targets, logs, strict=True)])
     scale = np.nanstd(exact, axis=0) + 1e-6
     net = Correction(x.shape[1], hidden, scale)
@@ -131,14 +136,19 @@ def _push_slopes(predict, log: dict, rng: np.random.Generator) -> list[float]:
     return np.mean(out, axis=0).round(3).tolist()
 
 
-def _group(dirs: dict[str, Path], params, name: str, hidden: int, epochs: int, quick: bool) -> dict:
+def _group(dirs: dict[str, Path], params, name: str, hidden: int, epochs: int, quick: bool, on: str) -> dict:
     """One group's figures (module docstring); `dirs`: labelled, ingested and models directories."""
     labelled, gdir = dirs["labelled"], dirs["models"] / name
     prep = prepare(params, name, labelled)
     logs = find_logs(labelled)
     by_name = {log.name: log for log in logs}
     baselines = json.loads((gdir / "baselines.json").read_text())
-    base, play = (LinearBaseline.from_dict(baselines[m]) for m in ("affine", "play"))
+    affine, play = (LinearBaseline.from_dict(baselines[m]) for m in ("affine", "play"))
+    bases: dict[str, Base] = {
+        "affine": lambda x: affine.predict(x[:, None])[:, 0],
+        "play": lambda x: play.predict_log(x[:, None])[:, 0],  # the memory from a fresh state
+    }
+    base = bases[on]
     names = prep.log_names
 
     def read(split: str) -> list[dict]:
@@ -167,7 +177,7 @@ def _group(dirs: dict[str, Path], params, name: str, hidden: int, epochs: int, q
     if quick:
         longest = {**longest, "x": longest["x"][: HELD + 60]}
     out["push_gru"] = _push_slopes(lambda x: _run(net, base, {"x": x}, mu, sd), longest, rng)
-    out["push_play"] = _push_slopes(lambda x: play.predict_log(x[:, None])[:, 0], longest, rng)
+    out["push_play"] = _push_slopes(bases["play"], longest, rng)
     return out
 
 
@@ -178,6 +188,7 @@ def main() -> None:
     for n, where in DIRS:
         ap.add_argument(f"--{n}", type=Path, help=f"default RUN/{where}")
     ap.add_argument("--groups", nargs="*", help="single-sensor groups (default: every one with a play model)")
+    ap.add_argument("--base", choices=("affine", "play"), default="affine", help="the model the GRU corrects")
     ap.add_argument("--hidden", type=int, default=16, help="GRU hidden units")
     ap.add_argument("--epochs", type=int, default=40, help="passes over the training logs")
     ap.add_argument("--quick", action="store_true", help="1 epoch, hidden 4, the first group: no figure")
@@ -195,8 +206,11 @@ def main() -> None:
         groups, args.epochs, args.hidden = groups[:1], 1, 4
     t0, rows = time.perf_counter(), []
     for name in groups:
-        rows.append(_group(dirs, params, name, args.hidden, args.epochs, args.quick))
-    print(f"GRU {args.hidden} hidden, {args.epochs} epochs; RMSE against truth, every test sample, 6 axes")
+        rows.append(_group(dirs, params, name, args.hidden, args.epochs, args.quick, args.base))
+    print(
+        f"GRU {args.hidden} hidden, {args.epochs} epochs, correcting the {args.base} model; "
+        "RMSE against truth, every test sample, 6 axes"
+    )
     print(f"{'group':<12} {'affine':>7} {'play':>7} {'gru':>7} {'oracle':>7}  push fx / 20 N: onset, 10, 99")
     for r in rows:
         print(f"{r['group']:<12} {r['affine']:7.3f} {r['play']:7.3f} {r['gru']:7.3f} {r['oracle']:7.3f}  "
