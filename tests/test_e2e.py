@@ -183,23 +183,25 @@ def test_calibrate_agreement_benchmark_runs_on_the_outputs(pipeline_run: dict[st
     assert diff is not None and float(diff.group(1)) < 1e-3, proc.stdout
 
 
-def test_recurrent_benchmark_runs_on_the_outputs(pipeline_run: dict[str, Any]) -> None:
+@pytest.mark.parametrize("model", ["gru", "window"])
+def test_recurrent_benchmark_runs_on_the_outputs(pipeline_run: dict[str, Any], model: str) -> None:
     """`benchmarks/recurrent.py` (docs/benchmarks.md) on this run (its directory laid out as a pipeline's):
-    the GRU correction is trained and scored against truth beside the group's play model, and a held push is
-    read at three instants."""
+    the GRU correction of the affine map, or the windowed network's of the play model, is trained and scored
+    against truth beside the group's play model, and a held push is read at three instants."""
     d = pipeline_run["dirs"]
     args = ["--params", str(pipeline_run["tmp"] / "params.yaml"), "--quick"]
     args += [f"--{n}={d[n]}" for n in ("labelled", "ingested", "models")]
+    args += ["--base", "play", "--model", "window"] if model == "window" else []
     proc = _benchmark("benchmarks/recurrent.py", args)
     numbers = r"\s+(\S+)" * 4
-    row = re.search(rf"^{GROUP}{numbers}\s+gru \[(.+)\]\s+play \[(.+)\]$", proc.stdout, re.M)
+    row = re.search(rf"^{GROUP}{numbers}\s+{model} \[(.+)\]\s+play \[(.+)\]$", proc.stdout, re.M)
     assert row is not None, proc.stdout
-    affine, play, gru, oracle = (float(v) for v in row.groups()[:4])
-    assert all(0 < v < 50 for v in (affine, play, gru, oracle)), proc.stdout
+    affine, play, ours, oracle = (float(v) for v in row.groups()[:4])
+    assert all(0 < v < 50 for v in (affine, play, ours, oracle)), proc.stdout
     for held in row.groups()[4:]:
         assert len([float(v) for v in held.split(",")]) == 3, proc.stdout
-    ratio = re.search(r"largest ratio gru / play \(RMSE against truth\): (\S+)$", proc.stdout.strip())
-    assert ratio is not None and float(ratio.group(1)) == pytest.approx(gru / play, rel=0.01), proc.stdout
+    ratio = re.search(rf"largest ratio {model} / play \(RMSE against truth\): (\S+)$", proc.stdout.strip())
+    assert ratio is not None and float(ratio.group(1)) == pytest.approx(ours / play, rel=0.01), proc.stdout
 
 
 def test_identify_benchmark_runs_on_the_outputs(pipeline_run: dict[str, Any]) -> None:
