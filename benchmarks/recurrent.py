@@ -92,12 +92,16 @@ def _logs(data: GroupData, names: list[str]) -> list[dict[str, np.ndarray]]:
     return out
 
 
+def _correction(net: Correction, x: np.ndarray, mu: np.ndarray, sd: np.ndarray) -> np.ndarray:
+    """(N, 6) the GRU's correction (N, Nm) over one log's raw inputs x (N, 7) from a fresh state."""
+    z = torch.tensor((x - mu) / sd, dtype=torch.float32)[None]
+    with torch.no_grad():
+        return net(z)[0][0].numpy().astype(np.float64)
+
+
 def _run(net: Correction, base: Base, log: dict, mu: np.ndarray, sd: np.ndarray) -> np.ndarray:
     """(N, 6) the calibrated wrench of one log from a fresh state: the base model's plus the GRU's."""
-    z = torch.tensor((log["x"] - mu) / sd, dtype=torch.float32)[None]
-    with torch.no_grad():
-        corr = net(z)[0][0].numpy().astype(np.float64)
-    return base(log["x"]) + corr
+    return base(log["x"]) + _correction(net, log["x"], mu, sd)
 
 
 def _train(logs: list[dict], val: list[dict], base: Base, hidden: int, epochs: int, seed: int):
@@ -111,6 +115,7 @@ def _train(logs: list[dict], val: list[dict], base: Base, hidden: int, epochs: i
     net = Correction(x.shape[1], hidden, scale)
     opt = torch.optim.Adam(net.parameters(), lr=3e-3)
     best, state = np.inf, None
+    val_targets = [g["labels"] - base(g["x"]) for g in val]  # the base model's part, once
     for _ in range(epochs):
         for g, target in zip(logs, targets, strict=True):
             z = torch.tensor((g["x"] - mu) / sd, dtype=torch.float32)[None]
@@ -126,7 +131,10 @@ def _train(logs: list[dict], val: list[dict], base: Base, hidden: int, epochs: i
                 opt.step()
                 h = h.detach()
         score = np.mean(
-            [np.nanmean(((_run(net, base, g, mu, sd) - g["labels"])[g["exact"]]) ** 2) for g in val]
+            [
+                np.nanmean(((_correction(net, g["x"], mu, sd) - target)[g["exact"]]) ** 2)
+                for g, target in zip(val, val_targets, strict=True)
+            ]
         )
         if score < best:
             best, state = score, {k: v.clone() for k, v in net.state_dict().items()}
@@ -273,7 +281,9 @@ def main() -> None:
     for n, where in DIRS:
         ap.add_argument(f"--{n}", type=Path, help=f"default RUN/{where}")
     ap.add_argument("--groups", nargs="*", help="single-sensor groups (default: every one with a play model)")
-    ap.add_argument("--base", choices=("affine", "play"), default="affine", help="the model the GRU corrects")
+    ap.add_argument(
+        "--base", choices=("affine", "play"), default="affine", help="the model the network corrects"
+    )
     ap.add_argument("--model", choices=("gru", "window"), default="gru", help="the network with memory")
     ap.add_argument("--slope", type=float, default=0.05, help="the windowed network's bound, push units")
     ap.add_argument("--hidden", type=int, help="hidden units (default: GRU 16, windowed network 64)")
