@@ -86,6 +86,38 @@ def synthetic_linear(models_dir: Path, name: str = "play", seed: int = 0) -> lis
     return out
 
 
+def synthetic_window(models_dir: Path, seed: int = 0) -> list[GroupModel]:
+    """Write models/<group>/win.json with a random windowed network for every group (the window, network size
+    and play widths of the params' train.defaults, at 100 Hz) over a random play model; return the export
+    adapter's view."""
+    from pipeline.calib.linear import LinearBaseline
+    from pipeline.calib.params import TrainParams
+    from pipeline.calib.window import Layer, WindowModel, WindowNet
+    from pipeline.core.config import stage_section
+
+    gp = stage_section(load_params(ROOT / "params.yaml"), "train", TrainParams).group("r_arm_ft")
+    taus = np.asarray(gp.window_time_constants_s, dtype=np.float64)
+    synthetic_linear(models_dir, "play", seed)  # each group's play model, in its baselines.json
+    rng = np.random.default_rng(seed + 1)
+    out = []
+    for group, sensors in GROUPS.items():
+        entry = json.loads((models_dir / group / "baselines.json").read_text())["play"]
+        nets = []
+        for _ in sensors:
+            sizes = [6 * (len(taus) + 1) + 1, *[gp.window_hidden] * len(gp.window_activations), 6]
+            acts = [*gp.window_activations, None]
+            layers = [
+                Layer(rng.normal(size=(o, i)) / np.sqrt(i), rng.normal(size=o) * 0.1, a, 0.01)
+                for i, o, a in zip(sizes[:-1], sizes[1:], acts, strict=True)
+            ]
+            scale = np.r_[np.tile(SCALE[:6], len(taus) + 1), 1.0]
+            nets.append(WindowNet(np.zeros(sizes[0]), scale, np.r_[np.full(3, 1.0), np.full(3, 0.2)], layers))
+        model = WindowModel(LinearBaseline.from_dict(entry), taus, 0.01, nets)
+        write_json(models_dir / group / "win.json", model.to_dict())
+        out.append(read_group(models_dir / group, "win", group))
+    return out
+
+
 def synthetic_export(out_dir: Path, models: list[GroupModel]) -> dict:
     """Export `models` into `out_dir` as the export steps lay an export out (`pipeline.stages.export`): each
     group's graphs and manifest in ``groups/<group>/``, the fused graph and ``manifest.json`` at the top;

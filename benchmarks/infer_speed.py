@@ -17,7 +17,8 @@ search may pick 64, 100 or 128) and measures, on one thread:
 5. for scale, the same call of a graph that only copies its input (onnxruntime's per-call floor, from C
    and from Python, on this machine at this load).
 6. the linear families fused for the 8 sensors through the C API: affine (memoryless), play and arx (with
-   memory: their state carried from call to call).
+   memory: their state carried from call to call), and the windowed network (`win`: the play model, its
+   filters and a network per sensor, of the params' size).
 
 Both agree on the outputs first. Then 1. and 2. for the real export's fused graph (``--export DIR``,
 default ``exported/`` when present; ``--export ''`` skips it), on random inputs of plausible size (the
@@ -56,6 +57,7 @@ from benchmarks.export_fixture import (  # noqa: E402
     synthetic_export,
     synthetic_linear,
     synthetic_models,
+    synthetic_window,
 )
 from pipeline.export.check import run, session  # noqa: E402
 from pipeline.export.linear import STATE, STATE_OUT  # noqa: E402
@@ -277,8 +279,9 @@ def _measure(args: argparse.Namespace, work: Path) -> None:
     rows_t = [torch.tensor(r, dtype=torch.float32).reshape(1, -1) for r in pool]
     results["torch eager float32"] = latencies(torch_all, rows_t, args.calls)
 
-    for name in ("affine", "play", "arx"):  # the linear families, memoryless and with memory, in the same run
-        linear_doc = synthetic_export(work / name, synthetic_linear(work / f"{name}_models", name))
+    for name in ("affine", "play", "arx", "win"):  # the linear families and the windowed network, in one run
+        made = synthetic_window(work / "win_models") if name == "win" else None
+        linear_doc = synthetic_export(work / name, made or synthetic_linear(work / f"{name}_models", name))
         linear = linear_doc["graphs"][linear_doc["fused"]]
         state = int(linear["state"]["shape"][0]) if "state" in linear else 0
         file, pool7 = work / name / linear["files"]["float32"], random_inputs(args.rows, n_inputs=7)
@@ -290,7 +293,7 @@ def _measure(args: argparse.Namespace, work: Path) -> None:
     _print(results, 8)
     verdicts = [_verdict("synthetic, C API", results["onnxruntime C API float32"])]
     verdicts.append(_verdict("synthetic, Python", results["onnxruntime float32 bound"]))
-    for k in ("affine", "play", "arx"):
+    for k in ("affine", "play", "arx", "win"):
         verdicts.append(_verdict(f"synthetic {k}, C API", results[f"{k} 8 sensors C API float32"]))
     if args.export:
         about, n_sensors, real = _real_export(Path(args.export), args.calls, args.rows, work)

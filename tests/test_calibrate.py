@@ -387,7 +387,7 @@ def test_the_export_records_which_boards_it_belongs_to(setup: dict, tmp_path: Pa
     assert f"records no serial of {LEG}, {FRONT}, {REAR}: cannot check" in capsys.readouterr().err
 
 
-@pytest.fixture(scope="module", params=["play", "arx"])
+@pytest.fixture(scope="module", params=["play", "arx", "win"])
 def memory_export(setup: dict, tmp_path_factory: pytest.TempPathFactory, request: Any) -> tuple[str, Path]:
     """The same trained groups exported with a model with memory recommended: (its name, the export)."""
     tmp = tmp_path_factory.mktemp(f"calibrate_{request.param}")
@@ -411,9 +411,10 @@ def _spike(sensor: str, t: np.ndarray, w: np.ndarray) -> None:
 def test_calibrate_with_memory_is_causal_and_carries_the_state(
     setup: dict, memory_export: tuple[str, Path], tmp_path: Path
 ) -> None:
-    """A play or arx model's calibration of every raw message equals the project's model run over the sensor's
-    messages in stamp order from the log's first (the state carried across ~15 chunks); a message changed
-    6 s into the log changes no earlier output, and later ones too (the state remembers it)."""
+    """A play, arx or windowed model's calibration of every raw message equals the project's model run over
+    the sensor's messages in stamp order from the log's first (the state carried across ~15 chunks); a
+    message changed 6 s into the log changes no earlier output, and later ones too (the state remembers
+    it)."""
     logs = {"plain": setup["log"], "spiked": tmp_path / "spiked.mcap"}
     write_log(logs["spiked"], SENSORS, 10.0, seed=3, chunk_size=32 * 1024, serials=SERIALS, edit=_spike)
     got = {}
@@ -449,14 +450,14 @@ def _wrenches(messages: list[Any]) -> np.ndarray:
 def test_filters_refuse_a_log_at_another_rate(
     setup: dict, memory_export: tuple[str, Path], tmp_path: Path, capsys: Any
 ) -> None:
-    """An arx model's filters were trained at 100 Hz: a 50 Hz log is refused, naming the topic and both
-    periods, and nothing is written; a play model reads the path alone and calibrates it."""
+    """An arx or windowed model's filters were trained at 100 Hz: a 50 Hz log is refused, naming the topic
+    and both periods, and nothing is written; a play model reads the path alone and calibrates it."""
     name, export = memory_export
     log, out = tmp_path / "slow.mcap", tmp_path / "slow_calibrated.mcap"
     write_log(log, SENSORS, 4.0, rate_hz=50.0, seed=4, serials=SERIALS)
     code = main(_cli(setup, log, out, models=export))
     err = capsys.readouterr().err
-    if name == "arx":
+    if name in ("arx", "win"):
         assert code != 0 and not out.exists()
         assert f"/ft/{LEG}/wrench: messages 20 ms apart" in err and "run at 10 ms" in err, err
     else:

@@ -27,7 +27,7 @@ from pipeline.export.trained import read_group
 from pipeline.stages import export as E
 from tests.test_train import LEG, PAIR
 
-MODELS = ("raw", "affine", "poly1", "poly2", "play", "arx", "nn7", "nn13")
+MODELS = ("raw", "affine", "poly1", "poly2", "play", "arx", "nn7", "nn13", "win")
 SCALE = np.array([60.0, 60.0, 200.0, 4.0, 4.0, 1.5, 4.0, 1, 1, 1, 1, 1, 1])  # per input: N, Nm, degC, ...
 
 
@@ -61,7 +61,7 @@ def test_group_graph_equals_project_model(trained_models: dict, name: str) -> No
     x = _inputs(2, model.n_inputs)
     reference = model.reference(x)
     np.testing.assert_allclose(_outputs(model, "float64", x), reference, rtol=0, atol=1e-9)
-    if model.kind == "network":  # float32 arithmetic (as torch's): against torch in test_network_graph_...
+    if model.kind in ("network", "window"):  # float32 networks (torch's): see test_network_graph_...
         np.testing.assert_allclose(_outputs(model, "float32", x), reference, rtol=0, atol=2e-3)
     else:  # float32 in and out, float64 inside: only the output's rounding (|f| < 1000 N: < 6.1e-5 N)
         rounded = model.reference(x.astype(np.float32).astype(np.float64))

@@ -131,18 +131,21 @@ def test_graph_carries_the_state_from_call_to_call(models: dict, tmp_path: Path)
 
 
 def test_registry_names_every_family_once() -> None:
-    names = ["raw", "affine", poly_name(1), poly_name(4), "play", "arx", nn_name(7), nn_name(13)]
+    names = ["raw", "affine", poly_name(1), poly_name(4), "play", "arx", nn_name(7), nn_name(13), "win"]
     assert sorted(names, key=complexity) == names
-    assert [family_of(n).key for n in names] == ["raw", "affine", "poly", "poly", "play", "arx", "nn", "nn"]
-    assert [kind_of(n) for n in names] == ["identity"] + ["linear"] * 5 + ["network"] * 2
-    assert [n for n in names if has_memory(n)] == ["play", "arx"]
+    keys = ["raw", "affine", "poly", "poly", "play", "arx", "nn", "nn", "win"]
+    assert [family_of(n).key for n in names] == keys
+    assert [kind_of(n) for n in names] == ["identity"] + ["linear"] * 5 + ["network"] * 2 + ["window"]
+    assert [n for n in names if has_memory(n)] == ["play", "arx", "win"]
     assert family_of("oracle") is None and family_of("poly") is None and family_of("nnx") is None
     assert len({f.key for f in FAMILIES}) == len(FAMILIES)
 
 
 def test_export_of_an_unknown_model_names_the_families(tmp_path: Path) -> None:
     (tmp_path / "metrics.json").write_text(json.dumps({"group": "g", "sensors": ["s"], "test": {}}))
-    with pytest.raises(DataError, match=r"unknown model 'gru' \(raw, affine, poly<n>, play, arx, nn<n>\)"):
+    with pytest.raises(
+        DataError, match=r"unknown model 'gru' \(raw, affine, poly<n>, play, arx, nn<n>, win\)"
+    ):
         read_group(tmp_path, "gru", "g")
 
 

@@ -23,6 +23,7 @@ from pipeline.calib.data import LogInfo, find_logs, input_cols, load_group_data,
 from pipeline.calib.models import load_model
 from pipeline.calib.params import TrainParams, select_by_folds, select_simplest
 from pipeline.calib.training import train_network
+from pipeline.calib.window import WindowModel
 from pipeline.cli import main
 from pipeline.core.config import load_params, stage_section
 from pipeline.core.errors import ConfigError, DataError
@@ -80,6 +81,12 @@ TRAIN_PARAMS = {
         "play_widths_n": [10.0, 30.0],
         "play_widths_nm": [0.5, 1.5],
         "arx_time_constants_s": [0.5, 5.0],
+        "window_time_constants_s": [0.05, 0.5],
+        "window_hidden": 8,
+        "window_activations": ["relu"],
+        "window_epochs": 2,
+        "window_lr": 0.003,
+        "window_batch_size": 128,
     },
     "groups": {LEG: {"sensor": LEG}, PAIR: {"pair": PAIR, "normalisation": "standard"}},
 }
@@ -131,6 +138,8 @@ def test_repo_params_resolve_every_group() -> None:
         ({"selection_margin": 1.5}, "train.selection_margin must be a number in"),
         ({"groups": {"x": {"sensor": "a", "lr": 1, "foo": 2}}}, "unknown key train.groups.x.foo"),
         ({"defaults": {"epochs": 0}}, "train.groups.r_leg_ft.epochs must be an integer >= 1, got 0"),
+        ({"defaults": {"window_time_constants_s": [0.5, 0]}}, "window_time_constants_s must be a list"),
+        ({"defaults": {"window_lr": 0}}, "train.groups.r_leg_ft.window_lr must be a positive number"),
         ({"defaults": {"normalisation": "batch"}}, "normalisation must be one of"),
         (
             {"defaults": {"search": {"hidden": [64, 128]}}},
@@ -384,7 +393,7 @@ def test_end_to_end_resumes_registers_and_repeats(
 
     m = a.metrics
     for split in ("val", "test"):
-        assert set(m[split]) == {"raw", "affine", "poly1", "poly2", "play", "arx", "nn7", "nn13"}
+        assert set(m[split]) == {"raw", "affine", "poly1", "poly2", "play", "arx", "nn7", "nn13", "win"}
         for errors in m[split].values():
             assert {FRONT, REAR, PAIR, "rmse", "rmse_labelled"} <= set(errors)
             assert errors["rmse"] == errors[PAIR]["rmse"]
@@ -404,9 +413,13 @@ def test_end_to_end_resumes_registers_and_repeats(
     for name in ("nn7", "nn13"):  # trained from the affine map: epoch -1 is the affine baseline
         first = m["networks"][name]["history"][0]
         assert first["epoch"] == -1 and first["val_rmse"] == pytest.approx(errors["affine"], rel=1e-3)
+    first = m["windowed"]["history"][0]  # the windowed network corrects the play model
+    assert first["epoch"] == -1 and first["val_rmse"] == pytest.approx(errors["play"], rel=1e-3)
+    assert m["windowed"]["time_constants_s"] == [0.05, 0.5]
+    assert m["windowed"]["period_s"] == pytest.approx(0.01)
     # The synthetic distortion is nearly affine: every calibration beats the raw wrench by far.
     raw = m["test"]["raw"]["rmse"]
-    for name in ("affine", "poly1", "poly2", "play", "arx", "nn7", "nn13"):
+    for name in ("affine", "poly1", "poly2", "play", "arx", "nn7", "nn13", "win"):
         assert m["test"][name]["rmse"] < raw / 3, (name, m["test"][name]["rmse"], raw)
 
     # Model files: weights-only, and the same predictions as in predictions.parquet.
@@ -422,6 +435,16 @@ def test_end_to_end_resumes_registers_and_repeats(
             y = model(torch.tensor(test[cols].to_numpy(), dtype=torch.float32)).numpy()
         expected = pred[prediction_cols(name, FRONT) + prediction_cols(name, REAR)].to_numpy()
         np.testing.assert_allclose(y, expected, rtol=1e-5, atol=1e-4)
+    win = WindowModel.from_dict(json.loads((out_a / "win.json").read_text()))
+    logs = {p.stem: pd.read_parquet(p) for p in labelled.glob("*test.parquet")}
+    for log, rows in pred.groupby(LOG):  # each test log from a fresh state, every reading in time order
+        table = logs[log]
+        x = np.stack([table[input_cols(s, 7)].to_numpy(np.float64) for s in (FRONT, REAR)], axis=1)
+        y = pd.DataFrame(win.predict_log(x).reshape(len(x), -1))
+        y[S.STAMP] = table[S.STAMP].to_numpy()
+        y = rows[[S.STAMP]].merge(y, on=S.STAMP, how="left").drop(columns=S.STAMP).to_numpy()
+        expected = rows[prediction_cols("win", FRONT) + prediction_cols("win", REAR)].to_numpy()
+        np.testing.assert_allclose(y, expected, rtol=1e-6, atol=1e-5)  # stored as float32
 
     # MLflow: the stage's run tagged with the group, nested trial runs, registered pt2 models.
     client = MlflowClient(mlflow_uri)
@@ -486,7 +509,7 @@ def test_cli_single_sensor_group(
     assert code == 0, captured.err
     assert captured.out.startswith(f"{LEG}: test RMSE of {LEG}")
     metrics = json.loads((out / "metrics.json").read_text())
-    assert set(metrics["test"]) == {"raw", "affine", "poly1", "poly2", "play", "arx", "nn7"}
+    assert set(metrics["test"]) == {"raw", "affine", "poly1", "poly2", "play", "arx", "nn7", "win"}
     assert metrics["kind"] == "sensor" and metrics["headline"] == LEG
     assert sorted(p.name for p in out.iterdir()) == [
         "baselines.json",
@@ -494,6 +517,7 @@ def test_cli_single_sensor_group(
         "nn7.json",
         "nn7.pt",
         "predictions.parquet",
+        "win.json",
     ]
 
 

@@ -2,7 +2,8 @@
 
 Fold 0 is the train/validation split the Optuna search uses (`pipeline.calib.data.split_logs`); on each
 other fold the baselines are fitted again and each network is trained again with its search's best
-hyperparameters and seed, its epoch chosen on that fold's validation logs. A model's fold scores are its
+hyperparameters and seed (the windowed network with its params, on that fold's play model), its epoch chosen
+on that fold's validation logs. A model's fold scores are its
 validation ``rmse_labelled`` (N and Nm pooled) per fold; the model to deploy is chosen from them
 (`pipeline.calib.params.select_by_folds`): the simplest, unless a more complex one's mean is lower by more
 than ``train.selection_margin`` and by more than the spread of its per-fold improvements.
@@ -24,8 +25,9 @@ from pipeline.calib.data import GroupData, group_errors
 from pipeline.calib.linear import LinearBaseline
 from pipeline.calib.models import WRENCH
 from pipeline.calib.params import fold_spread, select_by_folds, selection_steps
-from pipeline.calib.registry import RAW, complexity, patterns
+from pipeline.calib.registry import RAW, WIN, complexity, patterns
 from pipeline.calib.training import NetSetting, predict, train_network, use_threads
+from pipeline.calib.window import fit_windowed, window_memory
 from pipeline.core.progress import ProgressLog
 
 # How far apart a network's fold errors land between two trainings whose inputs differ beyond their last
@@ -61,6 +63,11 @@ def _fold_predictions(
     baselines, fits, _ = fit_beside(gp, group, train, prep.seed, jobs, labels)
     preds = {RAW: val.x[:, :, :WRENCH].copy()}
     preds.update({name: model.predict(val.x, val.memory) for name, model in baselines.items()})
+    window = fit_windowed(gp, group, train, val, baselines, prep.seed)
+    if window is not None:
+        model, history, seconds = window
+        preds[WIN] = model.predict(val.x, window_memory(model.base, val))
+        names, fits = [*names, WIN], [*fits, (preds[WIN], history, seconds)]
     for name, (pred, history, seconds) in zip(names, fits, strict=True):
         preds[name] = pred
         best = min(history, key=lambda h: h["val_rmse"])

@@ -31,7 +31,7 @@ from pipeline.calib.params import GroupParams
 from pipeline.calib.scores import wrench_errors
 from pipeline.core.config import Params
 from pipeline.core.errors import ConfigError, DataError
-from pipeline.core.lowpass import memory_of, nominal_period
+from pipeline.core.lowpass import lowpass_memory, memory_of, nominal_period
 from pipeline.logs import schema as S
 
 ROLE_TRAIN, ROLE_TEST = "train", "test"
@@ -54,6 +54,7 @@ class Group:
     left_out: tuple[tuple[str, str], ...] = ()  # (sensor, why) of the sensors without any exact label
     widths: tuple[tuple[float, ...], ...] | None = None  # the play model's widths (K, 6), None: no play model
     time_constants: tuple[float, ...] | None = None  # the arx model's filters (J,) s, None: no arx model
+    windows: tuple[float, ...] | None = None  # the windowed network's time constants (J,) s, None: none
 
     @property
     def headlines(self) -> tuple[str, ...]:
@@ -109,6 +110,7 @@ class GroupData:
     poses: np.ndarray | None = None  # (N, P, 12) the cut sets' moving members' poses (CutTerm)
     memory: np.ndarray | None = None  # (N, S, 6 K + 6 J) the play and arx models' memory (`memory_of`)
     period: np.ndarray | None = None  # (N,) s the sample period of each sample's log (with memory)
+    window: np.ndarray | None = None  # (N, S, 6 J) the windowed network's filter outputs (`lowpass_memory`)
 
     def __len__(self) -> int:
         return len(self.log)
@@ -168,8 +170,7 @@ def find_logs(in_dir: Path) -> list[LogInfo]:
             raise DataError(
                 f"{path}: experiment metadata role must be {ROLE_TRAIN!r} or {ROLE_TEST!r}, got {role!r}"
             )
-        # The experiment's kind: its type refined by the supporting foot and part where the metadata has
-        # them (balancing on the left foot covers other loads than on the right one).
+        # its kind: type, foot and part where given (balancing on the left foot loads it otherwise)
         kind = "/".join(
             str(experiment[k]) for k in ("type", "foot", "part") if str(experiment.get(k, "")).strip()
         )
@@ -190,10 +191,8 @@ def expand_feet(gp: GroupParams, logs: Sequence[LogInfo]) -> GroupParams:
     }
     names = [str(s) for _, foot in sorted(feet.items()) for s in foot.get("sensors", ())]
     if not names:
-        raise DataError(
-            f"{logs[0].path}: train.groups.{gp.name}.sensors names {FEET!r}, but the labelled tables know "
-            "no foot"
-        )
+        where = f"{logs[0].path}: train.groups.{gp.name}.sensors"
+        raise DataError(f"{where} names {FEET!r}, but the labelled tables know no foot")
     sensors = [n for s in gp.sensors for n in (names if s == FEET else [s])]
     return replace(gp, sensors=tuple(dict.fromkeys(sensors)))
 
@@ -205,6 +204,7 @@ def resolve_group(gp: GroupParams, params: Params, logs: Sequence[LogInfo]) -> G
         n_inputs=max(gp.inputs),
         widths=gp.play_widths(),
         time_constants=gp.arx_time_constants(),
+        windows=gp.windowed(),
     )
 
 
@@ -386,6 +386,7 @@ def _read_log(log: LogInfo, group: Group, index: int) -> GroupData:
         period = nominal_period(data.time)
         data.memory = memory_of(data.x, group.widths, group.time_constants, period)
         data.period = np.full(n, period)
+        data.window = None if group.windows is None else lowpass_memory(data.x, group.windows, period)
     ok &= np.isfinite(data.x[:, :, : group.n_inputs]).all(axis=(1, 2))
     data = data.subset(ok)
     exact = [(n, data.labels[:, s], data.switches[:, s]) for s, n in enumerate(group.sensors)]

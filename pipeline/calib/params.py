@@ -143,6 +143,12 @@ class GroupParams:
     play_widths_n: tuple[float, ...]  # the play model's widths on force axes, N (empty: no play model) ...
     play_widths_nm: tuple[float, ...]  # ... and on torque axes, Nm (as many)
     arx_time_constants_s: tuple[float, ...]  # the arx model's low-pass filters, s (empty: no arx model)
+    window_time_constants_s: tuple[float, ...]  # the windowed network's windows, s (empty: no such network)
+    window_hidden: int  # its neurons per hidden layer
+    window_activations: tuple[str, ...]  # its hidden layers' activations, one per layer
+    window_epochs: int  # its passes over the training samples
+    window_lr: float  # its Adam learning rate
+    window_batch_size: int  # its samples per Adam step
 
     def __post_init__(self) -> None:
         key = f"train.groups.{self.name}"
@@ -168,30 +174,20 @@ class GroupParams:
         if not isinstance(inputs, list | tuple) or not inputs or any(i not in INPUT_SIZES for i in inputs):
             raise ConfigError(f"{key}.inputs must be a non-empty list of {INPUT_SIZES}, got {inputs!r}")
         object.__setattr__(self, "inputs", tuple(sorted(set(inputs))))
-        acts = self.activations
-        if not isinstance(acts, list | tuple) or not acts or any(a not in ACTIVATION_NAMES for a in acts):
-            raise ConfigError(
-                f"{key}.activations must be a non-empty list of {list(ACTIVATION_NAMES)}, got {acts!r}"
-            )
-        object.__setattr__(self, "activations", tuple(acts))
-        for attr, low in (
-            ("hidden", 1),
-            ("batch_size", 1),
-            ("epochs", 1),
-            ("n_trials", 1),
-            ("tpe_startup_trials", 0),
-            ("prune_startup_trials", 0),
-            ("prune_warmup_epochs", 0),
-        ):
-            value = getattr(self, attr)
-            if not _is_int(value) or value < low:
-                raise ConfigError(f"{key}.{attr} must be an integer >= {low}, got {value!r}")
+        for attr in ("activations", "window_activations"):
+            acts = getattr(self, attr)
+            if not isinstance(acts, list | tuple) or not acts or any(a not in ACTIVATION_NAMES for a in acts):
+                names = list(ACTIVATION_NAMES)
+                raise ConfigError(f"{key}.{attr} must be a non-empty list of {names}, got {acts!r}")
+            object.__setattr__(self, attr, tuple(acts))
+        self._check_integers(key)
         if self.normalisation not in NORMALISATIONS:
             raise ConfigError(
                 f"{key}.normalisation must be one of {NORMALISATIONS}, got {self.normalisation!r}"
             )
-        if not _is_number(self.lr) or self.lr <= 0:
-            raise ConfigError(f"{key}.lr must be a positive number, got {self.lr!r}")
+        for attr in ("lr", "window_lr"):
+            if not _is_number(getattr(self, attr)) or getattr(self, attr) <= 0:
+                raise ConfigError(f"{key}.{attr} must be a positive number, got {getattr(self, attr)!r}")
         for attr in (
             "weight_decay",
             "average_epochs",
@@ -212,6 +208,7 @@ class GroupParams:
                 raise ConfigError(f"{key}.{attr} must be a number >= 0, got {value!r}")
             object.__setattr__(self, attr, float(value))
         object.__setattr__(self, "lr", float(self.lr))
+        object.__setattr__(self, "window_lr", float(self.window_lr))
         slope = self.residual_slope
         if not _is_number(slope) or not 0 < slope <= 1:
             raise ConfigError(f"{key}.residual_slope must be a number in (0, 1], got {slope!r}")
@@ -225,12 +222,31 @@ class GroupParams:
         self._check_widths(key)
         self._check_search(key)
 
+    def _check_integers(self, key: str) -> None:
+        for attr, low in (
+            ("hidden", 1),
+            ("batch_size", 1),
+            ("epochs", 1),
+            ("n_trials", 1),
+            ("tpe_startup_trials", 0),
+            ("prune_startup_trials", 0),
+            ("prune_warmup_epochs", 0),
+            ("window_hidden", 1),
+            ("window_epochs", 1),
+            ("window_batch_size", 1),
+        ):
+            value = getattr(self, attr)
+            if not _is_int(value) or value < low:
+                raise ConfigError(f"{key}.{attr} must be an integer >= {low}, got {value!r}")
+
     def _check_widths(self, key: str) -> None:
         widths = checked_widths(key, self.play_widths_n, self.play_widths_nm)
         object.__setattr__(self, "play_widths_n", widths[0])
         object.__setattr__(self, "play_widths_nm", widths[1])
         taus = distinct_positive(self.arx_time_constants_s, f"{key}.arx_time_constants_s")
         object.__setattr__(self, "arx_time_constants_s", taus)
+        taus = distinct_positive(self.window_time_constants_s, f"{key}.window_time_constants_s")
+        object.__setattr__(self, "window_time_constants_s", taus)
 
     def _check_search(self, key: str) -> None:
         if not isinstance(self.search, Mapping):
@@ -285,6 +301,11 @@ class GroupParams:
     def arx_time_constants(self) -> tuple[float, ...] | None:
         """The arx model's filters' time constants, s; None: the group trains no arx model."""
         return self.arx_time_constants_s or None
+
+    def windowed(self) -> tuple[float, ...] | None:
+        """The windowed network's time constants, s; None: the group trains none (none given, or no play
+        model for it to correct)."""
+        return self.window_time_constants_s if self.window_time_constants_s and self.play_widths_n else None
 
     def hyperparameters(self) -> dict[str, Any]:
         """The searchable values of these params."""

@@ -4,7 +4,8 @@ pages find a family by the name of one of its models.
 A model's name is its family's key, followed for a numbered family by its number: ``raw``, ``affine``,
 ``poly2`` (a polynomial of order 2), ``play`` (the affine map with play-operator features of the raw
 wrench: memory), ``arx`` (the affine map with low-pass departures of the raw wrench: memory), ``nn7`` (a
-network of 7 inputs per sensor). The families, simplest first (the order in which cross-validation walks
+network of 7 inputs per sensor), ``win`` (a network over a causal window of the raw wrench correcting the play
+model: memory). The families, simplest first (the order in which cross-validation walks
 them, `pipeline.calib.params.select_by_folds`):
 
 | family | kind | memory | fitted by | exported as |
@@ -15,6 +16,7 @@ them, `pipeline.calib.params.select_by_folds`):
 | play | linear | yes | closed form | a linear part with play state |
 | arx | linear | yes | closed form | a linear part with filter state |
 | nn<k> | network | no | Optuna + Adam (`pipeline.calib.search`) | an MLP |
+| win | window | yes | Adam, on the play model (`pipeline.calib.window`) | a play part, an MLP, window state |
 
 A family with memory calibrates a sample from its present inputs and a state carried from sample to sample
 (the play operators' or the filters' outputs, `pipeline.core.lowpass`): trained on whole logs in time order,
@@ -30,8 +32,8 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
-IDENTITY, LINEAR, NETWORK = "identity", "linear", "network"
-KINDS = (IDENTITY, LINEAR, NETWORK)
+IDENTITY, LINEAR, NETWORK, WINDOW = "identity", "linear", "network", "window"
+KINDS = (IDENTITY, LINEAR, NETWORK, WINDOW)
 
 
 @dataclass(frozen=True)
@@ -40,7 +42,8 @@ class Family:
 
     key: str  # the name of its model, or of every model with a number after it (numbered)
     rank: int  # complexity: cross-validation prefers a lower rank unless a higher one wins by the margin
-    kind: str  # IDENTITY (the raw wrench), LINEAR (closed-form, baselines.json), NETWORK (nn<k>.json + .pt)
+    kind: str  # IDENTITY (the raw wrench), LINEAR (closed-form, baselines.json), NETWORK (nn<k>.json + .pt),
+    # WINDOW (win.json: the play model and its networks' weights)
     memory: bool  # calibrates from a state carried over the past samples as well as the present ones
     numbered: bool  # its names end in a number: poly<order>, nn<inputs per sensor>
     title: str  # what the pages and the manifest say it is
@@ -65,9 +68,11 @@ FAMILIES = (
            "lagged linear map, ARX with fixed poles)", "#17becf"),
     Family("nn", 5, NETWORK, False, True, "neural network (a Lipschitz-bounded correction of the affine map)",
            "#1f77b4", ((13, "#d62728"),)),
+    Family("win", 6, WINDOW, True, False, "windowed network (a Lipschitz-bounded correction of the play "
+           "model over a causal window of the raw wrench: memory)", "#8c564b"),
 )  # fmt: skip
 BY_KEY = {f.key: f for f in FAMILIES}
-RAW, AFFINE, POLY, PLAY, ARX, NN = (f.key for f in FAMILIES)
+RAW, AFFINE, POLY, PLAY, ARX, NN, WIN = (f.key for f in FAMILIES)
 OTHER_COLOUR = "#7f7f7f"  # a name of no family (the oracle and the labels have their own colours)
 
 
@@ -82,7 +87,7 @@ def poly_name(order: int) -> str:
 
 
 def patterns() -> list[str]:
-    """Every family's model name, simplest first: raw, affine, poly<n>, play, arx, nn<n>."""
+    """Every family's model name, simplest first: raw, affine, poly<n>, play, arx, nn<n>, win."""
     return [f"{f.key}<n>" if f.numbered else f.key for f in sorted(FAMILIES, key=lambda f: f.rank)]
 
 

@@ -31,10 +31,11 @@ from pipeline.calib.linear import LinearBaseline
 from pipeline.calib.models import WRENCH, save_model
 from pipeline.calib.params import LS_AFFINE
 from pipeline.calib.records import TrainResult, log_network, log_trial_run, write_predictions
-from pipeline.calib.registry import RAW, nn_name
+from pipeline.calib.registry import RAW, WIN, nn_name
 from pipeline.calib.search import NetResult, code_digest, data_digest, search_network
 from pipeline.calib.studies import open_storage, storage_url
 from pipeline.calib.training import flat_inputs, predict, predict_inputs, use_threads
+from pipeline.calib.window import WindowModel, fit_windowed, window_info, window_memory
 from pipeline.core.config import Params
 from pipeline.core.io import write_json
 from pipeline.core.progress import ProgressLog
@@ -49,6 +50,7 @@ class Fitted:
     preds: dict[str, dict[str, np.ndarray]]  # split (val, test) -> model -> predictions
     timings: dict[str, float] = field(default_factory=dict)
     cv: dict[str, Any] = field(default_factory=dict)  # `pipeline.calib.crossval.cross_validate`
+    window: tuple[WindowModel, list[dict[str, float]], float] | None = None  # `fit_windowed`
 
 
 def study_identity(params: Params, prep: Prepared) -> dict[str, Any]:
@@ -95,6 +97,16 @@ def fit_models(params: Params, prep: Prepared, studies: Path, ui: ProgressLog) -
             fitted.preds[k][name] = model.predict(d.x, d.memory)
     fitted.timings["baselines"] = seconds + time.perf_counter() - t
     ui.line(f"{group.name}: baselines fitted on {len(prep.train)} samples in {seconds:.1f} s")
+    fitted.window = fit_windowed(gp, group, prep.train, prep.val, fitted.baselines, prep.seed)
+    if fitted.window is not None:
+        model, _, fitted.timings[WIN] = fitted.window
+        for k, d in data.items():
+            fitted.preds[k][WIN] = model.predict(d.x, window_memory(model.base, d))
+        info = window_info(fitted.window)
+        ui.line(
+            f"{group.name}: windowed network val RMSE {info['val_rmse_labelled']:.4g} (epoch "
+            f"{info['best_epoch'] + 1}) {fitted.timings[WIN]:.1f} s"
+        )
     for n_inputs, result in zip(gp.inputs, searches, strict=True):
         name = nn_name(n_inputs)
         t = time.perf_counter()
@@ -127,6 +139,9 @@ def write_outputs(prep: Prepared, fitted: Fitted, out: Path, run_id: str, t0: fl
     memory = {name: prep.val.memory for name, b in fitted.baselines.items() if b.memory}
     for name, r in fitted.nets.items():
         predictors[name] = (lambda x, m=r.model: predict_inputs(m, x), r.model.config.n_inputs)
+    if fitted.window is not None:
+        predictors[WIN] = (fitted.window[0].predict, 7)
+        memory[WIN] = window_memory(fitted.window[0].base, prep.val)
     # on the validation samples' inputs only (no label, no truth): what selection may look at
     metrics["fidelity"] = group_fidelity(predictors, prep.val.x, list(group.sensors), prep.gp.push, memory)
     out.mkdir(parents=True, exist_ok=True)
@@ -146,6 +161,10 @@ def write_outputs(prep: Prepared, fitted: Fitted, out: Path, run_id: str, t0: fl
         versions[name] = log_network(group, name, r.model, x, columns)
         timings[f"log_{name}"] = time.perf_counter() - t
     write_json(out / "baselines.json", {name: b.to_dict() for name, b in fitted.baselines.items()})
+    if fitted.window is not None:
+        write_json(out / f"{WIN}.json", fitted.window[0].to_dict())
+        files.append(f"{WIN}.json")
+        metrics["windowed"] = window_info(fitted.window)
     write_predictions(out / "predictions.parquet", group, prep.test, prep.log_names, fitted.preds["test"])
     timings["total"] = time.perf_counter() - t0
     metrics["seconds"] = timings

@@ -176,6 +176,37 @@ def _batch_loss(
     return loss
 
 
+def train_epoch(
+    group: Group,
+    model: torch.nn.Module,
+    t: Tensors,
+    lambdas: torch.Tensor,
+    transforms: torch.Tensor | None,
+    setting: NetSetting,
+    optimiser: torch.optim.Optimizer,
+    generator: torch.Generator,
+    average: WeightAverage | None = None,
+    pushes: torch.Generator | None = None,
+) -> float:
+    """One pass of Adam over every sample of `t` in batches of ``setting.batch_size``, in a random order
+    drawn from `generator`, the moving average of the weights updated after each step; the mean batch loss.
+    `model` maps t.x's rows to (B, S * 6) calibrated wrenches (a `GroupNet`, or any module of that form)."""
+    model.train()
+    n = len(t.x)
+    order = torch.randperm(n, generator=generator)
+    total = 0.0
+    for first in range(0, n, setting.batch_size):
+        batch = order[first : first + setting.batch_size]
+        loss = _batch_loss(group, model, t, batch, lambdas, transforms, setting, pushes)
+        optimiser.zero_grad(set_to_none=True)
+        loss.backward()
+        optimiser.step()
+        if average is not None:
+            average.update()
+        total += float(loss.detach())
+    return total / max(math.ceil(n / setting.batch_size), 1)
+
+
 def _train_loss(
     group: Group,
     model: GroupNet,
@@ -289,28 +320,18 @@ def train_network(
         best_state = {k: v.detach().clone() for k, v in model.state_dict().items()}
         loss = _train_loss(group, model, t, lambdas, transforms, setting)
         history.append({"epoch": -1, "loss": loss, "val_rmse": best_err})
-    n = len(train)
-    steps = math.ceil(n / setting.batch_size)
+    steps = math.ceil(len(train) / setting.batch_size)
     average = WeightAverage(model, setting.average_epochs * steps) if setting.average_epochs > 0 else None
     for epoch in range(setting.epochs):
-        model.train()
-        order = torch.randperm(n, generator=generator)
-        total = 0.0
-        for first in range(0, n, setting.batch_size):
-            batch = order[first : first + setting.batch_size]
-            loss = _batch_loss(group, model, t, batch, lambdas, transforms, setting, pushes)
-            optimiser.zero_grad(set_to_none=True)
-            loss.backward()
-            optimiser.step()
-            if average is not None:
-                average.update()
-            total += float(loss.detach())
+        loss = train_epoch(
+            group, model, t, lambdas, transforms, setting, optimiser, generator, average, pushes
+        )
         with average.applied() if average is not None else nullcontext():
             err = _val_error(group, val, model)
             if err < best_err:
                 best_err = err
                 best_state = {k: v.detach().clone() for k, v in model.state_dict().items()}
-        history.append({"epoch": epoch, "loss": total / max(steps, 1), "val_rmse": err})
+        history.append({"epoch": epoch, "loss": loss, "val_rmse": err})
         if on_epoch is not None:
             on_epoch(epoch, history[-1]["loss"], err)
     if best_state is not None:

@@ -33,12 +33,14 @@ def _inputs(table: pd.DataFrame, sensors: list[str], n: int) -> np.ndarray:
 
 def group_models(model_dir: Path) -> tuple[list[str], dict[str, Predictor]]:
     """(the group's sensors, model name -> predictor) of a train output directory ``models/<group>``: its
-    networks (a family of kind network, `pipeline.calib.registry`) and every linear model of baselines.json.
+    networks (a family of kind network, `pipeline.calib.registry`), every linear model of baselines.json and
+    the windowed network (win.json).
     A predictor takes one log's table, its rows in time order (a model with memory starts afresh at the
     first)."""
     from pipeline.calib.linear import LinearBaseline
     from pipeline.calib.models import load_model
-    from pipeline.calib.registry import NETWORK, kind_of
+    from pipeline.calib.registry import NETWORK, WIN, kind_of
+    from pipeline.calib.window import WindowModel
 
     try:
         metrics = json.loads((model_dir / "metrics.json").read_text(encoding="utf-8"))
@@ -54,6 +56,13 @@ def group_models(model_dir: Path) -> tuple[list[str], dict[str, Predictor]]:
     if baselines.is_file():
         for name, d in json.loads(baselines.read_text(encoding="utf-8")).items():
             out[name] = _linear_predictor(LinearBaseline.from_dict(d), sensors)
+    window = model_dir / f"{WIN}.json"
+    if window.is_file():
+        try:
+            model = WindowModel.from_dict(json.loads(window.read_text(encoding="utf-8")))
+        except (OSError, ValueError, KeyError, TypeError) as exc:
+            raise DataError(f"{window}: not a windowed network: {exc}") from None
+        out[WIN] = _linear_predictor(model, sensors)
     return sensors, out
 
 
@@ -73,6 +82,8 @@ def _net_predictor(net, sensors: list[str], n: int) -> Predictor:
 
 
 def _linear_predictor(base, sensors: list[str]) -> Predictor:
+    """A model with `predict_log` (a linear model, the windowed network) over one log's rows."""
+
     def predict(table: pd.DataFrame) -> dict[str, np.ndarray]:
         y = base.predict_log(_inputs(table, sensors, 7))
         return {s: y[:, i] for i, s in enumerate(sensors)}

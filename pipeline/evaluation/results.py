@@ -11,7 +11,7 @@ import numpy as np
 
 from pipeline.calib.exact import LEFT_OUT, NOT_CALIBRATED, not_calibrated
 from pipeline.calib.params import LS_AFFINE
-from pipeline.calib.registry import ARX, PLAY, RAW
+from pipeline.calib.registry import ARX, PLAY, RAW, WIN
 from pipeline.calib.scores import wrench_errors
 from pipeline.evaluation.fidelity import outside_stats, unfaithful
 from pipeline.evaluation.floors import noise_floor
@@ -385,7 +385,7 @@ def group_metrics(r: GroupReport, name: str | None = None) -> dict[str, Any]:
     reports/metrics/<group>/<name>.json, one row of `dvc metrics show` (short keys, so the table fits).
 
     ``labels``/``truth``: the headline's RMSE (global, N and Nm pooled) of raw, the recommended model
-    (``rec``), play, arx, NN7, NN13 and the oracle against the labels and, on simulated logs, the truth on
+    (``rec``), play, arx, NN7, NN13, win, the oracle against the labels and, on simulated logs, the truth on
     every test sample with the noise floor (``floor``, `pipeline.evaluation.floors`); ``recommended``: the
     group's model to deploy; ``noise``: its networks' noise ratios; ``flagged``: how many of its models are
     flagged (noise or fidelity).
@@ -394,7 +394,7 @@ def group_metrics(r: GroupReport, name: str | None = None) -> dict[str, Any]:
         return {NOT_CALIBRATED: r.not_calibrated}
     shown = {
         "raw": RAW, "rec": r.recommended, PLAY: PLAY, ARX: ARX, "nn6": NN6, "nn7": NN7, "nn13": NN13,
-        "oracle": ORACLE,
+        WIN: WIN, "oracle": ORACLE,
     }  # fmt: skip
     shown[LS_AFFINE] = LS_AFFINE  # recorded logs: the plain least-squares affine map, the lab's reference
     out: dict[str, Any] = {"recommended": r.recommended or "none"}

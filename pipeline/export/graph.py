@@ -29,6 +29,9 @@ Per sensor, with x its columns (the forms of `pipeline.export.trained`):
   the groups' graphs are for batches (`ftcal calibrate`);
 - affine and play: every sensor's at once, in float64 (`pipeline.export.linear`), the play models' state
   carried from row to row and call to call by the graph's ``state`` input and ``state_out`` output;
+- windowed network: its play part and filters in the stack above (their state in the same ``state``), plus
+  its network's correction of the raw wrench now, the filters' outputs and the temperature
+  (`pipeline.export.window`);
 - polynomial: ``x[:, :6] + phi((x[:, :7] - offset) / scale) @ W^T``, phi the monomials: the
   standardised inputs padded with a column of ones, gathered by an index table (P, order) and multiplied
   along the last axis (ReduceProd), so one Gather and one ReduceProd compute every monomial; in float64
@@ -47,8 +50,17 @@ from typing import Any
 
 import numpy as np
 
-from pipeline.export.linear import STATE, STATE_OUT, stack_linear, stackable
-from pipeline.export.trained import WRENCH, Dense, GroupModel, IdentityPart, LinearPart, NetworkPart
+from pipeline.export.linear import STATE, STATE_OUT, linear_of, stack_linear, stackable
+from pipeline.export.mlp import stacked_mlp
+from pipeline.export.trained import (
+    WRENCH,
+    GroupModel,
+    IdentityPart,
+    LinearPart,
+    NetworkPart,
+    WindowPart,
+)
+from pipeline.export.window import add_corrections, window_corrections
 
 OPSET = 17
 INPUT, OUTPUT = "inputs", "calibrated"
@@ -96,29 +108,6 @@ class _Builder:
         """x[:, start:stop]."""
         index = self.const(f"{hint}_columns", np.arange(start, stop), np.int64)
         return self.op("Gather", [x, index], hint, axis=1)
-
-
-def _activation(b: _Builder, x: str, layer: Dense, hint: str) -> str:
-    if layer.activation is None:
-        return x
-    if layer.activation == "relu":
-        return b.op("Relu", [x], hint)
-    if layer.activation == "leaky_relu":
-        if b.dtype == np.float32:  # the float attribute alpha is exact only in float32
-            return b.op("LeakyRelu", [x], hint, alpha=float(layer.alpha))
-        return b.op(
-            "Where",
-            [b.op("Greater", [x, b.const("zero", 0.0)]), x, b.op("Mul", [x, b.const("alpha", layer.alpha)])],
-            hint,
-        )
-    if layer.activation == "tanh":
-        return b.op("Tanh", [x], hint)
-    if layer.activation == "elu":  # onnxruntime has no float64 Elu: alpha (exp(x) - 1) where x <= 0
-        negative = b.op(
-            "Mul", [b.const("alpha", layer.alpha), b.op("Sub", [b.op("Exp", [x]), b.const("one", 1.0)])]
-        )
-        return b.op("Where", [b.op("Greater", [x, b.const("zero", 0.0)]), x, negative], hint)
-    raise ValueError(f"unknown activation {layer.activation!r}")
 
 
 def monomial_index(powers: np.ndarray) -> np.ndarray:
@@ -187,30 +176,6 @@ def _signature(part: Any, n_inputs: int) -> tuple | None:
     return (n_inputs, tuple((layer.activation, layer.alpha) for layer in part.layers))
 
 
-def stacked_weights(parts: Sequence[NetworkPart]) -> list[tuple[np.ndarray, np.ndarray]]:
-    """Per layer, the (S, out, in) weights and (S, out) biases (float64) of S networks of one signature
-    with the normalisation folded into the first layer (``W / in_scale``, ``b - W @ (in_offset / in_scale)``)
-    and the output scale into the last (``out_scale * W``, ``out_scale * b``); hidden widths padded with
-    zero units (zero weights in and out: an exact extension, act(0) = 0 and its outgoing weights are 0)."""
-    depth = len(parts[0].layers)
-    widths = [max(p.layers[k].weight.shape[0] for p in parts) for k in range(depth)]
-    out = []
-    for k in range(depth):
-        n_in = parts[0].layers[0].weight.shape[1] if k == 0 else widths[k - 1]
-        w = np.zeros((len(parts), widths[k], n_in))
-        bias = np.zeros((len(parts), widths[k]))
-        for s, p in enumerate(parts):
-            wk, bk = p.layers[k].weight, p.layers[k].bias
-            if k == 0:
-                wk = wk / p.in_scale[None, :]
-                bk = bk - wk @ p.in_offset
-            if k == depth - 1:
-                wk, bk = p.out_scale[:, None] * wk, p.out_scale * bk
-            w[s, : wk.shape[0], : wk.shape[1]], bias[s, : len(bk)] = wk, bk
-        out.append((w, bias))
-    return out
-
-
 def _stack(
     b: _Builder,
     x: str,
@@ -240,33 +205,7 @@ def _stack(
     affine_b = np.concatenate([p.affine_bias for p in parts])
     affine = b.op("Gemm", [x, b.const("affine_w", affine_w), b.const("affine_b", affine_b)], "stack_affine")
     start = b.op("Add", [raw, affine], "stack_start")
-    conv = b.dtype == np.float32
-    if conv and per_sample:  # (N, S n, 1): samples as the batch, channels network after network
-        h = b.op("Reshape", [x, b.const("shape", [0, s_count * n_inputs, 1], np.int64)], "stack_inputs")
-    elif conv:  # (1, S n, N): samples along the length
-        h = b.op("Transpose", [x], perm=[1, 0])
-        h = b.op("Reshape", [h, b.const("shape", [1, s_count * n_inputs, -1], np.int64)], "stack_inputs")
-    else:  # (S, N, n)
-        h = b.op("Reshape", [x, b.const("shape", [0, s_count, n_inputs], np.int64)], "stack_inputs")
-        h = b.op("Transpose", [h], perm=[1, 0, 2])
-    for k, (w, bias) in enumerate(stacked_weights(parts)):
-        if conv:
-            weight, bias = b.const(f"w{k}", w.reshape(-1, w.shape[2], 1)), b.const(f"b{k}", bias.reshape(-1))
-            h = b.op("Conv", [h, weight, bias], f"layer{k}", group=s_count)
-            if parts[0].layers[k].activation not in (None, "relu"):  # unfused: see the module's notes
-                h = b.op("Reshape", [h, b.const("shape", [0, s_count * w.shape[1], -1], np.int64)])
-        else:
-            h = b.op("MatMul", [h, b.const(f"w{k}", np.ascontiguousarray(w.transpose(0, 2, 1)))])
-            h = b.op("Add", [h, b.const(f"b{k}", bias[:, None, :])], f"layer{k}")
-        h = _activation(b, h, parts[0].layers[k], f"act{k}")
-    if conv and per_sample:  # (N, 6 S, 1) -> (N, 6 S)
-        correction = b.op("Reshape", [h, b.const("shape", [0, s_count * WRENCH], np.int64)])
-    elif conv:  # (1, 6 S, N) -> (N, 6 S)
-        h = b.op("Reshape", [h, b.const("shape", [s_count * WRENCH, -1], np.int64)])
-        correction = b.op("Transpose", [h], perm=[1, 0])
-    else:  # (S, N, 6) -> (N, 6 S)
-        h = b.op("Transpose", [h], perm=[1, 0, 2])
-        correction = b.op("Reshape", [h, b.const("shape", [0, s_count * WRENCH], np.int64)])
+    correction = stacked_mlp(b, x, n_inputs, parts, per_sample)
     return b.op("Add", [start, correction], "stack_calibrated")
 
 
@@ -275,8 +214,9 @@ def _all(b: _Builder, x: str, models: Sequence[GroupModel], per_sample: bool) ->
     size of the state (`pipeline.export.linear`; 0: none).
 
     Networks of equal signature are stacked (`_stack`, a single network too), the affine and play parts
-    too (`stack_linear`); the other models run alone; a final Gather restores the sensor order when
-    stacking changed it.
+    too (`stack_linear`), with the windowed networks' play parts and filters, whose networks' corrections
+    follow (`pipeline.export.window`); the other models run alone; a final Gather restores the sensor order
+    when stacking changed it.
     """
     sensors, start = [], 0  # (input start, n_inputs, part, name)
     for m in models:
@@ -285,14 +225,24 @@ def _all(b: _Builder, x: str, models: Sequence[GroupModel], per_sample: bool) ->
             start += m.n_inputs
     stacks: dict[Any, list[int]] = {}
     for k, (_, n, part, _) in enumerate(sensors):
-        key = "linear" if stackable(part) else _signature(part, n)
+        key = "linear" if stackable(linear_of(part)) else _signature(part, n)
         stacks.setdefault(key if key is not None else ("alone", k), []).append(k)
     outs, order, state = [], [], 0
     for key, members in stacks.items():
         if key == "linear":
-            out, state = stack_linear(b, x, start, [(sensors[k][0], sensors[k][2]) for k in members])
-            outs.append(out)
-        elif _signature(sensors[members[0]][2], sensors[members[0]][1]) is not None:
+            entries = [(sensors[k][0], linear_of(sensors[k][2])) for k in members]
+            stack = stack_linear(b, x, start, entries)
+            state = stack.state_size
+            windowed = [j for j, k in enumerate(members) if isinstance(sensors[k][2], WindowPart)]
+            pieces = [(stack.out, list(range(len(members))))]
+            if windowed:
+                picked = [(sensors[members[j]][0], sensors[members[j]][2], stack.first[j]) for j in windowed]
+                correction = window_corrections(b, x, start, stack.outputs, picked, per_sample)
+                pieces = add_corrections(b, stack.out, len(members), windowed, correction)
+            outs += [p[0] for p in pieces]
+            order += [members[j] for p in pieces for j in p[1]]
+            continue
+        if _signature(sensors[members[0]][2], sensors[members[0]][1]) is not None:
             picked = [sensors[k] for k in members]
             starts, parts = [s[0] for s in picked], [s[2] for s in picked]
             outs.append(_stack(b, x, start, starts, picked[0][1], parts, per_sample))

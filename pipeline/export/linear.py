@@ -20,18 +20,23 @@ starts afresh at its first row (and a NaN reading restarts its operators). Colum
 the sensor, raw axis and operator of `state_layout`'s entry j (per sensor, the play operators then the
 filters, each operator's 6 axes in order, as `pipeline.core.lowpass.memory_of`); one sensor's columns can be
 carried alone.
+
+A windowed network (`pipeline.export.trained.WindowPart`) computes its play part here, with its filters
+among the operators (their weights zero: the play model does not read them); its network reads their outputs
+(`pipeline.export.window`), so its state is the operators' like the others'.
 """
 
 from __future__ import annotations
 
 from collections.abc import Sequence
+from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
 
 from pipeline.core.errors import DataError
 from pipeline.core.lowpass import operator_columns
-from pipeline.export.trained import WRENCH, GroupModel, LinearPart
+from pipeline.export.trained import WRENCH, GroupModel, LinearPart, WindowPart
 
 STATE, STATE_OUT = "state", "state_out"  # the graph's state input (default NaN) and output, (M,)
 AXES = ("fx", "fy", "fz", "tx", "ty", "tz")
@@ -42,12 +47,18 @@ def stackable(part: Any) -> bool:
     return isinstance(part, LinearPart) and int(part.powers.sum(axis=1).max(initial=0)) <= 1
 
 
+def linear_of(part: Any) -> Any:
+    """The part computed in the linear stack for `part`: a windowed network's play part, else itself."""
+    return part.play if isinstance(part, WindowPart) else part
+
+
 def state_layout(models: Sequence[GroupModel]) -> list[dict[str, Any]]:
     """The state's columns in a graph of `models` side by side: {index, sensor, axis, unit, and a play
     operator's ``width`` (in the unit) or a filter's ``time_constant_s``}."""
     out: list[dict[str, Any]] = []
     for m in models:
         for sensor, part in zip(m.sensors, m.parts, strict=True):
+            part = linear_of(part)
             if not stackable(part) or not part.state_size:
                 continue
             widths = np.reshape(part.widths, -1) if part.widths is not None else ()
@@ -64,12 +75,8 @@ def state_layout(models: Sequence[GroupModel]) -> list[dict[str, Any]]:
 def state_period(models: Sequence[GroupModel]) -> float | None:
     """The sample period (s) the filters of `models` run at (None: no filter); DataError if they differ
     (groups trained on logs of other rates: export them apart)."""
-    periods = {
-        float(p.period)
-        for m in models
-        for p in m.parts
-        if isinstance(p, LinearPart) and p.time_constants is not None
-    }
+    parts = [linear_of(p) for m in models for p in m.parts]
+    periods = {float(p.period) for p in parts if isinstance(p, LinearPart) and p.time_constants is not None}
     if len(periods) > 1:
         raise DataError(f"filters trained at different sample periods share no graph: {sorted(periods)} s")
     return periods.pop() if periods else None
@@ -85,22 +92,34 @@ def folded(part: LinearPart) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     return linear, bias, part.weights[:, 1 + k :]
 
 
-def stack_linear(b: Any, x: str, width: int, parts: Sequence[tuple[int, LinearPart]]) -> tuple[str, int]:
-    """(calibrated wrenches (N, 6 P) of the affine, play and arx `parts` [(first input column, part)] of x
-    (N, `width`) in the graph of builder `b` (`pipeline.export.graph`), in float64; the state's size M (0: no
-    part with memory)). With M > 0 the graph gets the ``state`` input and ``state_out`` output (module
-    docstring; `build` declares them)."""
+@dataclass(frozen=True)
+class LinearStack:
+    """What `stack_linear` adds to a graph."""
+
+    out: str  # (N, 6 P) the parts' calibrated wrenches, in the graph's float type
+    state_size: int  # M: the operators' state (0: no part with memory)
+    outputs: str | None  # (N, M) float64: the operators' outputs after each row (None: M = 0)
+    first: list[int]  # per part, its first column of `outputs` (-1: none)
+
+
+def stack_linear(b: Any, x: str, width: int, parts: Sequence[tuple[int, LinearPart]]) -> LinearStack:
+    """The calibrated wrenches of the affine, play and arx `parts` [(first input column, part)] of x (N,
+    `width`) in the graph of builder `b` (`pipeline.export.graph`), computed in float64, and their operators'
+    outputs (`LinearStack`). With operators the graph gets the ``state`` input and ``state_out`` output
+    (module docstring; `build` declares them)."""
     from onnx import TensorProto
 
     n = len(parts)
     gemm, bias = np.zeros((width, WRENCH * n)), np.zeros(WRENCH * n)
-    play_w, play_cols, radii, gains = [], [], [], []
+    play_w, play_cols, radii, gains, first = [], [], [], [], []
+    size = 0
     for j, (lo, part) in enumerate(parts):
         a, c, w_play = folded(part)
         out = slice(j * WRENCH, (j + 1) * WRENCH)
         gemm[lo : lo + a.shape[1], out] = a.T
         gemm[lo + np.arange(WRENCH), out.start + np.arange(WRENCH)] += 1.0  # the raw wrench itself
         bias[out] = c
+        first.append(size if part.state_size else -1)
         if part.state_size:
             # B z = B (xm - y) / s: the xm part folded into the Gemm, the y part after the Scan
             radius, alpha, scale = operator_columns(part.widths, part.time_constants, part.period)
@@ -112,12 +131,13 @@ def stack_linear(b: Any, x: str, width: int, parts: Sequence[tuple[int, LinearPa
             radii.append(radius)
             gains.append(alpha)
             play_w.append(block)
+            size += len(cols)
     original = b.dtype
     b.dtype = np.dtype(np.float64)
     try:
         x64 = b.op("Cast", [x], "linear_x64", to=TensorProto.DOUBLE) if original == np.float32 else x
         y = b.op("Gemm", [x64, b.const("linear_a", gemm), b.const("linear_c", bias)], "linear_affine")
-        size = int(sum(len(c) for c in play_cols))
+        ys = None
         if size:
             operators = np.concatenate(radii), np.concatenate(gains)
             ys = _play(b, x64, np.concatenate(play_cols), *operators, original == np.float32)
@@ -126,7 +146,7 @@ def stack_linear(b: Any, x: str, width: int, parts: Sequence[tuple[int, LinearPa
     finally:
         b.dtype = original
     out = b.op("Cast", [y], "linear_calibrated", to=TensorProto.FLOAT) if original == np.float32 else y
-    return out, size
+    return LinearStack(out, size, ys, first)
 
 
 def _play(b: Any, x64: str, columns: np.ndarray, radius: np.ndarray, alpha: np.ndarray, float32: bool) -> str:

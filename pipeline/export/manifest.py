@@ -12,9 +12,10 @@ beside the files, which `ftcal calibrate` and a lab's own loader read:
 
 Each input/output entry: ``index`` (column of the tensor), ``column`` (labelled-table name), ``sensor``,
 ``topic`` and ``field`` (where a ROS 2 log carries the value), ``unit``. A graph whose models have memory
-(the ``play`` and ``arx`` families) has a ``state`` entry: its input and output names, shape, initial value
-and how to carry it (`pipeline.export.linear`), per column the sensor, raw axis and play width or filter time
-constant it belongs to, and with filters the sample period their rows must have (``period_s``).
+(the ``play``, ``arx`` and ``win`` families) has a ``state`` entry: its input and output names, shape,
+initial value and how to carry it (`pipeline.export.linear`), per column the sensor, raw axis and play width,
+filter time constant or window lag it belongs to, and with filters or windows (which count samples) the
+sample period their rows must have (``period_s``).
 ``offsets`` describes the graph's second input (`pipeline.export.graph`: subtracted from ``inputs``,
 default zeros) and the file a re-zeroing writes beside the manifest (`pipeline.export.offsets`);
 ``serials`` the sensor boards the calibration belongs to (`pipeline.export.identity`).
@@ -76,8 +77,8 @@ def training(model: GroupModel, data_sha256: str, mlflow_run: str | None) -> dic
     info = dict(model.info)
     return {
         "model": model.name,
-        "family": model.family,  # `pipeline.calib.registry`: raw, affine, poly, play, nn
-        "kind": model.kind,  # identity, linear or network
+        "family": model.family,  # `pipeline.calib.registry`: raw, affine, poly, play, arx, nn, win
+        "kind": model.kind,  # identity, linear, network or window
         "memory": model.memory,  # a state carried from sample to sample (the graph's ``state``)
         "sensors": list(model.sensors),
         "inputs_per_sensor": model.n_inputs,
@@ -143,15 +144,18 @@ def _state(models: Sequence[GroupModel]) -> dict[str, Any]:
         "input": STATE,
         "output": STATE_OUT,
         "shape": [len(layout)],
-        "initial": "NaN (the input's default): each operator starts at its sensor's first reading",
+        "initial": "NaN (the input's default): each operator and window starts at its sensor's first reading",
         "carry": f"feed {STATE_OUT} of a call as {STATE} of the next; the rows of a call are "
         "consecutive samples of the sensors, in stamp order (1 per call in a control loop); a sensor's "
         "columns may be carried alone (NaN restarts it: after a re-zeroing, a reboot of its board)",
         "columns": layout,
     }
-    if period is not None:  # the filters (arx) assume their training logs' rate
+    if period is not None:  # the filters (arx) and windows (win) assume their training logs' rate
         state["period_s"] = period
-        state["carry"] += f"; the filters' rows must be {period:g} s apart (the training logs' sample period)"
+        state["carry"] += (
+            f"; the rows of its filters and windows must be {period:g} s apart (the training logs' sample "
+            "period)"
+        )
     return {"state": state}
 
 

@@ -1,9 +1,10 @@
 """The one adapter between the train stage's output directory and the export: what a graph needs.
 
 `read_group(models/<group>, name)` reads one model of a group (a network ``nn<k>``, a polynomial
-``poly<n>``, the ``affine`` baseline, the ``play`` and ``arx`` models, or ``raw``: its family's kind in
-`pipeline.calib.registry` says which form) and returns a `GroupModel`: per sensor, the plain arrays of the
-model (float64) in one of three forms, and the project's own predictor for the reference check. Nothing
+``poly<n>``, the ``affine`` baseline, the ``play`` and ``arx`` models, the windowed network ``win``, or
+``raw``: its family's kind in `pipeline.calib.registry` says which form) and returns a `GroupModel`: per
+sensor, the plain arrays of the model (float64) in one of four forms, and the project's own predictor for
+the reference check. Nothing
 else of `pipeline.calib` or `pipeline.stages.train` is used by the export (but the registry), so a change of
 their file formats or classes is adapted here only.
 
@@ -11,9 +12,10 @@ Every model of this project is *separable*: sensor s's calibrated wrench depends
 (a foot pair's two networks are side by side; the baselines' W_s act per sensor). Each part below is
 therefore one sensor's map, inputs in the order of `pipeline.calib.models` (raw wrench fx..tz N/Nm,
 temperature degC, [accelerometer m/s^2, gyroscope rad/s]), output its calibrated wrench (6, N/Nm, sensor
-frame). A model with memory (``play``, ``arx``) maps a sensor's inputs and its own state (the play operators'
-and filters' outputs of its previous sample) to its wrench and next state; its reference takes rows that are
-consecutive samples of one log, the state starting afresh at the first (`pipeline.core.lowpass.memory_of`).
+frame). A model with memory (``play``, ``arx``, ``win``) maps a sensor's inputs and its own state (the play
+operators' and filters' outputs of its previous sample) to its wrench and next state; its reference takes
+rows that are consecutive samples of one log, the state starting afresh at the first
+(`pipeline.core.lowpass.memory_of`).
 """
 
 from __future__ import annotations
@@ -21,7 +23,7 @@ from __future__ import annotations
 import json
 import math
 from collections.abc import Callable, Mapping
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Any
 
@@ -34,6 +36,7 @@ from pipeline.calib.registry import (
     NETWORK,
     NN,
     RAW,
+    WINDOW,
     family_of,
     kind_of,
     patterns,
@@ -43,6 +46,7 @@ from pipeline.core.errors import DataError
 WRENCH = 6
 METRICS_FILE = "metrics.json"
 BASELINES_FILE = "baselines.json"
+WINDOW_SUFFIX = ".json"  # a windowed network's file: models/<group>/<name>.json (win.json)
 PREDICTIONS_FILE = "predictions.parquet"
 
 
@@ -100,7 +104,27 @@ class IdentityPart:
     """``f = x[:6]``: the raw wrench (the robot's primary calibration)."""
 
 
-Part = NetworkPart | LinearPart | IdentityPart
+@dataclass(frozen=True)
+class WindowPart:
+    """``f = play(x, state) + out_scale * mlp((z - in_offset) / in_scale)``, z = [x[:6], the outputs after
+    the sample of the play part's J filters (6 J: filter after filter, each the 6 axes fx..tz N/Nm), x[6:k]]
+    (F = 6 (J + 1) + k - 6 columns; k = 7 with temperature degC, 6 without): the windowed network
+    (`pipeline.calib.window`). `play` is the play model's part with the filters among its operators, their
+    weights zero; its state is the part's whole state."""
+
+    play: LinearPart  # the play model's part, with the windows' filters (time_constants, period)
+    in_offset: np.ndarray  # (F,)
+    in_scale: np.ndarray  # (F,)
+    out_scale: np.ndarray  # (6,) N / Nm
+    layers: tuple[Dense, ...]
+
+    @property
+    def state_size(self) -> int:
+        """Values of state this part carries: its play operators' and filters' outputs."""
+        return self.play.state_size
+
+
+Part = NetworkPart | LinearPart | IdentityPart | WindowPart
 
 
 @dataclass
@@ -112,8 +136,8 @@ class GroupModel:
     """
 
     group: str
-    name: str  # nn7, nn13, affine, poly<n>, play, arx, raw
-    family: str  # its family's key in `pipeline.calib.registry` (raw, affine, poly, play, arx, nn)
+    name: str  # nn7, nn13, affine, poly<n>, play, arx, win, raw
+    family: str  # its family's key in `pipeline.calib.registry` (raw, affine, poly, play, arx, nn, win)
     sensors: tuple[str, ...]
     n_inputs: int  # per sensor: 6, 7 or 13
     parts: tuple[Part, ...]  # one per sensor
@@ -124,7 +148,7 @@ class GroupModel:
 
     @property
     def kind(self) -> str:
-        """Its family's kind (`pipeline.calib.registry`): identity, linear or network."""
+        """Its family's kind (`pipeline.calib.registry`): identity, linear, network or window."""
         return str(kind_of(self.name))
 
     @property
@@ -230,7 +254,6 @@ def _network(model_dir: Path, name: str, group: str, sensors: tuple[str, ...]) -
 def _linear(model_dir: Path, name: str, group: str, sensors: tuple[str, ...]) -> GroupModel:
     from pipeline.calib.linear import LinearBaseline
 
-    family = str(family_of(name).key)
     path = model_dir / BASELINES_FILE
     try:
         baseline = LinearBaseline.from_dict(json.loads(path.read_text(encoding="utf-8"))[name])
@@ -247,26 +270,37 @@ def _linear(model_dir: Path, name: str, group: str, sensors: tuple[str, ...]) ->
         or width not in (6, 7)
     ):
         raise DataError(f"{path}: {name} has {baseline.weights.shape[0]} sensors, metrics.json {n_sensors}")
-    b = baseline
-    parts = tuple(
-        LinearPart(b.offset[s], b.scale[s], b.powers, b.weights[s], b.widths, b.time_constants, b.period)
-        for s in range(n_sensors)
-    )
-
-    def reference(x: np.ndarray) -> np.ndarray:  # rows: consecutive samples of one log (with memory)
-        x = np.asarray(x, dtype=np.float64).reshape(len(x), n_sensors, width)
-        return baseline.predict_log(x).reshape(len(x), n_sensors * WRENCH)
-
     order = int(baseline.powers.sum(axis=1).max(initial=0))
     info: dict[str, Any] = {"order": order, "monomials": len(baseline.powers)}
     if baseline.widths is not None:
         info["play_widths"] = baseline.widths.tolist()
     if baseline.time_constants is not None:
         info["time_constants_s"], info["period_s"] = baseline.time_constants.tolist(), baseline.period
+    return _log_model(group, name, sensors, width, _linear_parts(baseline), baseline, info)
+
+
+def _log_model(
+    group: str,
+    name: str,
+    sensors: tuple[str, ...],
+    width: int,
+    parts: tuple[Part, ...],
+    model: Any,
+    info: dict,
+) -> GroupModel:
+    """The `GroupModel` of a linear or windowed model whose reference is `model.predict_log` (a
+    `pipeline.calib.linear.LinearBaseline` or `pipeline.calib.window.WindowModel`) on rows that are
+    consecutive samples of one log, `width` inputs per sensor."""
+    n_sensors = len(sensors)
+
+    def reference(x: np.ndarray) -> np.ndarray:  # rows: consecutive samples of one log (with memory)
+        x = np.asarray(x, dtype=np.float64).reshape(len(x), n_sensors, width)
+        return model.predict_log(x).reshape(len(x), n_sensors * WRENCH)
+
     return GroupModel(
         group,
         name,
-        family,
+        str(family_of(name).key),
         sensors,
         width,
         parts,
@@ -275,6 +309,86 @@ def _linear(model_dir: Path, name: str, group: str, sensors: tuple[str, ...]) ->
         reference,
         info,
     )
+
+
+def _linear_parts(b: Any) -> tuple[LinearPart, ...]:
+    """Per sensor, the `LinearPart` of a `pipeline.calib.linear.LinearBaseline` `b`."""
+    return tuple(
+        LinearPart(b.offset[s], b.scale[s], b.powers, b.weights[s], b.widths, b.time_constants, b.period)
+        for s in range(b.weights.shape[0])
+    )
+
+
+ACTIVATIONS = (None, "relu", "leaky_relu", "tanh", "elu")  # what a graph computes (`pipeline.export.graph`)
+
+
+def _window(model_dir: Path, name: str, group: str, sensors: tuple[str, ...]) -> GroupModel:
+    """The windowed network of ``<name>.json`` (`pipeline.calib.window.WindowModel.to_dict`)."""
+    from pipeline.calib.window import WindowModel
+
+    path = model_dir / f"{name}{WINDOW_SUFFIX}"
+    try:
+        model = WindowModel.from_dict(json.loads(path.read_text(encoding="utf-8")))
+    except FileNotFoundError:
+        raise DataError(f"{path}: not found (models: {name} was not trained?)") from None
+    except (OSError, ValueError, TypeError, KeyError) as exc:
+        raise DataError(f"{path}: not a windowed network: {exc!r}") from None
+    base, n_sensors = model.base, len(sensors)
+    width = base.offset.shape[-1]  # 7, or 6 without temperature
+    taus = np.asarray(model.time_constants, dtype=np.float64)
+    if (why := _window_fault(model, n_sensors)) is not None:
+        raise DataError(f"{path}: {why}")
+    filters = np.zeros((*base.weights.shape[:2], WRENCH * len(taus)))  # the play model reads none of them
+    with_filters = replace(
+        base,
+        weights=np.concatenate([base.weights, filters], axis=2),
+        time_constants=taus,
+        period=model.period,
+    )
+    parts = tuple(
+        WindowPart(
+            play,
+            net.in_offset,
+            net.in_scale,
+            net.out_scale,
+            tuple(Dense(y.weight, y.bias, y.activation, float(y.alpha)) for y in net.layers),
+        )
+        for play, net in zip(_linear_parts(with_filters), model.nets, strict=True)
+    )
+
+    info: dict[str, Any] = {
+        "time_constants_s": taus.tolist(),
+        "period_s": float(model.period),
+        "play_widths": base.widths.tolist(),
+        "layers": [[int(y.weight.shape[0]), y.activation] for y in model.nets[0].layers],
+    }
+    return _log_model(group, name, sensors, width, parts, model, info)
+
+
+def _window_fault(model: Any, n_sensors: int) -> str | None:
+    """What makes a `pipeline.calib.window.WindowModel` of a group of `n_sensors` unexportable, else None."""
+    base, taus = model.base, np.asarray(model.time_constants)
+    if base.weights.shape[0] != n_sensors or len(model.nets) != n_sensors:
+        return f"{base.weights.shape[0]} play sensors, {len(model.nets)} networks; metrics.json {n_sensors}"
+    if base.widths is None or base.time_constants is not None or base.offset.shape[-1] not in (6, 7):
+        return "its base is not a play model"
+    if not len(taus) or not np.all((taus > 0) & np.isfinite(taus)):
+        return f"time constants {taus.tolist()} s are not positive"
+    if not 0 < model.period < math.inf:
+        return f"sample period {model.period} s"
+    n_features = WRENCH * (len(taus) + 1) + base.offset.shape[-1] - WRENCH
+    for net in model.nets:
+        width = n_features
+        for y in net.layers:
+            if y.weight.ndim != 2 or y.weight.shape[1] != width or y.bias.shape != (y.weight.shape[0],):
+                return f"a network's layers do not chain from its {n_features} inputs"
+            if y.activation not in ACTIVATIONS:
+                return f"activation {y.activation!r} cannot be exported"
+            width = y.weight.shape[0]
+        shapes = (net.in_offset.shape, net.in_scale.shape, net.out_scale.shape)
+        if width != WRENCH or shapes != ((n_features,), (n_features,), (WRENCH,)):
+            return f"a network is not {n_features} inputs to {WRENCH} outputs"
+    return None
 
 
 def _raw(group: str, sensors: tuple[str, ...], width: int = 7) -> GroupModel:
@@ -314,6 +428,8 @@ def read_group(model_dir: str | Path, name: str, group: str | None = None) -> Gr
         model = _network(model_dir, name, group, sensors)
     elif kind == LINEAR:
         model = _linear(model_dir, name, group, sensors)
+    elif kind == WINDOW:
+        model = _window(model_dir, name, group, sensors)
     else:
         raise DataError(f"{model_dir}: unknown model {name!r} ({', '.join(patterns())})")
     model.info.update(provenance(metrics, name))

@@ -4,17 +4,20 @@
 table"), splits them by whole logs, fits the baselines, trains the 7- and 13-input networks with an
 Optuna search, scores every model and writes ``OUT_DIR``:
 
-- ``metrics.json``: per model (raw, affine, poly1-4, play, arx, nn7, nn13: `pipeline.calib.registry`),
+- ``metrics.json``: per model (raw, affine, poly1-4, play, arx, nn7, nn13, win: `pipeline.calib.registry`),
   validation and test errors against the labels (MSE/MAE/RMSE global, force, torque, per axis; per sensor
   and, for a foot, of the sum in the sole frame; a group of several sensors: also each cut set's sum),
   ``cv``: every model's validation error on each cross-validation fold, their mean and spread, and
-  ``best_on_validation``: the model to deploy, the simplest (raw < affine < poly < play < arx < nn7 < nn13)
-  unless a more complex one's mean fold error is lower by more than ``train.selection_margin`` and by more
-  than the spread of its per-fold improvements (`pipeline.calib.crossval`).
+  ``best_on_validation``: the model to deploy, the simplest (raw < affine < poly < play < arx < nn7 < nn13 <
+  win) unless a more complex one's mean fold error is lower by more than ``train.selection_margin`` and by
+  more than the spread of its per-fold improvements (`pipeline.calib.crossval`); ``windowed``: the windowed
+  network's window, best epoch and history.
 - ``nn7.json`` + ``nn7.pt``, ``nn13.json`` + ``nn13.pt``: the best networks (`calib.models.load_model`
   rebuilds them from the JSON and a weights-only state dict; normalisation constants are in the weights).
 - ``baselines.json``: the fitted affine, polynomial and play coefficients (the play model: memory, its
   state over each log's readings in time order, `pipeline.calib.linear`).
+- ``win.json``: the windowed network (`pipeline.calib.window.WindowModel.from_dict`: the play model it
+  corrects, its window and its networks' weights), where the group trains one (``window_lags``).
 - ``predictions.parquet``: the test samples, ``log``, ``stamp_ns``, ``time_s``, the group's labels and
   switches, and ``pred.<model>.<sensor or pair>.<axis>`` for every model (for `evaluate`).
 
