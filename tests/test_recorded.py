@@ -165,14 +165,15 @@ def test_no_test_segment_sample_is_used_in_training(simulated: dict[str, Any], r
 
 
 def test_recorded_logs_train_and_results_say_they_have_no_truth(recorded_run: dict[str, Any]) -> None:
-    """Against the labels of the held-out segments and logs, said so, beside the plain least-squares affine
-    map fitted on the training segments (scored, never a candidate to deploy)."""
+    """Against the labels of the held-out segments and logs, said so (the models with memory too), beside the
+    plain least-squares affine map fitted on the training segments (scored, never a candidate to deploy)."""
     from pipeline.calib.params import LS_AFFINE
 
     d = recorded_run["dirs"]
     assert not list(d["ingested"].glob("*.truth.parquet"))
     metrics = json.loads((d["models"] / "r_arm_ft" / "metrics.json").read_text())
     assert metrics["data"] == "recorded" and "nn6" in metrics["test"] and LS_AFFINE in metrics["test"]
+    assert "win" in metrics["cv"]["mean"]  # the windowed network too, judged on the held-out segments' labels
     assert LS_AFFINE not in metrics["validation_ranking"] and LS_AFFINE not in metrics["cv"]["mean"]
     (headline,) = (d["reports"] / "metrics" / "r_arm_ft").glob("*.json")
     shown = json.loads(headline.read_text())

@@ -65,9 +65,8 @@ def _fold_predictions(
     preds.update({name: model.predict(val.x, val.memory) for name, model in baselines.items()})
     window = fit_windowed(gp, group, train, val, baselines, prep.seed)
     if window is not None:
-        model, history, seconds = window
-        preds[WIN] = model.predict(val.x, window_memory(model.base, val))
-        names, fits = [*names, WIN], [*fits, (preds[WIN], history, seconds)]
+        pred = window.model.predict(val.x, window_memory(window.model.base, val))
+        names, fits = [*names, WIN], [*fits, (pred, window.history, window.seconds)]
     for name, (pred, history, seconds) in zip(names, fits, strict=True):
         preds[name] = pred
         best = min(history, key=lambda h: h["val_rmse"])

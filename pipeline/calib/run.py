@@ -35,7 +35,7 @@ from pipeline.calib.registry import RAW, WIN, nn_name
 from pipeline.calib.search import NetResult, code_digest, data_digest, search_network
 from pipeline.calib.studies import open_storage, storage_url
 from pipeline.calib.training import flat_inputs, predict, predict_inputs, use_threads
-from pipeline.calib.window import WindowModel, fit_windowed, window_info, window_memory
+from pipeline.calib.window import WindowFit, fit_windowed, window_memory
 from pipeline.core.config import Params
 from pipeline.core.io import write_json
 from pipeline.core.progress import ProgressLog
@@ -50,7 +50,7 @@ class Fitted:
     preds: dict[str, dict[str, np.ndarray]]  # split (val, test) -> model -> predictions
     timings: dict[str, float] = field(default_factory=dict)
     cv: dict[str, Any] = field(default_factory=dict)  # `pipeline.calib.crossval.cross_validate`
-    window: tuple[WindowModel, list[dict[str, float]], float] | None = None  # `fit_windowed`
+    window: WindowFit | None = None  # the windowed network, where the group trains one
 
 
 def study_identity(params: Params, prep: Prepared) -> dict[str, Any]:
@@ -99,10 +99,10 @@ def fit_models(params: Params, prep: Prepared, studies: Path, ui: ProgressLog) -
     ui.line(f"{group.name}: baselines fitted on {len(prep.train)} samples in {seconds:.1f} s")
     fitted.window = fit_windowed(gp, group, prep.train, prep.val, fitted.baselines, prep.seed)
     if fitted.window is not None:
-        model, _, fitted.timings[WIN] = fitted.window
+        model, fitted.timings[WIN] = fitted.window.model, fitted.window.seconds
         for k, d in data.items():
             fitted.preds[k][WIN] = model.predict(d.x, window_memory(model.base, d))
-        info = window_info(fitted.window)
+        info = fitted.window.info()
         ui.line(
             f"{group.name}: windowed network val RMSE {info['val_rmse_labelled']:.4g} (epoch "
             f"{info['best_epoch'] + 1}) {fitted.timings[WIN]:.1f} s"
@@ -140,8 +140,8 @@ def write_outputs(prep: Prepared, fitted: Fitted, out: Path, run_id: str, t0: fl
     for name, r in fitted.nets.items():
         predictors[name] = (lambda x, m=r.model: predict_inputs(m, x), r.model.config.n_inputs)
     if fitted.window is not None:
-        predictors[WIN] = (fitted.window[0].predict, 7)
-        memory[WIN] = window_memory(fitted.window[0].base, prep.val)
+        predictors[WIN] = (fitted.window.model.predict, 7)
+        memory[WIN] = window_memory(fitted.window.model.base, prep.val)
     # on the validation samples' inputs only (no label, no truth): what selection may look at
     metrics["fidelity"] = group_fidelity(predictors, prep.val.x, list(group.sensors), prep.gp.push, memory)
     out.mkdir(parents=True, exist_ok=True)
@@ -162,9 +162,9 @@ def write_outputs(prep: Prepared, fitted: Fitted, out: Path, run_id: str, t0: fl
         timings[f"log_{name}"] = time.perf_counter() - t
     write_json(out / "baselines.json", {name: b.to_dict() for name, b in fitted.baselines.items()})
     if fitted.window is not None:
-        write_json(out / f"{WIN}.json", fitted.window[0].to_dict())
+        write_json(out / f"{WIN}.json", fitted.window.model.to_dict())
         files.append(f"{WIN}.json")
-        metrics["windowed"] = window_info(fitted.window)
+        metrics["windowed"] = fitted.window.info()
     write_predictions(out / "predictions.parquet", group, prep.test, prep.log_names, fitted.preds["test"])
     timings["total"] = time.perf_counter() - t0
     metrics["seconds"] = timings

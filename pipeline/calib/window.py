@@ -348,6 +348,26 @@ def train_window(
     return model, history
 
 
+@dataclass
+class WindowFit:
+    """A group's trained windowed network, its per-epoch history [{epoch, loss, val_rmse}] and seconds."""
+
+    model: WindowModel
+    history: list[dict[str, float]]
+    seconds: float
+
+    def info(self) -> dict[str, Any]:
+        """metrics.json's entry: windows, period, best epoch and history (its seconds are the timings')."""
+        best = min(self.history, key=lambda h: h["val_rmse"])
+        return {
+            "time_constants_s": [float(v) for v in self.model.time_constants],
+            "period_s": self.model.period,
+            "best_epoch": int(best["epoch"]),
+            "val_rmse_labelled": best["val_rmse"],
+            "history": self.history,
+        }
+
+
 def fit_windowed(
     gp: GroupParams,
     group: Group,
@@ -355,27 +375,13 @@ def fit_windowed(
     val: GroupData,
     baselines: dict[str, LinearBaseline],
     seed: int,
-) -> tuple[WindowModel, list[dict[str, float]], float] | None:
-    """The group's windowed network on `train` (best epoch on `val`) over its play model of `baselines`, its
-    history and seconds; None where the group trains none (`GroupParams.windowed`)."""
+) -> WindowFit | None:
+    """The group's windowed network on `train` (best epoch on `val`) over its play model of `baselines`; None
+    where the group trains none (`GroupParams.windowed`)."""
     if group.windows is None or PLAY not in baselines:
         return None
     t = time.perf_counter()
     model, history = train_window(
         group, train, val, baselines[PLAY], WindowSetting.of(gp), derive_seed(seed, WIN)
     )
-    return model, history, time.perf_counter() - t
-
-
-def window_info(fit: tuple[WindowModel, list[dict[str, float]], float]) -> dict[str, Any]:
-    """metrics.json's entry of a windowed network: its windows, period, best epoch and history (its seconds
-    are the timings')."""
-    model, history, _ = fit
-    best = min(history, key=lambda h: h["val_rmse"])
-    return {
-        "time_constants_s": [float(v) for v in model.time_constants],
-        "period_s": model.period,
-        "best_epoch": int(best["epoch"]),
-        "val_rmse_labelled": best["val_rmse"],
-        "history": history,
-    }
+    return WindowFit(model, history, time.perf_counter() - t)

@@ -55,14 +55,14 @@ def group_models(model_dir: Path) -> tuple[list[str], dict[str, Predictor]]:
     baselines = model_dir / "baselines.json"
     if baselines.is_file():
         for name, d in json.loads(baselines.read_text(encoding="utf-8")).items():
-            out[name] = _linear_predictor(LinearBaseline.from_dict(d), sensors)
+            out[name] = _log_predictor(LinearBaseline.from_dict(d), sensors)
     window = model_dir / f"{WIN}.json"
     if window.is_file():
         try:
             model = WindowModel.from_dict(json.loads(window.read_text(encoding="utf-8")))
         except (OSError, ValueError, KeyError, TypeError) as exc:
             raise DataError(f"{window}: not a windowed network: {exc}") from None
-        out[WIN] = _linear_predictor(model, sensors)
+        out[WIN] = _log_predictor(model, sensors)
     return sensors, out
 
 
@@ -81,11 +81,11 @@ def _net_predictor(net, sensors: list[str], n: int) -> Predictor:
     return predict
 
 
-def _linear_predictor(base, sensors: list[str]) -> Predictor:
+def _log_predictor(model, sensors: list[str]) -> Predictor:
     """A model with `predict_log` (a linear model, the windowed network) over one log's rows."""
 
     def predict(table: pd.DataFrame) -> dict[str, np.ndarray]:
-        y = base.predict_log(_inputs(table, sensors, 7))
+        y = model.predict_log(_inputs(table, sensors, 7))
         return {s: y[:, i] for i, s in enumerate(sensors)}
 
     return predict
