@@ -295,8 +295,8 @@ RATE_TOLERANCE = 0.2  # a log's message period may differ from a graph's filters
 
 def check_rate(topic: str, stamps_ns: np.ndarray, period_s: float) -> bool:
     """Whether the messages of `topic` (their stamps, ns) were checked: False with fewer than 10 steps; a
-    DataError if they are not about `period_s` apart, the period a graph's filters (the arx family,
-    `pipeline.core.lowpass`) or windows (the win family, `pipeline.core.window`) were trained at."""
+    DataError if they are not about `period_s` apart, the period a graph's filters (`pipeline.core.lowpass`:
+    the arx family's, the win family's windows) were trained at."""
     steps = np.diff(np.sort(np.asarray(stamps_ns, dtype=np.int64))) / 1e9
     steps = steps[steps > 0]
     if len(steps) < 10:
@@ -304,8 +304,8 @@ def check_rate(topic: str, stamps_ns: np.ndarray, period_s: float) -> bool:
     median = float(np.median(steps))
     if abs(median / period_s - 1.0) > RATE_TOLERANCE:
         raise DataError(
-            f"{topic}: messages {median * 1e3:.3g} ms apart, but its calibration's filters (arx) or "
-            f"window (win) run at {period_s * 1e3:.3g} ms, the period of its training logs: retrain at this "
-            "rate, or deploy a model without either"
+            f"{topic}: messages {median * 1e3:.3g} ms apart, but its calibration's filters (arx, win) "
+            f"run at {period_s * 1e3:.3g} ms, the period of its training logs: retrain at this rate, or "
+            "deploy a model without filters"
         )
     return True

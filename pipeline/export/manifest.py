@@ -13,8 +13,8 @@ beside the files, which `ftcal calibrate` and a lab's own loader read:
 Each input/output entry: ``index`` (column of the tensor), ``column`` (labelled-table name), ``sensor``,
 ``topic`` and ``field`` (where a ROS 2 log carries the value), ``unit``. A graph whose models have memory
 (the ``play``, ``arx`` and ``win`` families) has a ``state`` entry: its input and output names, shape,
-initial value and how to carry it (`pipeline.export.linear`), per column the sensor, raw axis and play width,
-filter time constant or window lag it belongs to, and with filters or windows (which count samples) the
+initial value and how to carry it (`pipeline.export.linear`), per column the sensor, raw axis and play width
+or filter time constant it belongs to (a windowed network's windows are filters), and with filters the
 sample period their rows must have (``period_s``).
 ``offsets`` describes the graph's second input (`pipeline.export.graph`: subtracted from ``inputs``,
 default zeros) and the file a re-zeroing writes beside the manifest (`pipeline.export.offsets`);
@@ -153,8 +153,7 @@ def _state(models: Sequence[GroupModel]) -> dict[str, Any]:
     if period is not None:  # the filters (arx) and windows (win) assume their training logs' rate
         state["period_s"] = period
         state["carry"] += (
-            f"; the rows of its filters and windows must be {period:g} s apart (the training logs' sample "
-            "period)"
+            f"; the rows of its filters must be {period:g} s apart (the training logs' sample period)"
         )
     return {"state": state}
 

@@ -17,7 +17,8 @@ Optuna search, scores every model and writes ``OUT_DIR``:
 - ``baselines.json``: the fitted affine, polynomial and play coefficients (the play model: memory, its
   state over each log's readings in time order, `pipeline.calib.linear`).
 - ``win.json``: the windowed network (`pipeline.calib.window.WindowModel.from_dict`: the play model it
-  corrects, its window and its networks' weights), where the group trains one (``window_lags``).
+  corrects, its windows and its networks' weights), where the group trains one
+  (``window_time_constants_s``).
 - ``predictions.parquet``: the test samples, ``log``, ``stamp_ns``, ``time_s``, the group's labels and
   switches, and ``pred.<model>.<sensor or pair>.<axis>`` for every model (for `evaluate`).
 
