@@ -136,6 +136,31 @@ class LipschitzLinear(nn.Linear):
         return plain
 
 
+def mlp_layers(
+    n_inputs: int, hidden: int, activations: tuple[str, ...], linear: type[nn.Linear] = LipschitzLinear
+) -> nn.Sequential:
+    """The MLP of a network's correction: per activation a `linear` layer of `hidden` neurons and that
+    activation, then a linear layer to the 6 wrench components (the memoryless networks' `SensorNet`, the
+    windowed networks' `pipeline.calib.window`)."""
+    layers: list[nn.Module] = []
+    width = n_inputs
+    for name in activations:
+        layers += [linear(width, hidden), ACTIVATIONS[name]()]
+        width = hidden
+    layers.append(linear(width, WRENCH))
+    return nn.Sequential(*layers)
+
+
+def init_mlp(mlp: nn.Sequential) -> None:
+    """xavier_uniform weights, zero biases (thesis 5.5.1), from the current torch RNG state, and the output
+    layer's weights zero: the correction starts at 0."""
+    for module in mlp:
+        if isinstance(module, nn.Linear):
+            nn.init.xavier_uniform_(module.weight)
+            nn.init.zeros_(module.bias)
+    nn.init.zeros_(mlp[-1].weight)
+
+
 class SensorNet(nn.Module):
     """Calibration network of one sensor: (B, n_inputs) raw inputs -> (B, 6) calibrated wrench (N, Nm).
 
@@ -147,14 +172,8 @@ class SensorNet(nn.Module):
     def __init__(self, config: NetConfig) -> None:
         super().__init__()
         self.config = config
-        layers: list[nn.Module] = []
-        width = config.n_inputs
         linear = LipschitzLinear if config.slope > 0 else nn.Linear
-        for name in config.activations:
-            layers += [linear(width, config.hidden), ACTIVATIONS[name]()]
-            width = config.hidden
-        layers.append(linear(width, WRENCH))
-        self.mlp = nn.Sequential(*layers)
+        self.mlp = mlp_layers(config.n_inputs, config.hidden, config.activations, linear)
         self.register_buffer("in_offset", torch.zeros(config.n_inputs))
         self.register_buffer("in_scale", torch.ones(config.n_inputs))
         self.register_buffer("out_scale", torch.ones(WRENCH))
@@ -164,11 +183,7 @@ class SensorNet(nn.Module):
     def reset_parameters(self) -> None:
         """xavier_uniform weights, zero biases (thesis 5.5.1), from the current torch RNG state; the output
         layer's weights zero too, so that the network starts as its affine map."""
-        for module in self.mlp:
-            if isinstance(module, nn.Linear):
-                nn.init.xavier_uniform_(module.weight)
-                nn.init.zeros_(module.bias)
-        nn.init.zeros_(self.mlp[-1].weight)
+        init_mlp(self.mlp)
 
     def set_affine(self, weight: np.ndarray, bias: np.ndarray) -> None:
         """The affine map the correction starts from: weight (6, 7) on [f_raw, T] (or (6, 6) on f_raw),

@@ -32,10 +32,12 @@ as the arx model is; `ftcal calibrate` refuses another rate.
 
 from __future__ import annotations
 
+import json
 import math
 import time
 from contextlib import nullcontext
 from dataclasses import dataclass, replace
+from pathlib import Path
 from typing import Any
 
 import numpy as np
@@ -44,12 +46,13 @@ from torch import nn
 
 from pipeline.calib.data import Group, GroupData, derive_seed, group_errors
 from pipeline.calib.linear import LinearBaseline
-from pipeline.calib.models import ACTIVATIONS, LipschitzLinear
+from pipeline.calib.models import ACTIVATIONS, LipschitzLinear, init_mlp, mlp_layers
 from pipeline.calib.params import GroupParams
 from pipeline.calib.pushes import PushPrior, residual_units
 from pipeline.calib.registry import PLAY, WIN
 from pipeline.calib.scores import WRENCH
 from pipeline.calib.training import NetSetting, Tensors, WeightAverage, to_tensors, train_epoch
+from pipeline.core.errors import DataError
 from pipeline.core.lowpass import alphas, memory_of
 from pipeline.core.play import memory_step
 
@@ -148,15 +151,15 @@ class WindowModel:
             out[:, s] += net(self.inputs(x[:, s], memory[:, s, k:]))
         return out
 
-    def memory_of(self, x: np.ndarray) -> np.ndarray:
-        """(N, S, 6 K + 6 J) the memory of one log's samples x (N, S, >= 6) in time order, from a fresh
-        state."""
-        return memory_of(x, self.base.widths, self.time_constants, self.period)
+    def memory_of(self, x: np.ndarray, period: float | None = None) -> np.ndarray:
+        """(N, S, 6 K + 6 J) the memory of one log's samples x (N, S, >= 6) in time order, `period` s apart
+        (None: the training logs'), from a fresh state."""
+        return memory_of(x, self.base.widths, self.time_constants, period or self.period)
 
     def predict_log(self, x: np.ndarray, period: float | None = None) -> np.ndarray:
         """(N, S, 6) calibrated wrenches of one log's samples x (N, S, >= 7) in time order, `period` s apart
         (None: the training logs'), the memory starting afresh at its first sample."""
-        return self.predict(x, memory_of(x, self.base.widths, self.time_constants, period or self.period))
+        return self.predict(x, self.memory_of(x, period))
 
     def to_dict(self) -> dict[str, Any]:
         return {
@@ -211,6 +214,20 @@ class WindowModel:
         )
 
 
+def read_window(path: Path) -> WindowModel:
+    """The windowed network of a train output's ``win.json``.
+
+    Raises:
+        DataError: the file is missing or is not a `WindowModel.to_dict`.
+    """
+    try:
+        return WindowModel.from_dict(json.loads(path.read_text(encoding="utf-8")))
+    except FileNotFoundError:
+        raise DataError(f"{path}: not found (models: {path.stem} was not trained?)") from None
+    except (OSError, ValueError, TypeError, KeyError) as exc:
+        raise DataError(f"{path}: not a windowed network: {exc!r}") from None
+
+
 # --- training ------------------------------------------------------------------------------------
 
 
@@ -219,18 +236,8 @@ class _SensorWindow(nn.Module):
 
     def __init__(self, n_inputs: int, setting: WindowSetting) -> None:
         super().__init__()
-        layers: list[nn.Module] = []
-        width = n_inputs
-        for name in setting.activations:
-            layers += [LipschitzLinear(width, setting.hidden), ACTIVATIONS[name]()]
-            width = setting.hidden
-        layers.append(LipschitzLinear(width, WRENCH))
-        self.mlp = nn.Sequential(*layers)
-        for module in self.mlp:
-            if isinstance(module, nn.Linear):
-                nn.init.xavier_uniform_(module.weight)
-                nn.init.zeros_(module.bias)
-        nn.init.zeros_(self.mlp[-1].weight)
+        self.mlp = mlp_layers(n_inputs, setting.hidden, setting.activations)
+        init_mlp(self.mlp)
         self.register_buffer("in_offset", torch.zeros(n_inputs))
         self.register_buffer("in_scale", torch.ones(n_inputs))
         self.register_buffer("out_scale", torch.ones(WRENCH))

@@ -40,7 +40,7 @@ def group_models(model_dir: Path) -> tuple[list[str], dict[str, Predictor]]:
     from pipeline.calib.linear import LinearBaseline
     from pipeline.calib.models import load_model
     from pipeline.calib.registry import NETWORK, WIN, kind_of
-    from pipeline.calib.window import WindowModel
+    from pipeline.calib.window import read_window
 
     try:
         metrics = json.loads((model_dir / "metrics.json").read_text(encoding="utf-8"))
@@ -58,11 +58,7 @@ def group_models(model_dir: Path) -> tuple[list[str], dict[str, Predictor]]:
             out[name] = _log_predictor(LinearBaseline.from_dict(d), sensors)
     window = model_dir / f"{WIN}.json"
     if window.is_file():
-        try:
-            model = WindowModel.from_dict(json.loads(window.read_text(encoding="utf-8")))
-        except (OSError, ValueError, KeyError, TypeError) as exc:
-            raise DataError(f"{window}: not a windowed network: {exc}") from None
-        out[WIN] = _log_predictor(model, sensors)
+        out[WIN] = _log_predictor(read_window(window), sensors)
     return sensors, out
 
 

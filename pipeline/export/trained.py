@@ -324,15 +324,10 @@ ACTIVATIONS = (None, "relu", "leaky_relu", "tanh", "elu")  # what a graph comput
 
 def _window(model_dir: Path, name: str, group: str, sensors: tuple[str, ...]) -> GroupModel:
     """The windowed network of ``<name>.json`` (`pipeline.calib.window.WindowModel.to_dict`)."""
-    from pipeline.calib.window import WindowModel
+    from pipeline.calib.window import read_window
 
     path = model_dir / f"{name}{WINDOW_SUFFIX}"
-    try:
-        model = WindowModel.from_dict(json.loads(path.read_text(encoding="utf-8")))
-    except FileNotFoundError:
-        raise DataError(f"{path}: not found (models: {name} was not trained?)") from None
-    except (OSError, ValueError, TypeError, KeyError) as exc:
-        raise DataError(f"{path}: not a windowed network: {exc!r}") from None
+    model = read_window(path)
     base, n_sensors = model.base, len(sensors)
     width = base.offset.shape[-1]  # 7, or 6 without temperature
     taus = np.asarray(model.time_constants, dtype=np.float64)
