@@ -105,12 +105,13 @@ def report_parts(
     pi_true: np.ndarray,
     post: Posterior,
     shrink: float,
+    reject_p: float,
 ) -> None:
     """Per part (links between FT joints): its mass as the URDF, the identification (posterior and jackknife
     sd) and the truth say; the count of parts of at least 1 kg identified within 1 % last."""
     print("\npart (heaviest link)   URDF kg   identified kg   posterior sd   jackknife sd    true kg")
     close = heavy = 0
-    for p in part_table(robot, links, pi_urdf, post, pi_true, shrink):
+    for p in part_table(robot, links, pi_urdf, post, pi_true, shrink, reject_p):
         masses = f"{p.mass_urdf:9.3f} {p.mass:15.3f} {p.sd:14.3f} {p.jackknife:14.3f} {p.mass_true:10.3f}"
         print(f"{p.name:>20} {masses}")
         if p.mass_urdf >= 1.0:
@@ -204,7 +205,7 @@ def main() -> None:
     post = identify(src, robot, links, params, args)
     delta = with_change(pi_urdf, post.delta) - pi_urdf
     print_label_errors(src, stems, robot, links, np.column_stack([truth_delta, delta]), params, args.step)
-    report_parts(robot, links, pi_urdf, pi_urdf + truth_delta, post, args.cfg.shrink)
+    report_parts(robot, links, pi_urdf, pi_urdf + truth_delta, post, args.cfg.shrink, args.cfg.reject_p)
 
 
 if __name__ == "__main__":

@@ -10,12 +10,21 @@ import pinocchio as pin
 import pytest
 
 from pipeline.core.errors import ConfigError, RobotModelError
-from pipeline.labels.identify import to_inertial
+from pipeline.labels.identify import part_table, to_inertial
 from pipeline.labels.imu_params import IdentifyParams
-from pipeline.labels.inertials import link_basis, with_change
+from pipeline.labels.inertials import FREE, Posterior, link_basis, with_change
+from pipeline.physics.regressor import link_params
+from pipeline.physics.robot import RobotModel
 from pipeline.physics.urdf_write import write_inertials
 
-GOOD = {"step": 20, "weight": 0.002, "shrink": 0.5, "play_widths_n": [10.0], "play_widths_nm": [0.5]}
+GOOD = {
+    "step": 20,
+    "weight": 0.002,
+    "shrink": 0.5,
+    "reject_p": 0.001,
+    "play_widths_n": [10.0],
+    "play_widths_nm": [0.5],
+}
 
 
 def _links(n: int = 3) -> np.ndarray:
@@ -60,12 +69,54 @@ def test_the_urdf_writer_refuses_an_unknown_link_and_bad_xml(tmp_path: Path) -> 
         write_inertials(tmp_path / "bad.urdf", tmp_path / "o.urdf", {})
 
 
+def test_a_part_is_re_estimated_where_its_change_rejects_the_urdf(icub: RobotModel) -> None:
+    """The chi-square statistic of a part's change (independent: the sum of squared z-scores of a diagonal
+    posterior) against scipy's quantile: a part just past it is re-estimated, one just short is not; a part
+    whose mass sd is shrunk is identified either way; the freed parts are the union."""
+    from scipy.stats import chi2
+
+    links = [lk for lk, i in icub.links.items() if i is not None and i.mass > 0]
+    pi = link_params(icub, links)
+    n_p = FREE * len(links)
+    sd = np.full(n_p, 0.01)
+    parts = part_table(
+        icub, links, pi, Posterior(np.zeros(n_p), np.diag(sd**2), np.zeros((2, n_p)), sd), None, 0.5, 1e-3
+    )
+    arm = next(p for p in parts if p.name == "r_upper_arm")
+    own = [FREE * links.index(lk) + j for lk in arm.links for j in range(FREE)]
+    edge = chi2.isf(1e-3, len(own))
+    for factor, rejected in ((1.01, True), (0.99, False)):
+        delta = np.zeros(n_p)
+        delta[own] = sd[own] * np.sqrt(factor * edge / len(own))  # sum of squared z-scores: factor x edge
+        post = Posterior(delta, np.diag(sd**2), np.zeros((2, n_p)), 1.5 * sd)
+        got = {p.name: p for p in part_table(icub, links, pi, post, None, 0.5, 1e-3)}
+        assert got["r_upper_arm"].chi2 == pytest.approx(factor * edge, rel=1e-9)
+        assert got["r_upper_arm"].dof == len(own)
+        assert got["r_upper_arm"].rejected is rejected and got["r_upper_arm"].freed is rejected
+        assert not got["r_upper_arm"].identified  # its mass sd: 1 / 1.5 of the prior's, above 0.5
+        assert all(p.chi2 == 0 and not p.rejected for n, p in got.items() if n != "r_upper_arm")
+        state = got["r_upper_arm"].state
+        assert state.startswith("re-estimated") if rejected else state == "not identified (URDF's)"
+    shrunk = part_table(
+        icub,
+        links,
+        pi,
+        Posterior(np.zeros(n_p), np.diag(sd**2), np.zeros((2, n_p)), 10 * sd),
+        None,
+        0.5,
+        1e-3,
+    )
+    assert all(p.identified and p.freed and not p.rejected for p in shrunk)
+
+
 @pytest.mark.parametrize(
     ("key", "value", "message"),
     [
         ("step", 0, "step must be a positive integer"),
         ("weight", -1.0, "weight must be a positive number"),
         ("shrink", 1.0, "shrink must be below 1"),
+        ("reject_p", 0.0, "reject_p must be a positive number"),
+        ("reject_p", 1.0, "reject_p must be below 1"),
         ("play_widths_nm", [0.5, 1.0], "as many widths"),
         ("play_widths_n", [-1.0], "list of distinct positive numbers"),
         ("play_widths_n", [10.0, 10.0], "list of distinct positive numbers"),

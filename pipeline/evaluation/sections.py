@@ -160,6 +160,20 @@ def availability_section(avail: Mapping[str, Any] | None) -> str:
     )
 
 
+def _num(values: Mapping[str, Any], key: str, missing: str) -> str:
+    """`values[key]` as a short number, else the words `missing`."""
+    return f"{values[key]:g}" if key in values else missing
+
+
+def _part_state(part: Mapping[str, Any]) -> str:
+    """A part's row state: identified, re-estimated (with the statistic) or the URDF's."""
+    if part["identified"]:
+        return "yes"
+    if part.get("rejected"):
+        return f"re-estimated (chi2 {part['chi2']:.0f} on {part['dof']})"
+    return "no (URDF's)"
+
+
 def identification_section(ident: Mapping[str, Any] | None, figure: str | None) -> str:
     """The robot model identified by the label stage (`pipeline.stages.identify`: its identification.json)
     and its figure (a path relative to the page); empty without one."""
@@ -168,10 +182,11 @@ def identification_section(ident: Mapping[str, Any] | None, figure: str | None) 
     used = "the identified parameters" if ident.get("labels") == "identified" else "robot.urdf's parameters"
     why = f": {esc(ident['reason'])}" if ident.get("reason") else ""
     truth = any(p.get("mass_true") is not None for p in ident["parts"])
+    crit = ident.get("criteria", {})
     head = ["part (heaviest link)", "URDF kg", "identified kg", "sd kg", "jackknife sd kg", "identified"]
     rows = [
         [esc(p["name"]), fmt(p["mass_urdf"]), fmt(p["mass"]), fmt(p["sd"]), fmt(p["jackknife"])]
-        + ["yes" if p["identified"] else "no (URDF's)"]
+        + [_part_state(p)]
         + ([fmt(p["mass_true"])] if truth else [])
         for p in ident["parts"]
     ]
@@ -182,14 +197,19 @@ def identification_section(ident: Mapping[str, Any] | None, figure: str | None) 
     sensor_rows = [
         [esc(s), fmt(d["label_change"]), *(fmt(d[k]) for k in errors)] for s, d in ident["sensors"].items()
     ]
+    shrink = _num(crit, "shrink", "a fraction of")
+    reject_p = _num(crit, "reject_p", "label.identify.reject_p")
     note = (
         f"<p class='note'>Every massive link's mass and first moment identified with a model of each sensor "
         f"from {len(ident['logs'])} training logs ({ident['exact_samples']} exact samples; known loads in "
         f"{len(ident['known_load_logs'])}): <b>{esc(ident['status'])}</b>{why}. The labels use {used} "
-        "(label.inertials). A part is identified where the data shrink its mass's sd to half the prior's "
-        "(10 % of the mass); the others keep the URDF's values. The labels' change and their error against "
-        "the true wrench (simulated logs) are RMS over the training logs' exact samples, 6 axes pooled, N "
-        "and Nm. The identified model: models/identified/model.urdf.</p>"
+        f"(label.inertials). A part is identified where the data shrink its mass's sd to {shrink} x the "
+        "prior's (10 % of the mass), re-estimated where its masses' and first moments' change rejects the "
+        "URDF's values (a chi-square statistic in the posterior covariance, beyond its quantile at "
+        f"p = {reject_p}): its estimate, however uncertain, is nearer the robot than the URDF's. The others "
+        "keep the URDF's values. The labels' change and their error against the true wrench (simulated logs) "
+        "are RMS over the training logs' exact samples, 6 axes pooled, N and Nm. The identified model: "
+        "models/identified/model.urdf.</p>"
     )
     img = f"<img src='{esc(figure)}' alt='identified part masses'>" if figure else ""
     return (

@@ -3,8 +3,13 @@ the URDF's.
 
 The estimate is `pipeline.labels.inertials`' posterior over every massive link's parameters. A part of the
 robot (the links between FT joints, `pipeline.physics.cuts.components`) is *identified* where the data
-shrink its mass's posterior sd to at most ``label.identify.shrink`` times the prior's; the links of the
-other parts are held at the URDF's values and the posterior is solved again. The robot model is refused,
+shrink its mass's posterior sd to at most ``label.identify.shrink`` times the prior's. A part whose mass the
+data do not pin down is *re-estimated* where they reject the URDF's values: the posterior's change of the
+part's masses and first moments, in its own covariance (a chi-square statistic, conservative: the posterior
+covariance is wider than the change's own spread), is beyond the chi-square quantile of
+``label.identify.reject_p`` for as many degrees of freedom; its estimate, however uncertain, is then nearer
+the robot than the URDF's. The links of the other parts are held at the URDF's values and the posterior is
+solved again. The robot model is refused,
 and the labels keep the URDF's parameters, when:
 
 - no training log hangs a known load on the robot: on gravity alone a link's mass and a sensor's gain scale
@@ -53,7 +58,9 @@ SENSOR_MODEL = "full"  # the sensor model identified jointly (`pipeline.labels.i
 @dataclass(frozen=True)
 class Part:
     """One part's mass (kg): the URDF's, the identified one with its posterior and leave-one-log-out
-    (jackknife) sd, the prior's sd; whether the data identify it; the truth of a simulated robot."""
+    (jackknife) sd, the prior's sd; whether the data identify it; the truth of a simulated robot; the
+    chi-square statistic of its parameters' change (`dof` masses and first moments) and whether it rejects
+    the URDF's values (the part re-estimated)."""
 
     name: str  # its heaviest link
     links: tuple[str, ...]
@@ -64,6 +71,23 @@ class Part:
     prior_sd: float
     identified: bool
     mass_true: float | None = None
+    chi2: float = 0.0
+    dof: int = 0
+    rejected: bool = False
+
+    @property
+    def freed(self) -> bool:
+        """Whether the labels use the data's estimate of this part (identified or re-estimated)."""
+        return self.identified or self.rejected
+
+    @property
+    def state(self) -> str:
+        """One phrase: identified, re-estimated (and why) or the URDF's."""
+        if self.identified:
+            return "identified"
+        if self.rejected:
+            return f"re-estimated (the data reject the URDF's: chi2 {self.chi2:.0f} on {self.dof})"
+        return "not identified (URDF's)"
 
 
 @dataclass
@@ -120,6 +144,7 @@ class Identification:
     known_load_logs: list[str]
     samples: int
     link_sd: np.ndarray = field(default_factory=lambda: np.zeros(0))
+    criteria: dict[str, float] = field(default_factory=dict)  # label.identify's shrink and reject_p
 
     @property
     def accepted(self) -> bool:
@@ -143,6 +168,7 @@ class Identification:
             "logs": self.logs,
             "known_load_logs": self.known_load_logs,
             "exact_samples": self.samples,
+            "criteria": self.criteria,
             "parts": [p.__dict__ | {"links": list(p.links)} for p in self.parts],
             "sensors": self.sensors,
         }
@@ -184,12 +210,19 @@ def part_table(
     post: Any,
     pi_true: np.ndarray | None,
     shrink: float,
+    reject_p: float,
 ) -> list[Part]:
     """Every part's masses (`Part`) from the posterior `post` over the links' masses and first moments
     (`pipeline.labels.inertials.Posterior`); `pi_true`: a simulated robot's true parameters, else None; a
-    part is identified where its mass's sd is at most `shrink` x the prior's."""
+    part is identified where its mass's sd is at most `shrink` x the prior's, re-estimated where the
+    chi-square statistic of its parameters' change exceeds the quantile of `reject_p` (module docstring)."""
+    from scipy.stats import chi2
+
     parts = []
     for name, idx in _parts(robot, links):
+        own = np.array([FREE * k + j for k in idx for j in range(FREE)])
+        change, cov = post.delta[own], post.cov[np.ix_(own, own)]
+        stat = float(change @ np.linalg.solve(cov, change))
         sel = np.zeros(FREE * len(links))
         sel[[FREE * k for k in idx]] = 1.0
         mass_urdf = float(sum(pi_urdf[PARAMS * k] for k in idx))
@@ -207,6 +240,9 @@ def part_table(
                 prior_sd=prior_sd,
                 identified=sd <= shrink * prior_sd,
                 mass_true=float(sum(pi_true[PARAMS * k] for k in idx)) if pi_true is not None else None,
+                chi2=stat,
+                dof=len(own),
+                rejected=bool(stat > chi2.isf(reject_p, len(own))),
             )
         )
     return parts
@@ -291,21 +327,22 @@ def identify_robot(
     prior = prior_precision(pi_urdf, cols, len(widths), len(robot.sensors))
     weights = log_weights(eqs, prior, cfg.weight)
     free = solve(eqs, prior, n_p, weights)
-    parts = part_table(robot, links, pi_urdf, free, pi_true, cfg.shrink)
+    parts = part_table(robot, links, pi_urdf, free, pi_true, cfg.shrink, cfg.reject_p)
     held = np.ones(n_p, dtype=bool)
-    for part in (p for p in parts if p.identified):
+    for part in (p for p in parts if p.freed):
         for k in (links.index(lk) for lk in part.links):
             held[FREE * k : FREE * (k + 1)] = False
     post = solve(eqs, prior, n_p, weights, pinned=held) if (~held).any() else free
     change = np.where(held, 0.0, post.delta)
     pi = with_change(pi_urdf, change)
-    parts = [_with_mass(p, links, pi_urdf, change, post) if p.identified else p for p in parts]
+    parts = [_with_mass(p, links, pi_urdf, change, post) if p.freed else p for p in parts]
     status, reason = "identified", ""
     if not loaded:
         reason = "no training log hangs a known load on the robot: a mass and a sensor's gain scale alike"
     elif held.all():
         reason = (
-            f"the data shrink no part's mass sd to {cfg.shrink:g} x the prior's (too few postures or motions)"
+            f"the data shrink no part's mass sd to {cfg.shrink:g} x the prior's, nor reject any part's URDF "
+            "values (too few postures or motions)"
         )
     else:
         reason = _physical(links, pi, [k for k in range(len(links)) if not held[FREE * k]])
@@ -335,6 +372,7 @@ def identify_robot(
         known_load_logs=loaded,
         samples=samples,
         link_sd=np.sqrt(np.diag(post.cov)),
+        criteria={"shrink": cfg.shrink, "reject_p": cfg.reject_p},
     )
 
 

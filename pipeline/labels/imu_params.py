@@ -67,19 +67,21 @@ class IdentifyParams:
     step: int  # every step-th exact sample of each training log
     weight: float  # each sample's weight in the posterior (the samples of a log are strongly correlated)
     shrink: float  # a part is identified where the data shrink its mass's sd to at most this x the prior's
+    reject_p: float  # ... and re-estimated where its change rejects the URDF's values at this significance
     play_widths_n: tuple[float, ...]  # the sensor model's play operators (hysteresis) on force axes, N ...
     play_widths_nm: tuple[float, ...]  # ... and torque axes, Nm (as many)
 
     def __post_init__(self) -> None:
         if isinstance(self.step, bool) or not isinstance(self.step, int) or self.step < 1:
             raise ConfigError(f"{IDENTIFY_KEY}.step must be a positive integer, got {self.step!r}")
-        for name in ("weight", "shrink"):
+        for name in ("weight", "shrink", "reject_p"):
             v = getattr(self, name)
             if isinstance(v, bool) or not isinstance(v, int | float) or not 0 < v < math.inf:
                 raise ConfigError(f"{IDENTIFY_KEY}.{name} must be a positive number, got {v!r}")
             object.__setattr__(self, name, float(v))
-        if self.shrink >= 1:
-            raise ConfigError(f"{IDENTIFY_KEY}.shrink must be below 1, got {self.shrink!r}")
+        for name in ("shrink", "reject_p"):
+            if getattr(self, name) >= 1:
+                raise ConfigError(f"{IDENTIFY_KEY}.{name} must be below 1, got {getattr(self, name)!r}")
         widths = checked_widths(IDENTIFY_KEY, self.play_widths_n, self.play_widths_nm)
         object.__setattr__(self, "play_widths_n", widths[0])
         object.__setattr__(self, "play_widths_nm", widths[1])

@@ -7,9 +7,10 @@ model of each sensor (`pipeline.labels.inertials`, `pipeline.labels.identify`) a
 whole, atomically):
 
 - ``identification.json``: the decision (``identified`` or ``urdf``, and why), per part its mass (URDF,
-  identified, posterior and jackknife sd, prior sd, whether the data identify it; the truth for simulated
-  logs), per sensor the labels' change and, for simulated logs, their error against the true wrench with
-  the URDF's and with the identified parameters;
+  identified, posterior and jackknife sd, prior sd, whether the data identify it or reject the URDF's
+  values, with the chi-square statistic; the truth for simulated logs), per sensor the labels' change
+  and, for simulated logs, their error against the true wrench with the URDF's and with the identified
+  parameters;
 - ``parts.csv`` (the same per part) and ``links.csv`` (per changed link: mass and centre of mass, URDF's
   and identified, with the posterior sd);
 - ``model.urdf``: ``robot.urdf`` with the identified links' inertial values (the URDF's own values where the
@@ -66,9 +67,13 @@ def _write_tables(out: Path, res: Any) -> None:
             "prior_sd_kg",
             "identified",
             "mass_true_kg",
+            "chi2",
+            "dof",
+            "re_estimated",
         ],
         [
             [p.name, p.mass_urdf, p.mass, p.sd, p.jackknife, p.prior_sd, int(p.identified), p.mass_true]
+            + [p.chi2, p.dof, int(p.rejected)]
             for p in res.parts
         ],
     )
@@ -94,14 +99,15 @@ def _figure(path: Path, res: Any) -> None:
     fig, ax = plt.subplots(figsize=(8, 0.4 * len(parts) + 1.5))
     for i, p in enumerate(parts):
         change, sd = 100 * (p.mass / p.mass_urdf - 1), 200 * p.sd / p.mass_urdf
-        ax.errorbar(
-            change, i, xerr=sd, fmt="o" if p.identified else "x", color="C0" if p.identified else "0.6"
-        )
+        look = ("o", "C0") if p.identified else ("D", "C1") if p.rejected else ("x", "0.6")
+        ax.errorbar(change, i, xerr=sd, fmt=look[0], color=look[1])
         if p.mass_true is not None:
             ax.plot(100 * (p.mass_true / p.mass_urdf - 1), i, "s", mfc="none", color="C3")
     ax.axvline(0, color="0.3", lw=0.8)
     ax.set_yticks(range(len(parts)), [p.name for p in parts])
-    ax.set_xlabel("mass change from the URDF's, % (bars: 2 sd; grey x: not identified; red square: truth)")
+    ax.set_xlabel(
+        "mass change from the URDF's, % (bars: 2 sd; orange: re-estimated; grey x: URDF's; red square: truth)"
+    )
     ax.set_title(f"identified robot model: {res.status}" + (f" ({res.reason[:60]})" if res.reason else ""))
     fig.tight_layout()
     fig.savefig(path, dpi=100)
@@ -193,8 +199,7 @@ def _cmd(args: argparse.Namespace) -> int:
     print(f"identify: {res.status}{': ' + res.reason if res.reason else ''} ({res.samples} exact samples)")
     for p in res.parts:
         true = f", true {p.mass_true:.3f}" if p.mass_true is not None else ""
-        state = "identified" if p.identified else "not identified (URDF's)"
-        print(f"  {p.name}: URDF {p.mass_urdf:.3f} kg, {p.mass:.3f} +- {p.sd:.3f} kg {state}{true}")
+        print(f"  {p.name}: URDF {p.mass_urdf:.3f} kg, {p.mass:.3f} +- {p.sd:.3f} kg {p.state}{true}")
     for s, d in res.sensors.items():
         truth = ""
         if d["error_urdf"] is not None:
