@@ -69,7 +69,7 @@ def _write_tables(out: Path, res: Any) -> None:
             "mass_true_kg",
             "chi2",
             "dof",
-            "re_estimated",
+            "urdf_rejected",
         ],
         [
             [p.name, p.mass_urdf, p.mass, p.sd, p.jackknife, p.prior_sd, int(p.identified), p.mass_true]
@@ -106,7 +106,8 @@ def _figure(path: Path, res: Any) -> None:
     ax.axvline(0, color="0.3", lw=0.8)
     ax.set_yticks(range(len(parts)), [p.name for p in parts])
     ax.set_xlabel(
-        "mass change from the URDF's, % (bars: 2 sd; orange: re-estimated; grey x: URDF's; red square: truth)"
+        "mass change from the URDF's, %\n"
+        "(bars: 2 sd; blue: identified; orange: re-estimated; grey x: URDF's; red square: truth)"
     )
     ax.set_title(f"identified robot model: {res.status}" + (f" ({res.reason[:60]})" if res.reason else ""))
     fig.tight_layout()
