@@ -9,8 +9,7 @@ part's masses and first moments, in its own covariance (a chi-square statistic, 
 covariance is wider than the change's own spread), is beyond the chi-square quantile of
 ``label.identify.reject_p`` for as many degrees of freedom; its estimate, however uncertain, is then nearer
 the robot than the URDF's. The links of the other parts are held at the URDF's values and the posterior is
-solved again. The robot model is refused,
-and the labels keep the URDF's parameters, when:
+solved again. The robot model is refused, and the labels keep the URDF's parameters, when:
 
 - no training log hangs a known load on the robot: on gravity alone a link's mass and a sensor's gain scale
   the readings alike, so no data tell them apart;
