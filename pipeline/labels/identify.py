@@ -335,16 +335,7 @@ def identify_robot(
     change = np.where(held, 0.0, post.delta)
     pi = with_change(pi_urdf, change)
     parts = [_with_mass(p, links, pi_urdf, change, post) if p.freed else p for p in parts]
-    status, reason = "identified", ""
-    if not loaded:
-        reason = "no training log hangs a known load on the robot: a mass and a sensor's gain scale alike"
-    elif held.all():
-        reason = (
-            f"the data shrink no part's mass sd to {cfg.shrink:g} x the prior's, nor reject any part's URDF "
-            "values (too few postures or motions)"
-        )
-    else:
-        reason = _physical(links, pi, [k for k in range(len(links)) if not held[FREE * k]])
+    status, reason = "identified", _refusal(bool(loaded), held, cfg, links, pi)
     if reason:
         status, pi = "urdf", pi_urdf.copy()
     extra = [0.0] * (both.shape[1] - n_p)
@@ -373,6 +364,19 @@ def identify_robot(
         link_sd=np.sqrt(np.diag(post.cov)),
         criteria={"shrink": cfg.shrink, "reject_p": cfg.reject_p},
     )
+
+
+def _refusal(loaded: bool, held: np.ndarray, cfg: IdentifyParams, links: list[str], pi: np.ndarray) -> str:
+    """Why the identified model is refused ('' if it is not): no known loads, no part freed (`held` (4 L,)
+    every parameter held), or a freed link that is not physical (`pi` (10 L,) the identified parameters)."""
+    if not loaded:
+        return "no training log hangs a known load on the robot: a mass and a sensor's gain scale alike"
+    if held.all():
+        return (
+            f"the data shrink no part's mass sd to {cfg.shrink:g} x the prior's, nor reject any part's URDF "
+            "values (too few postures or motions)"
+        )
+    return _physical(links, pi, [k for k in range(len(links)) if not held[FREE * k]])
 
 
 def _with_mass(p: Part, links: list[str], pi_urdf: np.ndarray, change: np.ndarray, post: Any) -> Part:
