@@ -229,9 +229,10 @@ def test_bad_inputs(tmp_path: Path, default_run: Path, mlflow_store: None) -> No
     assert not (tmp_path / "out").exists()
 
 
-def test_label_stage_on_ergocub(tmp_path: Path, mlflow_store: None) -> None:
+def test_label_stage_on_ergocub(tmp_path: Path, mlflow_store: None, monkeypatch: pytest.MonkeyPatch) -> None:
     """Nothing iCub-specific: a smoothed table of ergoCub in declared double support (random kinematics)
-    labels every cut set; the leg-pair and four-foot sums match iDynTree mapped to their frames."""
+    labels every cut set; the leg-pair and four-foot sums match iDynTree mapped to their frames. The
+    table names its URDF relative to the working directory, so clones in other places label alike."""
     from pipeline.physics.robot import load_robot
     from tests.conftest import robot_source
     from tests.idyntree_ref import random_in_limits
@@ -254,9 +255,13 @@ def test_label_stage_on_ergocub(tmp_path: Path, mlflow_store: None) -> None:
     data = yaml.safe_load((REPO / "params.yaml").read_text())
     data["robot"]["urdf"] = str(robot.urdf_path)
     (tmp_path / "p.yaml").write_text(yaml.safe_dump(data))
-    run(load_params(tmp_path / "p.yaml"), tmp_path / "smoothed", tmp_path / "labelled")
+    params = load_params(tmp_path / "p.yaml")
+    monkeypatch.chdir(Path(robot.urdf_path).resolve().parent.parent)
+    run(params, tmp_path / "smoothed", tmp_path / "labelled")
     path = tmp_path / "labelled" / "ergo.parquet"
     table, cuts = pd.read_parquet(path), cut_sets(path)
+    urdf = Path(robot.urdf_path).resolve()
+    assert S.read_metadata(pq.read_schema(path), S.META_LABEL)["urdf"] == f"{urdf.parent.name}/{urdf.name}"
     ref = oracle(robot).expected(q, dq, ddq, DOUBLE, "l_sole", np.array([0.0, 0.0, -9.80665]))
     assert len(cuts) == 6
     for name, cut in cuts.items():

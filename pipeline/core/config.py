@@ -350,7 +350,7 @@ def _construct_unique_mapping(loader: _UniqueKeyLoader, node: yaml.MappingNode, 
 _UniqueKeyLoader.add_constructor(yaml.resolver.BaseResolver.DEFAULT_MAPPING_TAG, _construct_unique_mapping)
 
 
-def _display(path: Path) -> str:
+def display_path(path: Path) -> str:
     """The path as the user would write it: relative to the working directory when under it."""
     try:
         return str(path.resolve().relative_to(Path.cwd().resolve()))
@@ -488,12 +488,12 @@ def load_params(path: str | Path | None = None) -> Params:
     path = Path(path) if path is not None else repo_root() / PARAMS_FILE
     try:
         params = _parse(_read_yaml(path))
-        params.raw["__file__"] = _display(path)  # type: ignore[index]
+        params.raw["__file__"] = display_path(path)  # type: ignore[index]
     except ConfigError as exc:
-        raise ConfigError(f"{_display(path)}: {exc}") from None
+        raise ConfigError(f"{display_path(path)}: {exc}") from None
     try:
         validate_sections(params)
     except ConfigError as exc:  # stage_section already names the file
-        message, where = str(exc), _display(path)
+        message, where = str(exc), display_path(path)
         raise ConfigError(message if message.startswith(where) else f"{where}: {message}") from None
     return params

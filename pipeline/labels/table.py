@@ -21,7 +21,7 @@ import numpy as np
 import pandas as pd
 import pyarrow as pa
 
-from pipeline.core.config import LabelParams
+from pipeline.core.config import LabelParams, display_path
 from pipeline.core.errors import DataError, RobotModelError
 from pipeline.core.io import write_parquet
 from pipeline.labels.contacts import Contacts, declared_contacts, detect_contacts
@@ -304,7 +304,7 @@ def _label_metadata(lab: Labeller) -> dict[str, Any]:
         },
         "cut_sets": {c.name: cut_set_metadata(c) for c in lab.cuts},
         "params": asdict(lab.cfg),
-        "urdf": str(lab.robot.urdf_path),
+        "urdf": display_path(lab.robot.urdf_path),  # relative to the working directory when under it
     }
 
 
