@@ -165,28 +165,21 @@ def _num(values: Mapping[str, Any], key: str, missing: str) -> str:
     return f"{values[key]:g}" if key in values else missing
 
 
-def _part_state(part: Mapping[str, Any]) -> str:
-    """A part's row state: identified, re-estimated (with the statistic) or the URDF's."""
-    if part["identified"]:
-        return "yes"
-    if part.get("rejected"):
-        return f"re-estimated (chi2 {part['chi2']:.0f} on {part['dof']})"
-    return "no (URDF's)"
-
-
 def identification_section(ident: Mapping[str, Any] | None, figure: str | None) -> str:
     """The robot model identified by the label stage (`pipeline.stages.identify`: its identification.json)
     and its figure (a path relative to the page); empty without one."""
     if not ident:
         return ""
+    from pipeline.labels.identify import part_state
+
     used = "the identified parameters" if ident.get("labels") == "identified" else "robot.urdf's parameters"
     why = f": {esc(ident['reason'])}" if ident.get("reason") else ""
     truth = any(p.get("mass_true") is not None for p in ident["parts"])
     crit = ident.get("criteria", {})
-    head = ["part (heaviest link)", "URDF kg", "identified kg", "sd kg", "jackknife sd kg", "identified"]
+    head = ["part (heaviest link)", "URDF kg", "identified kg", "sd kg", "jackknife sd kg", "state"]
     rows = [
         [esc(p["name"]), fmt(p["mass_urdf"]), fmt(p["mass"]), fmt(p["sd"]), fmt(p["jackknife"])]
-        + [_part_state(p)]
+        + [esc(part_state(p))]
         + ([fmt(p["mass_true"])] if truth else [])
         for p in ident["parts"]
     ]

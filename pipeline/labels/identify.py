@@ -23,6 +23,7 @@ the labels' error against the true wrench with the URDF's and with the identifie
 
 from __future__ import annotations
 
+from collections.abc import Mapping
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -81,12 +82,17 @@ class Part:
 
     @property
     def state(self) -> str:
-        """One phrase: identified, re-estimated (and why) or the URDF's."""
-        if self.identified:
-            return "identified"
-        if self.rejected:
-            return f"re-estimated (the data reject the URDF's: chi2 {self.chi2:.0f} on {self.dof})"
-        return "not identified (URDF's)"
+        """One phrase: identified, re-estimated (and why) or the URDF's (`part_state`)."""
+        return part_state(self.__dict__)
+
+
+def part_state(part: Mapping[str, Any]) -> str:
+    """A part's state in one phrase, from its fields (a `Part`'s, or their JSON in identification.json)."""
+    if part["identified"]:
+        return "identified"
+    if part.get("rejected"):
+        return f"re-estimated (the data reject the URDF's: chi2 {part['chi2']:.0f} on {part['dof']})"
+    return "not identified (URDF's)"
 
 
 @dataclass
@@ -391,4 +397,12 @@ def _with_mass(p: Part, links: list[str], pi_urdf: np.ndarray, change: np.ndarra
     )
 
 
-__all__ = ["Identification", "Part", "identify_robot", "part_table", "to_inertial", "training_stems"]
+__all__ = [
+    "Identification",
+    "Part",
+    "identify_robot",
+    "part_state",
+    "part_table",
+    "to_inertial",
+    "training_stems",
+]
