@@ -2,8 +2,9 @@
 
 Errors the user can fix (`FtcalError`) print one line, ``ftcal: error: <message>``, on stderr and
 exit with status 2; so does any exception inside a step's forked jobs (`pipeline.core.parallel`: the line
-names the job's file or name and the file holding the traceback). Ctrl-C exits with 130. Anything else
-raised by a step itself is a bug and shows its traceback.
+names the job's file or name and the file holding the traceback). Ctrl-C exits with 130, SIGTERM with 143;
+either way, and after any error, every worker process a step forked is ended and reaped before the command
+returns (`pipeline.core.parallel`). Anything else raised by a step itself is a bug and shows its traceback.
 """
 
 from __future__ import annotations
@@ -14,6 +15,7 @@ import gc
 import importlib
 import logging
 import os
+import signal
 import sys
 import traceback
 from collections.abc import Sequence
@@ -26,6 +28,7 @@ from pipeline.core.errors import FtcalError
 EXIT_OK = 0
 EXIT_USAGE = 2  # as argparse: bad arguments or bad input the user can fix
 EXIT_INTERRUPTED = 130  # 128 + SIGINT, as shells report Ctrl-C
+EXIT_TERMINATED = 143  # 128 + SIGTERM
 THEN = "+"  # between two commands run one after the other, in one stage (`main`)
 
 # Commands, in pipeline order: name -> (module, one-line help). A command's module defines
@@ -170,15 +173,22 @@ def _run(argv: list[str]) -> int:
         if exc.code is None:
             return EXIT_OK
         return exc.code if isinstance(exc.code, int) else EXIT_USAGE
+    from pipeline.core.parallel import Terminated, end_workers
+
     try:
         return args.func(args)
     except FtcalError as exc:
         message = " ".join(str(exc).split("\n")).strip() or type(exc).__name__
         print(f"ftcal: error: {message}", file=sys.stderr)
         return EXIT_USAGE
+    except Terminated:
+        print("ftcal: terminated", file=sys.stderr)
+        return EXIT_TERMINATED
     except KeyboardInterrupt:
         print("ftcal: interrupted", file=sys.stderr)
         return EXIT_INTERRUPTED
+    finally:
+        end_workers()  # those of results an error left unread
 
 
 # The heavy libraries the steps import, in import order. When a stage runs several steps, those its steps
@@ -252,11 +262,17 @@ def _preload(names: Sequence[str]) -> None:
 
 
 def _run_forked(argv: list[str]) -> int:
-    """Run one command in a forked child process; return its exit status (130 after Ctrl-C)."""
+    """Run one command in a forked child process; return its exit status (130 after Ctrl-C, 143 after a
+    SIGTERM, which this process passes on to the child)."""
+    from pipeline.core.parallel import stop_on_sigterm
+
     sys.stdout.flush()
     sys.stderr.flush()
+    signal.pthread_sigmask(signal.SIG_BLOCK, {signal.SIGTERM})  # until each side has its handler
     pid = os.fork()
     if pid == 0:  # the child: the command, then out without unwinding into the parent's loop
+        stop_on_sigterm()
+        signal.pthread_sigmask(signal.SIG_UNBLOCK, {signal.SIGTERM})
         status = EXIT_USAGE
         try:
             status = _run(argv)
@@ -267,12 +283,17 @@ def _run_forked(argv: list[str]) -> int:
             sys.stdout.flush()
             sys.stderr.flush()
             os._exit(status)
-    while True:
-        try:
-            _, wait = os.waitpid(pid, 0)
-            break
-        except KeyboardInterrupt:  # Ctrl-C reaches the child too: wait for it to stop
-            continue
+    previous = signal.signal(signal.SIGTERM, lambda *_: os.kill(pid, signal.SIGTERM))
+    signal.pthread_sigmask(signal.SIG_UNBLOCK, {signal.SIGTERM})
+    try:
+        while True:
+            try:
+                _, wait = os.waitpid(pid, 0)
+                break
+            except KeyboardInterrupt:  # Ctrl-C reaches the child too: wait for it to stop
+                continue
+    finally:
+        signal.signal(signal.SIGTERM, previous)
     code = os.waitstatus_to_exitcode(wait)
     return 128 - code if code < 0 else code  # killed by signal s: 128 + s, as shells report it
 
@@ -306,8 +327,12 @@ def entry() -> NoReturn:
     Every file a command writes is closed (and moved into place) and every MLflow run ended before `main`
     returns; tearing torch, MLflow and the other libraries down would then only take time, about 1.5 s a
     process, which every DVC stage pays (its steps' forked processes leave the same way, `_run_forked`).
-    A bug's exception still unwinds and prints its traceback.
+    A bug's exception still unwinds and prints its traceback. SIGTERM unwinds as Ctrl-C does (temporary
+    files removed, forked workers ended).
     """
+    from pipeline.core.parallel import stop_on_sigterm
+
+    stop_on_sigterm()
     status = main()
     logging.shutdown()
     sys.stdout.flush()

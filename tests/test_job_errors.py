@@ -5,11 +5,17 @@ that forks runs through the CLI with its job's function made to raise (the input
 
 from __future__ import annotations
 
+import contextlib
 import os
 import re
 import signal
+import subprocess
+import sys
+import threading
+import time
 from collections.abc import Callable
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 import pytest
@@ -194,3 +200,108 @@ def test_a_deployment_test_error_names_the_log_group_and_day(
         G.run_days([(ctx, logs)])
     label = rf"data/deploy/later/01_pole_test\.mcap \({LEG} test_c, day later\)"
     _traceback_file(str(info.value), label, PINOCCHIO, "pinocchio_error")
+
+
+# --- nothing left behind: a failed or interrupted stage ends and reaps its workers ----------------------
+
+
+def _session(sid: int) -> list[str]:
+    """The processes of session `sid` (zombies too), as ``pid state``."""
+    found = []
+    for stat in Path("/proc").glob("[0-9]*/stat"):
+        try:
+            fields = stat.read_text().rsplit(")", 1)[1].split()  # after "pid (comm)": state ppid pgrp sid
+        except (OSError, IndexError):
+            continue
+        if int(fields[3]) == sid:
+            found.append(f"{stat.parent.name} {fields[0]}")
+    return found
+
+
+def _children(pid: int) -> list[int]:
+    kids = []
+    for stat in Path("/proc").glob("[0-9]*/stat"):
+        with contextlib.suppress(OSError, IndexError):
+            if int(stat.read_text().rsplit(")", 1)[1].split()[1]) == pid:
+                kids.append(int(stat.parent.name))
+    return kids
+
+
+class _Ftcal:
+    """`python -m pipeline.cli ARGS` in a session of its own, its stdout and stderr pipes read to their end
+    by threads that note when each closed."""
+
+    def __init__(self, argv: list[str], cwd: Path) -> None:
+        env = {**os.environ, "MLFLOW_TRACKING_URI": f"sqlite:///{cwd / 'mlflow.db'}"}
+        self.proc = subprocess.Popen(
+            [sys.executable, "-m", "pipeline.cli", *argv],
+            cwd=cwd,
+            env={**env, "PYTHONPATH": os.pathsep.join(filter(None, [str(REPO), env.get("PYTHONPATH")]))},
+            stdout=subprocess.PIPE,
+            stderr=subprocess.PIPE,
+            start_new_session=True,
+        )
+        self.text: dict[str, str] = {}
+        self.closed: dict[str, float] = {}
+        self.readers = [
+            threading.Thread(target=self._read, args=(name, stream), daemon=True)
+            for name, stream in (("out", self.proc.stdout), ("err", self.proc.stderr))
+        ]
+        for reader in self.readers:
+            reader.start()
+
+    def _read(self, name: str, stream: Any) -> None:
+        self.text[name] = stream.read().decode(errors="replace")
+        self.closed[name] = time.monotonic()
+
+    def finish(self, timeout: float = 120.0) -> tuple[int, float, list[str]]:
+        """(exit status, seconds from the process's exit until both pipes closed, the processes of its
+        session left then); whatever is left is killed, so that a failing test leaves nothing either."""
+        try:
+            status = self.proc.wait(timeout=timeout)
+            exited = time.monotonic()
+            for reader in self.readers:
+                reader.join(timeout=10.0)
+            left = _session(self.proc.pid)
+        finally:
+            with contextlib.suppress(ProcessLookupError):
+                os.killpg(self.proc.pid, signal.SIGKILL)
+        assert set(self.closed) == {"out", "err"}, f"pipes open 10 s after the exit: {left}"
+        return status, max(self.closed.values()) - exited, left
+
+
+def test_a_failed_stage_leaves_no_process_and_closes_the_callers_pipes(tmp_path: Path) -> None:
+    """Both logs fail in their workers while the other worker waits for work: every worker ended."""
+    _junk(tmp_path / "in", ".mcap")
+    run = _Ftcal(["ingest", str(tmp_path / "in"), str(tmp_path / "out")], tmp_path)
+    status, lag, left = run.finish()
+    assert status == 2, run.text
+    assert run.text["err"].startswith("ftcal: error: ") and len(run.text["err"].splitlines()) == 1
+    assert lag < 1.0, f"the pipes closed {lag:.2f} s after ftcal exited"
+    assert left == []
+    assert not (tmp_path / "out").exists() and not list(tmp_path.glob(".out*"))
+
+
+@pytest.mark.parametrize("how", ["Ctrl-C", "SIGTERM"])
+def test_an_interrupted_stage_leaves_no_process_and_no_output(tmp_path: Path, how: str) -> None:
+    data = yaml.safe_load((REPO / "params.yaml").read_text())
+    logs = [{"type": "pole", "duration_s": 300, "role": "train"}] * 2  # minutes of work each
+    data["simulate"].update(workers=2, plots=False, logs=logs)
+    (tmp_path / "params.yaml").write_text(yaml.safe_dump(data, sort_keys=False))
+    argv = ["simulate", str(tmp_path / "sim"), "--quiet", "--params", str(tmp_path / "params.yaml")]
+    run = _Ftcal(argv, tmp_path)
+    deadline = time.monotonic() + 60.0
+    while len(_children(run.proc.pid)) < 2:  # both workers forked and simulating
+        assert run.proc.poll() is None and time.monotonic() < deadline, run.text
+        time.sleep(0.05)
+    time.sleep(0.5)
+    if how == "Ctrl-C":  # the terminal sends SIGINT to the whole foreground process group
+        os.killpg(run.proc.pid, signal.SIGINT)
+    else:  # a supervisor (DVC, a CI job, systemd) signals the process it started
+        os.kill(run.proc.pid, signal.SIGTERM)
+    status, lag, left = run.finish(timeout=30.0)
+    assert status == (130 if how == "Ctrl-C" else 143), run.text
+    assert run.text["err"].strip() == ("ftcal: interrupted" if how == "Ctrl-C" else "ftcal: terminated")
+    assert lag < 1.0, f"the pipes closed {lag:.2f} s after ftcal exited"
+    assert left == []
+    assert not (tmp_path / "sim").exists() and not list(tmp_path.glob(".sim*"))
