@@ -17,7 +17,7 @@ from typing import Any
 
 from pipeline.calib.fit import prepare
 from pipeline.calib.run import fit_models
-from pipeline.calib.training import use_threads
+from pipeline.calib.training import one_thread
 from pipeline.core.config import load_params
 from pipeline.core.progress import ProgressLog
 
@@ -27,7 +27,7 @@ def decisions(params_path: Path, group: str, labelled: Path, studies: Path) -> d
     epoch and a hash of its weights, every model's fold scores and the model chosen to deploy."""
     params = load_params(params_path)
     prep = prepare(params, group, labelled)
-    use_threads(1)  # as the stage: the trainings it forks take train.threads
+    one_thread()  # as the stage
     fitted = fit_models(params, prep, studies, ProgressLog(False))
     nets = {}
     for name, r in fitted.nets.items():

@@ -35,6 +35,8 @@ from tests.conftest import REPO
 from tests.relabel import relabel_with_idyntree
 from tests.test_dumper import REAL_RUN
 
+pytestmark = pytest.mark.slow  # each test's fixture runs the pipeline's stages on recorded runs
+
 LOGS = [
     {"type": "pole", "duration_s": 20, "role": "train"},  # split by its sidecar's segments (below)
     {"type": "walking", "duration_s": 12, "role": "train"},
@@ -241,7 +243,7 @@ def test_a_run_without_the_arms_joints_calibrates_the_legs_and_names_what_the_ar
     for arm, stream in why.items():
         reason = f"no exact label (lacks {stream})"
         assert run["trained"][arm].metrics["not_calibrated"] == reason
-        assert files[f"{arm}/{arm}"] == {"not_calibrated": reason}
+        assert files[f"{arm}/{arm}"] == {"recommended": "not calibrated", "not_calibrated": reason}
         assert run["results"][arm].not_calibrated == reason and run["tested"][arm]["days"] == {}
         assert not list((d["exported"] / "groups" / arm).glob("*.onnx"))
     assert all(files[f"legs/{s}"]["labels"]["rec"] > 0 for s in LEGS)
@@ -266,7 +268,11 @@ def test_a_run_without_one_legs_joints_leaves_that_leg_out_and_trains_the_rest(
     assert legs["sensors"] == ["r_leg_ft", "r_foot_ft"]
     assert legs["left_out"] == {"l_leg_ft": reason, "l_foot_ft": reason}
     files = _metrics_files(run)
-    assert files["legs/l_leg_ft"] == files["legs/l_foot_ft"] == {"not_calibrated": reason}
+    assert (
+        files["legs/l_leg_ft"]
+        == files["legs/l_foot_ft"]
+        == {"recommended": "not calibrated", "not_calibrated": reason}
+    )
     assert files["legs/r_leg_ft"]["labels"]["rec"] > 0 and files["legs/r_foot_ft"]["labels"]["rec"] > 0
     assert files["r_arm_ft/r_arm_ft"]["labels"]["rec"] > 0 and files["l_arm_ft/l_arm_ft"]["labels"]["rec"] > 0
     manifest = run["exported"].manifest
@@ -435,3 +441,12 @@ def test_the_real_2016_run_goes_through_dvc_repro_and_says_why_no_sensor_is_cali
     for dtype in ("float32", "float64"):  # the fused graph: no sensor, zero columns in and out
         graph = onnx.load(tmp_path / "exported" / f"all.{dtype}.onnx").graph
         assert [d.dim_value for d in graph.output[0].type.tensor_type.shape.dim][1:] == [0]
+    for group in GROUPS:  # train's own line is a warning: the other groups go on
+        assert f"ftcal: warning: {group}: not calibrated: no exact label" in out, group
+    shown = subprocess.run([*dvc, "metrics", "show"], cwd=tmp_path, env=env, capture_output=True, text=True)
+    lines = shown.stdout.splitlines()[1:]
+    rows = {line.split()[0]: line for line in lines if line.startswith("reports/metrics/")}
+    assert set(rows) == {f"reports/metrics/{g}/{g}.json" for g in GROUPS}, shown.stdout
+    assert all(
+        "no exact label (" in row and row.rstrip().endswith("not calibrated") for row in rows.values()
+    ), shown.stdout

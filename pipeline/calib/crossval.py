@@ -26,7 +26,7 @@ from pipeline.calib.linear import LinearBaseline
 from pipeline.calib.models import WRENCH
 from pipeline.calib.params import fold_spread, select_by_folds, selection_steps
 from pipeline.calib.registry import RAW, WIN, complexity, patterns
-from pipeline.calib.training import NetSetting, predict, train_network, use_threads
+from pipeline.calib.training import NetSetting, one_thread, predict, train_network
 from pipeline.calib.window import fit_windowed, window_memory
 from pipeline.core.progress import ProgressLog
 
@@ -52,7 +52,7 @@ def _fold_predictions(
 
     def fit(name: str, start: LinearBaseline) -> tuple[np.ndarray, list[dict[str, float]], float]:
         r, t = nets[name], time.perf_counter()
-        use_threads(prep.cfg.threads)
+        one_thread()
         setting = NetSetting.of(gp, r.model.config.n_inputs, r.values)
         model, history = train_network(group, train, val, setting, r.seed, None, start)
         return predict(model, val), history, time.perf_counter() - t

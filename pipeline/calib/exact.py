@@ -24,6 +24,7 @@ from pipeline.logs import schema as S
 
 NOT_CALIBRATED = "not_calibrated"  # key of the JSON records of a group nothing could be calibrated for
 LEFT_OUT = "left_out"  # key of the sensors of a group left out of its calibration: sensor -> reason
+NOT_CALIBRATED_TEXT = "not calibrated"  # what the metrics and the stages' lines say of such a group
 
 
 class NotCalibrated(DataError):
@@ -132,6 +133,7 @@ def left_out_text(left_out: Mapping[str, str]) -> str:
 __all__ = [
     "LEFT_OUT",
     "NOT_CALIBRATED",
+    "NOT_CALIBRATED_TEXT",
     "NotCalibrated",
     "calibrable",
     "count_exact",

@@ -336,7 +336,6 @@ class TrainParams:
 
     val_logs: int  # training logs held out as validation
     folds: int  # cross-validation folds by whole logs (fold 0: the validation logs above)
-    threads: int  # torch CPU threads
     storage: str | None  # Optuna studies: None = journal file, else a database URL (calib.studies)
     heartbeat: int  # s between heartbeats of a trial on a database; stale (retried) after twice that
     selection_margin: float  # a more complex model is chosen only if its validation error is this much lower
@@ -348,8 +347,6 @@ class TrainParams:
             raise ConfigError(f"train.val_logs must be an integer >= 1, got {self.val_logs!r}")
         if not _is_int(self.folds) or self.folds < 1:
             raise ConfigError(f"train.folds must be an integer >= 1, got {self.folds!r}")
-        if not _is_int(self.threads) or self.threads < 1:
-            raise ConfigError(f"train.threads must be an integer >= 1, got {self.threads!r}")
         check_storage(self.storage)
         if not _is_int(self.heartbeat) or self.heartbeat < 1:
             raise ConfigError(f"train.heartbeat must be an integer >= 1 (s), got {self.heartbeat!r}")

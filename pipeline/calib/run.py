@@ -34,7 +34,7 @@ from pipeline.calib.records import TrainResult, log_network, log_trial_run, writ
 from pipeline.calib.registry import RAW, WIN, nn_name
 from pipeline.calib.search import NetResult, code_digest, data_digest, search_network
 from pipeline.calib.studies import open_storage, storage_url
-from pipeline.calib.training import flat_inputs, predict, predict_inputs, use_threads
+from pipeline.calib.training import flat_inputs, one_thread, predict, predict_inputs
 from pipeline.calib.window import WindowFit, fit_windowed, window_memory
 from pipeline.core.config import Params
 from pipeline.core.io import write_json
@@ -59,7 +59,6 @@ def study_identity(params: Params, prep: Prepared) -> dict[str, Any]:
     return {
         "group": {k: v for k, v in asdict(prep.gp).items() if k != "n_trials"},
         "seed": params.seed,
-        "threads": prep.cfg.threads,
         "split": {k: prep.split[k] for k in ("train", "val", "test")},  # the search runs on fold 0
         "data": data_digest(prep.train, prep.val),
         "code": code_digest(),
@@ -82,7 +81,7 @@ def fit_models(params: Params, prep: Prepared, studies: Path, ui: ProgressLog) -
     quiet = ProgressLog(ui.enabled)  # lines, no bars, from a forked search
 
     def search(n_inputs: int, start: LinearBaseline) -> NetResult:
-        use_threads(prep.cfg.threads)
+        one_thread()
         storage = open_storage(url, studies, prep.cfg.heartbeat)
         return search_network(
             gp, group, prep.train, prep.val, n_inputs, params.seed, storage, identity, quiet, None, start
@@ -216,7 +215,7 @@ def train_group(
         prep = prepare(params, group_name, src)
     except NotCalibrated as exc:
         return write_not_calibrated(group_name, exc, out, t0)
-    use_threads(1)  # this process forks the trainings, each of which takes train.threads (`use_threads`)
+    one_thread()  # and so does each training this process forks
     ui = ProgressLog(progress)
     own = {k: v for k, v in asdict(prep.gp).items() if k != "name"}
     stage_params = {
@@ -224,7 +223,6 @@ def train_group(
             "group": group_name,
             "val_logs": prep.cfg.val_logs,
             "folds": prep.cfg.folds,
-            "threads": prep.cfg.threads,
             **own,
         },
         "seed": params.seed,

@@ -3,7 +3,7 @@
 One study per network size, stored in a journal file under ``--studies`` (or, with ``train.storage`` or
 ``$FTCAL_OPTUNA_STORAGE``, in a database shared with ``ftcal worker GROUP`` processes:
 `pipeline.calib.studies`) and named after a hash of everything that determines its result (group params except
-n_trials, seed, threads, validation logs, data, this code): a rerun after an interruption resumes it, a rerun
+n_trials, seed, validation logs, data, this code): a rerun after an interruption resumes it, a rerun
 with more trials extends it. Trial k is seeded from (seed, group, inputs, k) and its sampler is a TPE sampler
 seeded the same way. The first trial is the group's own params (the thesis's defaults); a `SlotPruner`
 stops a trial whose validation error lags the slots before it by more than ``prune_margin``. With

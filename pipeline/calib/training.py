@@ -85,13 +85,18 @@ class Tensors:
     push_weights: torch.Tensor | None = None  # (S, 6) the push response's weight per output axis
 
 
-def use_threads(threads: int) -> None:
-    """Torch's CPU threads in this process (a network's training: ``train.threads``), deterministic
-    algorithms only. With MKL in its STRICT mode (`pipeline.core.kernels`) a network is the same whatever
-    the number. A process that forks trainings (`pipeline.core.parallel`) keeps 1 for itself: GNU OpenMP's
-    threads do not survive a fork, and a child of a parent that computed with several waits for them
-    forever; each forked training then takes its own."""
-    torch.set_num_threads(threads)
+def one_thread() -> None:
+    """One torch CPU thread in this process, deterministic algorithms only: where a network trains.
+
+    MKL splits a matrix product between its threads and rounds by the split, in every mode of its
+    conditional reproducibility on AMD CPUs (measured on an EPYC with AVX-512: (6 x 128) @ (128 x 16) ends
+    in other last bits on 2 threads than on 1, with MKL_CBWR AVX2,STRICT and COMPATIBLE alike), and so does
+    ATen above 32768 elements of a reduction; a network that is the same on any machine therefore trains
+    on one thread, and the stages run their parallel work in processes (`pipeline.core.parallel`). The
+    networks are small enough that more threads would not make them faster. One thread is also what lets a
+    process fork: GNU OpenMP's threads do not survive a fork, and a child of a parent that computed with
+    several waits for them forever."""
+    torch.set_num_threads(1)
     torch.use_deterministic_algorithms(True)
 
 

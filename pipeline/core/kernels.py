@@ -1,31 +1,36 @@
 """The numerical kernels of every ftcal process, pinned: the same data and params give the same bits on any
-x86-64 machine with AVX2 (Intel since 2013, AMD since 2015), whatever else its CPU has (AVX-512, AMX) and
-however many cores it has.
+x86-64 machine with AVX2 (Intel since 2013, AMD since 2015), whatever its vendor, whatever else its CPU has
+(AVX-512, AMX) and however many cores it has.
 
-numpy, OpenBLAS and MKL choose their kernels when they start, by the CPU's instruction sets, and kernels of
-other vector widths round differently. On an AVX-512 machine numpy's float64 sine and cosine (the simulated
-motions), OpenBLAS's matrix products (the baselines' normal equations, the labels' transforms) and MKL's
-(torch's float32 networks) end in other last bits than on an AVX2 machine; the training then grows a
-last-bit difference into another network within an epoch, and two workstations of a lab deploy different
-calibrations from the same logs (measured on the default data: r_arm_ft deployed nn13 on an AVX2 machine,
-nn7 on an AVX-512 one). `pin` makes each library take its AVX2 kernels on every machine that has them:
+numpy, OpenBLAS, MKL and ATen choose their kernels when they start, by the CPU's vendor and instruction
+sets, and kernels of other vector widths round differently. On an AVX-512 machine numpy's float64 sine and
+cosine (the simulated motions) and OpenBLAS's matrix products (the baselines' normal equations, the labels'
+transforms) end in other last bits than on an AVX2 machine; MKL (torch's float32 matrix products) takes
+another code path on an AMD CPU than on an Intel one. The training then grows a last-bit difference into
+another network within an epoch, and two workstations of a lab deploy different calibrations from the
+same logs (measured on the default data: r_arm_ft deployed nn13 on one machine, nn7 on another). `pin`
+makes each library take the same kernels on every machine that has AVX2:
 
 - numpy's ufuncs: ``NPY_DISABLE_CPU_FEATURES`` lists the AVX-512 dispatch targets (numpy 2.4's names and the
   older ones: numpy ignores the names it does not know, with a hidden ImportWarning);
 - OpenBLAS, numpy's linear algebra: ``OPENBLAS_CORETYPE=Haswell``, and ``OPENBLAS_NUM_THREADS=1`` (its
   matrix products split the work by the number of cores and round by the split: the stages run their
   parallel work in processes, `pipeline.core.parallel`);
-- MKL, torch's matrix products on a CPU: ``MKL_CBWR=AVX2,STRICT`` (MKL's conditional numerical
-  reproducibility; STRICT: the same bits whatever the number of threads).
+- MKL: ``MKL_CBWR=COMPATIBLE``, the one branch of MKL's conditional numerical reproducibility that is the
+  same on Intel and non-Intel CPUs (its AVX2 branch is Intel's only: on an AMD CPU MKL falls back to its
+  automatic choice, measured on an EPYC). No branch makes MKL's products independent of the number of
+  threads on an AMD CPU, so a network trains on one thread (`pipeline.calib.training.one_thread`);
+- ATen's own kernels (``ATEN_CPU_CAPABILITY=avx2``) and oneDNN (``ONEDNN_MAX_CPU_ISA=AVX2``): the AVX2 ones,
+  as on an AVX2 machine (they gave the same networks as their AVX-512 ones on the default data; pinned so
+  that an op that would not, does).
 
-ATen's own kernels (``ATEN_CPU_CAPABILITY``) and oneDNN (``ONEDNN_MAX_CPU_ISA``) gave the same networks
-with AVX2 and AVX-512, so they are left as they are. Each variable is read once, when its library loads
-(numpy, OpenBLAS) or first computes (MKL): `pin` runs when the `pipeline` package is imported, which in an
-``ftcal`` process (and a benchmark's) comes before any of them. A variable already set is left as it is (a
-deliberate choice, or the emulation of another machine); ``FTCAL_KERNELS=native`` pins nothing (each
-library's fastest kernels for this CPU; results then depend on the machine). On a CPU without AVX2, or not
-x86-64, nothing is pinned either: there the last bits can differ, which training's decisions are made to
-tolerate (docs/models.md, "Same data, same params, another machine").
+Each variable is read once, when its library loads (numpy, OpenBLAS, ATen) or first computes (MKL, oneDNN):
+`pin` runs when the `pipeline` package is imported, which in an ``ftcal`` process (and a benchmark's) comes
+before any of them. A variable already set is left as it is (a deliberate choice, or the emulation of
+another machine); ``FTCAL_KERNELS=native`` pins nothing (each library's fastest kernels for this CPU;
+results then depend on the machine). On a CPU without AVX2, or not x86-64, nothing is pinned either: there
+the last bits can differ, which training's decisions are made to tolerate (docs/models.md, "Same data,
+same params, another machine").
 """
 
 from __future__ import annotations
@@ -43,7 +48,9 @@ PINS = {
     "NPY_DISABLE_CPU_FEATURES": NUMPY_AVX512,
     "OPENBLAS_CORETYPE": "Haswell",
     "OPENBLAS_NUM_THREADS": "1",
-    "MKL_CBWR": "AVX2,STRICT",
+    "MKL_CBWR": "COMPATIBLE",
+    "ATEN_CPU_CAPABILITY": "avx2",
+    "ONEDNN_MAX_CPU_ISA": "AVX2",
 }
 
 

@@ -174,7 +174,9 @@ def _serve(conn: Connection, jobs: Sequence[tuple[Callable[[], Any], str]], pare
         while (index := conn.recv()) is not None:
             try:
                 reply = (True, run_job(*jobs[index]))
-            except Exception as exc:  # an FtcalError, or a JobError naming the job
+            except Terminated:  # the parent ends this worker
+                raise
+            except BaseException as exc:  # an FtcalError, a JobError naming the job, or the job's own exit
                 reply = (False, _portable(exc, jobs[index][1]))
             try:
                 conn.send(reply)
@@ -189,7 +191,7 @@ def _serve(conn: Connection, jobs: Sequence[tuple[Callable[[], Any], str]], pare
     return 0
 
 
-def _portable(exc: Exception, label: str) -> Exception:
+def _portable(exc: BaseException, label: str) -> BaseException:
     """`exc` if it survives pickling (it crosses the pipe), else a JobError with its message."""
     try:
         pickle.loads(pickle.dumps(exc))

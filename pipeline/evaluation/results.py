@@ -9,7 +9,7 @@ from typing import Any
 
 import numpy as np
 
-from pipeline.calib.exact import LEFT_OUT, NOT_CALIBRATED, not_calibrated
+from pipeline.calib.exact import LEFT_OUT, NOT_CALIBRATED, NOT_CALIBRATED_TEXT, not_calibrated
 from pipeline.calib.params import LS_AFFINE
 from pipeline.calib.registry import ARX, PLAY, RAW, WIN
 from pipeline.calib.scores import wrench_errors
@@ -388,10 +388,10 @@ def group_metrics(r: GroupReport, name: str | None = None) -> dict[str, Any]:
     (``rec``), play, arx, NN7, NN13, win, the oracle against the labels and, on simulated logs, the truth on
     every test sample with the noise floor (``floor``, `pipeline.evaluation.floors`); ``recommended``: the
     group's model to deploy; ``noise``: its networks' noise ratios; ``flagged``: how many of its models are
-    flagged (noise or fidelity).
+    flagged (noise or fidelity). A group not calibrated: `not_calibrated_row`.
     """
     if r.not_calibrated is not None:
-        return {NOT_CALIBRATED: r.not_calibrated}
+        return not_calibrated_row(r.not_calibrated)
     shown = {
         "raw": RAW, "rec": r.recommended, PLAY: PLAY, ARX: ARX, "nn6": NN6, "nn7": NN7, "nn13": NN13,
         WIN: WIN, "oracle": ORACLE,
@@ -419,8 +419,14 @@ def metrics_files(r: GroupReport) -> dict[str, dict[str, Any]]:
     if r.not_calibrated is not None:
         return {r.group: group_metrics(r)}
     out = {name: group_metrics(r, name) for name in r.headlines or [r.headline]}
-    out.update({sensor: {NOT_CALIBRATED: why} for sensor, why in r.left_out.items()})
+    out.update({sensor: not_calibrated_row(why) for sensor, why in r.left_out.items()})
     return out
+
+
+def not_calibrated_row(why: str) -> dict[str, str]:
+    """The `dvc metrics show` row of a group or sensor without a calibration: "not calibrated" where the
+    others name their model to deploy, and why."""
+    return {"recommended": NOT_CALIBRATED_TEXT, NOT_CALIBRATED: why}
 
 
 def mlflow_metrics(r: GroupReport) -> dict[str, float]:

@@ -65,7 +65,7 @@ def choose_models(
 ) -> dict[str, str]:
     """group -> model to export, for the groups `only` (default all): ``export.models`` where given, else
     evaluate's recommendation (``recommended`` of the files ``<report>/<group>/*.json``, the
-    evaluate@<group> metrics; a sensor left out of its group has a file without one)."""
+    evaluate@<group> metrics; a sensor left out of its group has a ``not_calibrated`` file, skipped)."""
     unknown = sorted(set(overrides) - set(groups))
     if unknown:
         raise ConfigError(f"export.models.{unknown[0]}: not a group of train.groups ({', '.join(groups)})")
@@ -76,7 +76,8 @@ def choose_models(
             files = sorted((report / group).glob("*.json")) or [report / group / "<headline>.json"]
             try:
                 for path in files:
-                    name = json.loads(path.read_text(encoding="utf-8")).get("recommended")
+                    row = json.loads(path.read_text(encoding="utf-8"))
+                    name = None if "not_calibrated" in row else row.get("recommended")
                     if name is not None:
                         break
             except FileNotFoundError:

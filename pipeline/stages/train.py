@@ -40,7 +40,7 @@ foot's sum, as the thesis reports).
 Optuna: one study per network size, stored in a journal file under ``--studies`` (or, with ``train.storage``
 or ``$FTCAL_OPTUNA_STORAGE``, in a database shared with ``ftcal worker GROUP`` processes:
 `pipeline.calib.studies`) and named after a hash of everything that determines its result (group params
-except n_trials, seed, threads, validation logs, data, this code): a rerun after an interruption resumes it,
+except n_trials, seed, validation logs, data, this code): a rerun after an interruption resumes it,
 a rerun with more trials extends it. Trial k is seeded from (seed, group, inputs, k) and its sampler is a TPE
 sampler seeded the same way; the first trial is the group's own params (the thesis's defaults), and a trial
 whose validation error lags the earlier trials' median by more than ``prune_margin`` is pruned
@@ -84,14 +84,14 @@ def train_group(
 
 
 def _cmd(args: argparse.Namespace) -> int:
-    from pipeline.calib.exact import LEFT_OUT, left_out_text, not_calibrated
+    from pipeline.calib.exact import LEFT_OUT, NOT_CALIBRATED_TEXT, left_out_text, not_calibrated
     from pipeline.core.config import load_params
 
     params = load_params(args.params)
     result = train_group(params, args.group, args.inputs, args.out, args.studies)
     m = result.metrics
-    if (why := not_calibrated(m)) is not None:
-        print(f"{result.group}: not calibrated: {why}")
+    if (why := not_calibrated(m)) is not None:  # the other groups go on: a warning, not an error
+        print(f"ftcal: warning: {result.group}: {NOT_CALIBRATED_TEXT}: {why}", file=sys.stderr)
         return 0
     test = m["test"]
     head = " + ".join(m.get("headlines") or [m["headline"]])

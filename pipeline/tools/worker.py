@@ -35,7 +35,7 @@ def run_worker_group(
     from pipeline.calib.fit import fit_affine, prepare
     from pipeline.calib.run import study_identity
     from pipeline.calib.search import _Search  # the stage's search of one network, joined here
-    from pipeline.calib.training import use_threads
+    from pipeline.calib.training import one_thread
     from pipeline.core.config import load_params
     from pipeline.core.progress import ProgressLog
 
@@ -47,7 +47,7 @@ def run_worker_group(
             f"ftcal worker needs a shared study: set train.storage or ${studies.ENV_STORAGE} to a database "
             "URL"
         )
-    use_threads(prep.cfg.threads)
+    one_thread()
     storage = studies.open_storage(url, Path(), prep.cfg.heartbeat)
     identity = study_identity(params, prep)
     ui = ProgressLog()
