@@ -97,6 +97,7 @@ def _postgres() -> bool:
     return False
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("command", quick_commands())
 def test_benchmark_runs_quick(command: str, runs: dict[str, subprocess.CompletedProcess[str]]) -> None:
     if command not in runs:

@@ -21,6 +21,8 @@ from pipeline.stages import export as E
 from tests.mcap_factory import write_log
 from tests.test_train import FRONT, LEG, PAIR, REAR
 
+pytestmark = pytest.mark.slow  # trains and exports a group first
+
 OTHER = "l_leg_ft"  # a sensor of the log without a model
 SENSORS = (LEG, FRONT, REAR, OTHER)
 RECOMMENDED = {LEG: "nn13", PAIR: "nn7"}

@@ -34,6 +34,8 @@ from pipeline.logs import schema as S
 from tests.test_export import _report
 from tests.test_train import FRONT, LEG, PAIR, REAR
 
+pytestmark = pytest.mark.slow  # the deployment stages on trained groups
+
 PUSH = {"force_n": 60.0, "duration_s": 0.8, "period_s": 2.0, "direction": [1.0, 0.3, 0.0]}
 LOGS = [
     {"type": "poses", "duration_s": 9},  # on the pole, still 0-3 s and 4.5-7.5 s: the day's re-zeroing

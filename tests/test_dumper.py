@@ -249,6 +249,7 @@ def test_real_excerpt_ingests_with_its_frozen_board_flagged(tmp_path: Path, exce
 @pytest.mark.skipif(
     not REAL_RUN.is_dir(), reason=f"{REAL_RUN} is absent (../shared is beside developer checkouts)"
 )
+@pytest.mark.slow
 def test_real_run_ingests_and_the_summary_names_what_is_absent_and_frozen(
     tmp_path: Path, mlflow_store: None, capsys: pytest.CaptureFixture[str]
 ) -> None:

@@ -13,16 +13,20 @@ import subprocess
 import sys
 from pathlib import Path
 
+import pytest
 import yaml
 
 from tests.test_readme import stages, tracked
 
+pytestmark = pytest.mark.slow  # clones the repository and runs DVC on it
+
 ROOT = Path(__file__).resolve().parents[1]
 
 
-def _status(repo: Path, stage: str) -> dict:
+def _status(repo: Path, stage: str | None = None) -> dict:
+    which = [stage] if stage else []
     proc = subprocess.run(
-        [sys.executable, "-m", "dvc", "status", stage, "--json"], cwd=repo, capture_output=True, text=True
+        [sys.executable, "-m", "dvc", "status", *which, "--json"], cwd=repo, capture_output=True, text=True
     )
     assert proc.returncode == 0, proc.stderr[-1000:]
     return json.loads(proc.stdout or "{}")
@@ -90,3 +94,72 @@ def test_recorded_logs_only_dvc_repro_simulates_nothing(tmp_path: Path) -> None:
     assert not (clone / "data/deploy/tables").exists()
     assert not list(clone.rglob("*.mcap"))
     assert seconds < 60, f"dvc repro took {seconds:.0f} s"
+
+
+_CODE_HASHES = """
+import json, sys
+from dvc.repo import Repo
+with Repo(sys.argv[1]) as repo:
+    print(json.dumps({f"{stage.name} {dep.def_path}": dep.get_hash().value
+                      for stage in repo.index.stages for dep in stage.deps
+                      if dep.def_path.startswith("pipeline")}))
+"""
+
+
+def _code_hashes(repo: Path) -> dict[str, str]:
+    """'<stage> <code path>' -> the hash DVC computes for that dependency now (what `dvc status` compares)."""
+    proc = subprocess.run([sys.executable, "-c", _CODE_HASHES, str(repo)], capture_output=True, text=True)
+    assert proc.returncode == 0, proc.stderr[-1000:]
+    return json.loads(proc.stdout)
+
+
+def _changed_params(repo: Path) -> dict[str, dict]:
+    """stage -> the params `dvc status` finds changed against dvc.lock (key -> state)."""
+    out: dict[str, dict] = {}
+    for name, entries in _status(repo).items():
+        for entry in entries:
+            if isinstance(entry, dict) and "params.yaml" in entry.get("changed deps", {}):
+                out[name] = entry["changed deps"]["params.yaml"]
+    return out
+
+
+def test_bytecode_is_not_code_and_one_groups_edit_stales_only_its_stages(tmp_path: Path) -> None:
+    """With Python writing bytecode (the default on a user's machine), an `ftcal` command's ``__pycache__``
+    folders leave every stage's code dependencies as DVC hashes them; then an edit of one group's params
+    makes only that group's train and evaluate stages and the report changed, and nothing else below them."""
+    import os
+
+    clone = tmp_path / "clone"
+    subprocess.run(["git", "clone", "--quiet", str(ROOT), str(clone)], check=True)
+    before, params_before = _code_hashes(clone), _changed_params(clone)
+    assert before and not list((clone / "pipeline").rglob("__pycache__"))
+    env = {k: v for k, v in os.environ.items() if k != "PYTHONDONTWRITEBYTECODE"}
+    env["PYTHONPATH"] = str(clone)
+    for cmd in (["-m", "pipeline.cli", "simulate", "--help"], ["-m", "compileall", "-q", "pipeline"]):
+        subprocess.run([sys.executable, *cmd], cwd=clone, env=env, check=True, capture_output=True)
+    assert list((clone / "pipeline" / "stages" / "__pycache__").glob("*.pyc"))
+    assert _code_hashes(clone) == before
+
+    data = yaml.safe_load((clone / "params.yaml").read_text())
+    group = next(iter(data["train"]["groups"]))
+    data["train"]["groups"][group]["epochs"] = 3
+    (clone / "params.yaml").write_text(yaml.safe_dump(data, sort_keys=False))
+    after = _changed_params(clone)
+    changed = {name for name in after if after[name] != params_before.get(name)}
+    assert changed == {f"train@{group}", f"evaluate@{group}", "report"}  # the report reads train.groups
+    wired, stale = stages(), set(changed)
+
+    def paths(stage: dict, key: str) -> list[str]:
+        return [(p if isinstance(p, str) else next(iter(p))).rstrip("/") for p in stage.get(key, [])]
+
+    def reads(stage: dict, outs: list[str]) -> bool:
+        deps = paths(stage, "deps")
+        return any(d == o or o.startswith(d + "/") or d.startswith(o + "/") for d in deps for o in outs)
+
+    while True:  # every stage below them: a dependency on (a folder of, a file in) one of their outputs
+        outs = [o for name in stale for o in paths(wired[name], "outs")]
+        below = {name for name, stage in wired.items() if reads(stage, outs)}
+        if below <= stale:
+            break
+        stale |= below
+    assert stale == changed

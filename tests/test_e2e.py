@@ -29,6 +29,8 @@ from pipeline.stages import evaluate, export, identify, ingest, label, report, s
 from tests.conftest import REPO, robot_source
 from tests.relabel import relabel_with_idyntree
 
+pytestmark = pytest.mark.slow  # every stage, one after the other, on both robots
+
 LOGS = [
     {"type": "pole", "duration_s": 8, "role": "train"},
     {"type": "pole", "duration_s": 8, "role": "train"},

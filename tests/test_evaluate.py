@@ -32,6 +32,8 @@ from pipeline.stages import report as REPORT
 from tests.factories import FRONT, LEG, PAIR, REAR, labelled_metadata, write_table
 from tests.test_models import TRANSFORMS
 
+pytestmark = pytest.mark.slow  # trains the groups it evaluates
+
 ROOT = Path(__file__).resolve().parents[1]
 FS = 100.0  # Hz
 NOISE = np.array([0.5, 0.5, 0.5, 0.03, 0.03, 0.03])  # raw white noise std per axis, N and Nm

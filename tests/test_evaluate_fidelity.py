@@ -19,6 +19,8 @@ from pipeline.calib.excitation import excitation
 from pipeline.evaluation.fidelity import unfaithful
 from tests.test_evaluate import FRONT, PAIR, REAR, build_fixture, evaluate_both
 
+pytestmark = pytest.mark.slow  # trains the groups it evaluates
+
 FAITHFUL = [1.02, 0.98, 1.0, 1.01, 0.99, 1.0]
 
 

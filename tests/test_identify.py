@@ -17,6 +17,8 @@ from pipeline.physics.regressor import link_params
 from pipeline.physics.robot import RobotModel
 from pipeline.physics.urdf_write import write_inertials
 
+pytestmark = pytest.mark.slow  # labels and identifies simulated logs
+
 GOOD = {
     "step": 20,
     "weight": 0.002,

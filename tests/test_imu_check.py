@@ -39,6 +39,8 @@ from pipeline.physics.imu import sensor_motion
 from pipeline.physics.robot import RobotModel
 from tests.test_train import TRAIN_PARAMS
 
+pytestmark = pytest.mark.slow  # trains the groups it checks
+
 REPO = Path(__file__).resolve().parents[1]
 SWAPPED = "l_arm_ft"  # the simulated board whose IMU has x and y swapped and inverted
 SWAP = ["-y", "-x", "z"]

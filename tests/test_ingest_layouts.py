@@ -196,6 +196,7 @@ def _one_error_line(err: str) -> str:
     return lines[0]
 
 
+@pytest.mark.slow
 def test_bad_output_paths_are_one_line_errors(
     tmp_path: Path,
     request: pytest.FixtureRequest,

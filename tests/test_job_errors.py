@@ -270,6 +270,7 @@ class _Ftcal:
         return status, max(self.closed.values()) - exited, left
 
 
+@pytest.mark.slow
 def test_a_failed_stage_leaves_no_process_and_closes_the_callers_pipes(tmp_path: Path) -> None:
     """Both logs fail in their workers while the other worker waits for work: every worker ended."""
     _junk(tmp_path / "in", ".mcap")
@@ -282,6 +283,7 @@ def test_a_failed_stage_leaves_no_process_and_closes_the_callers_pipes(tmp_path:
     assert not (tmp_path / "out").exists() and not list(tmp_path.glob(".out*"))
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("how", ["Ctrl-C", "SIGTERM"])
 def test_an_interrupted_stage_leaves_no_process_and_no_output(tmp_path: Path, how: str) -> None:
     data = yaml.safe_load((REPO / "params.yaml").read_text())

@@ -19,6 +19,8 @@ from pipeline.physics.cuts import pose_wrench_transforms
 from pipeline.stages.label import run
 from tests.relabel import relabel_with_idyntree
 
+pytestmark = pytest.mark.slow  # labels simulated logs on both robots
+
 REPO = Path(__file__).resolve().parents[1]
 LOGS = [
     {"type": "pole", "duration_s": 6, "role": "train"},

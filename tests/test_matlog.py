@@ -32,6 +32,8 @@ from pipeline.stages.ingest import IngestParams
 from tests import matfile
 from tests.test_ingest import CFG, JOINTS, SENSORS, TOPICS, write_log
 
+pytestmark = pytest.mark.slow  # writes and ingests whole logger files
+
 REPO = Path(__file__).resolve().parents[1]
 STAMP_TOL_NS = 120
 MAT = mat_section(load_params(REPO / "params.yaml"))

@@ -31,6 +31,8 @@ from pipeline.calib.training import (
     train_network,
 )
 
+pytestmark = pytest.mark.slow  # trains networks
+
 LEVER = np.array([0.1, 0.03, 0.0])  # m
 NOISE = np.array([2.0, 2.0, 2.0, 0.01, 0.01, 0.01])  # N, Nm: the force channels are the noisy ones
 PUSH = PushPrior(0.1, 20.0, 0.2)

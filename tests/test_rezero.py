@@ -27,6 +27,8 @@ from pipeline.stages import export as E
 from tests.test_export import _report
 from tests.test_train import FRONT, LEG, PAIR, REAR
 
+pytestmark = pytest.mark.slow  # trains and exports a group first
+
 SENSORS = (LEG, FRONT, REAR)
 DELTA = np.array([7.0, -4.0, 11.0, 0.3, -0.25, 0.15])  # N, Nm: the leg's offset moved by this
 LOGS = [  # poses held 0-4, 5-9, 10-13 s

@@ -21,6 +21,8 @@ from pipeline.sim.world import build_world
 from pipeline.stages.simulate import run
 from tests.conftest import robot_source
 
+pytestmark = pytest.mark.slow  # simulates on both robots
+
 REPO = Path(__file__).resolve().parents[1]
 SHORT_LOGS = [
     {"type": "pole", "duration_s": 3, "role": "train"},

@@ -19,6 +19,8 @@ from pipeline.sim.params import simulate_params
 from pipeline.sim.world import build_world
 from pipeline.stages.simulate import run
 
+pytestmark = pytest.mark.slow  # simulates whole logs
+
 REPO = Path(__file__).resolve().parents[1]
 SHORT_LOGS = [
     {"type": "pole", "duration_s": 4, "role": "train"},

@@ -26,6 +26,8 @@ from tests.factories import LEG, LOGS, write_labelled_log
 from tests.pgserver import create_database
 from tests.test_train import TRAIN_PARAMS, write_params
 
+pytestmark = pytest.mark.slow  # several processes share one Optuna study
+
 ROOT = Path(__file__).resolve().parents[1]
 
 

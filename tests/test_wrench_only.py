@@ -21,6 +21,8 @@ from pipeline.stages.train import train_group
 from tests.factories import LEG, LOGS, SENSORS, write_labelled_log
 from tests.test_train import write_params
 
+pytestmark = pytest.mark.slow  # trains networks
+
 
 @pytest.fixture(scope="module")
 def no_temperature(tmp_path_factory: pytest.TempPathFactory) -> Path:
