@@ -288,20 +288,12 @@ BAD_RUNS = {
         lambda run: _edit_line(run / STATE_LOG, 30, lambda line: line.replace("[ok]", "[er]", 1)),
         rf"{STATE_LOG}:30: joint positions have status \[er\], not \[ok\]",
     ),
-    "unknown part": (
-        lambda run: (run / "icub/inertial/analog:o").mkdir(parents=True),
-        r"icub/inertial: unknown part 'inertial'",
-    ),
-    "unknown port": (
-        lambda run: (run / "icub/right_leg/rpc:i").mkdir(),
-        r"icub/right_leg/rpc:i: unknown port 'rpc:i' of part 'right_leg'",
-    ),
     "two folders, one port": (
         lambda run: shutil.copytree(run / "icub/right_foot/analog:o", run / "rightFootFT"),
         r"icub/right_foot/analog:o and \S+/yoga/rightFootFT both hold port right_foot/analog:o",
     ),
-    "a folder naming no port": (
-        lambda run: (run / "notes").mkdir() or (run / "notes" / "info.log").write_text("Type: Bottle;\n"),
+    "a folder with data naming no port": (
+        lambda run: _port(run / "notes", "", "1 0.5 1.0 2.0\n"),
         r"yoga/notes: its info.log names no port, so what it holds is unknown",
     ),
     "segments overlap": (
@@ -323,6 +315,15 @@ BAD_RUNS = {
 }
 
 
+def _port(folder: Path, name: str, data: str | None) -> None:
+    """A port folder: info.log naming `name` ('' none), data.log holding `data` (None: no file)."""
+    folder.mkdir(parents=True)
+    connected = f"[1457625466.000000] {name} [connected]\n" if name else ""
+    (folder / "info.log").write_text("Type: Bottle;\n" + connected)
+    if data is not None:
+        (folder / "data.log").write_text(data)
+
+
 def _segs(*items: tuple[float, float, str]) -> list[dict]:
     return [{"start_s": a, "end_s": b, "role": r} for a, b, r in items]
 
@@ -340,9 +341,7 @@ def test_bad_runs_are_one_line_errors_and_leave_nothing(
     spoil(run)
     out = tmp_path / "out"
     with pytest.raises(DataError, match=message) as info:
-        ingest_log(
-            run, out, "yoga", _real_cfg(), TOPICS, icub2.joint_names, list(icub2.sensors), (), None, 21
-        )
+        ingest_log(run, out, "yoga", _real_cfg(), TOPICS, icub2.joint_names, list(icub2.sensors), (), None)
     assert "\n" not in str(info.value)
     assert not out.exists() or not list(out.iterdir())
 
@@ -466,3 +465,66 @@ def test_frozen_board_flagged_alike_in_mcap_mat_and_dumper_run(tmp_path: Path, m
         assert df[S.ok_col(S.WRENCH_STREAM, "s_two")][(t > 1) & (t < 29)].all()
     np.testing.assert_array_equal(flags["mat"], flags["mcap"])
     np.testing.assert_array_equal(flags["run"], flags["mcap"])
+
+
+def test_what_a_run_holds_beside_the_contract_is_named_once_and_not_read(
+    tmp_path: Path, excerpt: Path, icub2
+) -> None:
+    """A run as a lab saved it: a skin board's port, an estimator's outputs (another prefix, a module's own
+    port), a part no map names and a port that never connected sit beside the contract's ports. They are
+    not read: the tables are those of the run without them, and the summary names each once, with the
+    number of runs holding it."""
+    from pipeline.stages.ingest import IngestSummary, summary_line
+
+    def ingest(run: Path, name: str) -> tuple[object, pd.DataFrame]:
+        report = ingest_log(
+            run,
+            tmp_path / "out",
+            name,
+            _real_cfg(),
+            TOPICS,
+            icub2.joint_names,
+            list(icub2.sensors),
+        )
+        return report, pd.read_parquet(tmp_path / "out" / f"{name}.parquet")
+
+    plain = _copy_run(excerpt, tmp_path / "plain")
+    _, expected = ingest(plain, "plain")
+    reports = []
+    for k in range(2):
+        run = _copy_run(excerpt, tmp_path / f"saved{k}")
+        line = "1 1457625466.1 0.1 0.2 0.3\n"
+        _port(run / "icub/right_leg/inertialMTB", "/icub/right_leg/inertialMTB", line)
+        _port(run / "wbd/lleg", "/wholeBodyDynamics/left_leg/cartesianEndEffectorWrench:o", line)
+        _port(
+            run / "QuaternionEKF/filteredOrientationEuler", "/QuaternionEKF/filteredOrientationEuler:o", line
+        )
+        _port(run / "icub/inertial/analog:o", "", None)  # the dumper's layout: a part no map names
+        _port(run / "rightLegAcc", "", "")  # never connected: no port named, an empty data.log
+        report, table = ingest(run, f"saved{k}")
+        pd.testing.assert_frame_equal(table, expected)
+        reports.append(report)
+    assert reports[0].not_read == [
+        "/QuaternionEKF/filteredOrientationEuler:o",
+        "/icub/inertial/analog:o",
+        "/icub/right_leg/inertialMTB",
+        "rightLegAcc (never connected)",
+        "/wholeBodyDynamics/left_leg/cartesianEndEffectorWrench:o",
+    ]
+    line = summary_line(IngestSummary(reports, [], 1.0), tmp_path / "out")
+    assert line.count("/icub/right_leg/inertialMTB") == 1 and "/icub/right_leg/inertialMTB (2 logs)" in line
+
+
+@pytest.mark.parametrize(
+    ("value", "message"),
+    [
+        ({"neck_pitch": "zero"}, r"ingest.fixed_joints.neck_pitch must be a position in degrees, got 'zero'"),
+        ({"neck_pitch": float("nan")}, r"ingest.fixed_joints.neck_pitch must be a position in degrees"),
+        ([0.0, 0.0], r"ingest.fixed_joints must map joint names to degrees"),
+    ],
+)
+def test_bad_declared_still_joints_are_one_line_errors_naming_the_key(value: object, message: str) -> None:
+    from pipeline.core.errors import ConfigError
+
+    with pytest.raises(ConfigError, match=message):
+        IngestParams(**{**CFG.__dict__, "fixed_joints": value})

@@ -8,7 +8,6 @@ from pathlib import Path
 
 import pandas as pd
 import pyarrow.parquet as pq
-import pytest
 import yaml
 
 from pipeline.logs import schema as S
@@ -40,7 +39,7 @@ def test_mat_sidecar_window_and_segments(tmp_path: Path) -> None:
     inside = whole[(whole[S.TIME] >= 0.5) & (whole[S.TIME] < 3.0)].reset_index(drop=True)
     pd.testing.assert_frame_equal(cut, inside)
     mat.with_suffix(".yaml").write_text(yaml.safe_dump({**side, "segments": SEGMENTS}))
-    report = ingest_log(mat, tmp_path / "seg", "log", CFG_MAT, TOPICS, JOINTS, SENSORS, (), None, 21)
+    report = ingest_log(mat, tmp_path / "seg", "log", CFG_MAT, TOPICS, JOINTS, SENSORS)
     assert sorted(Path(p).name for p in report.outputs) == [f"log__seg{k}.parquet" for k in range(3)]
     for k, seg in enumerate(SEGMENTS):
         table = pd.read_parquet(tmp_path / "seg" / f"log__seg{k}.parquet")
@@ -73,16 +72,23 @@ def test_mcap_experiment_record_segments_split_the_truth_alike(tmp_path: Path) -
         assert len(table) > 50 and truth[S.STAMP].tolist() == table[S.STAMP].tolist()
 
 
-def test_segments_closer_than_the_smoothing_window_are_an_error(tmp_path: Path) -> None:
-    from pipeline.core.errors import DataError
+def test_segments_as_close_as_a_lab_writes_them_are_smoothed_apart(tmp_path: Path) -> None:
+    """Segments 0.1 s apart, closer than the smoothing window (21 samples here): each is its own table,
+    smoothed alone, its first and last half window not ok for labelling, so no sample of one segment's
+    kinematics comes from the other's."""
+    from pipeline.logs.smoothing import SmoothParams, smooth_table
 
     mcap = write_log(tmp_path / "log.mcap", duration=4.0)
     mat = matfile.mcap_to_mat(mcap, tmp_path / "log.mat", TOPICS, SENSORS)
     side = yaml.safe_load(mat.with_suffix(".yaml").read_text())
     close = [{"start_s": 0.2, "end_s": 1.0, "role": "train"}, {"start_s": 1.1, "end_s": 2.0, "role": "test"}]
     mat.with_suffix(".yaml").write_text(yaml.safe_dump({**side, "segments": close}))
-    with pytest.raises(
-        DataError, match=r"segments\[1\] starts 0.100 s after segments\[0\] ends: .* 21 samples"
-    ):
-        ingest_log(mat, tmp_path / "out", "log", CFG_MAT, TOPICS, JOINTS, SENSORS, (), None, 21)
-    assert not (tmp_path / "out").exists() or not list((tmp_path / "out").iterdir())
+    report = ingest_log(mat, tmp_path / "out", "log", CFG_MAT, TOPICS, JOINTS, SENSORS)
+    assert len(report.outputs) == 2
+    window = 21
+    for k in range(2):
+        src = tmp_path / "out" / f"log__seg{k}.parquet"
+        smooth_table(src, tmp_path / f"s{k}.parquet", SmoothParams(window, 3, 0.05))
+        ok = pd.read_parquet(tmp_path / f"s{k}.parquet")[S.ok_col(S.KINEMATICS_STREAM)].to_numpy()
+        half = window // 2
+        assert not ok[:half].any() and not ok[-half:].any() and ok[half:-half].all()

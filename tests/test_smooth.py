@@ -263,3 +263,63 @@ def test_a_noise_free_encoder_gets_the_least_biased_setting() -> None:
     assert res.chosen == {(21, 5): 1}
     inner = slice(40, n - 40)
     assert np.sqrt(np.mean((res.ddq[inner, 0] - ddq[inner]) ** 2)) < 0.02  # rad/s^2; 61/7: 0.12
+
+
+ICUB_STEP = np.radians(360 / 4096)  # iCub 2.x encoders: 0.088 deg
+
+
+def _quantised(q: np.ndarray, step: float = ICUB_STEP) -> np.ndarray:
+    """Readings as a dataDumper run has them: whole steps, printed in degrees to 6 decimals, in rad."""
+    return np.radians(np.round(np.degrees(np.round(q / step) * step), 6))
+
+
+def test_an_encoders_step_is_found_on_its_lattice_and_nowhere_else() -> None:
+    from pipeline.logs.smoothing import quantisation_step
+
+    t = np.arange(3000) / RATE
+    swing = 0.2 * np.sin(2 * np.pi * 0.3 * t)
+    assert quantisation_step(_quantised(swing)) == pytest.approx(ICUB_STEP, rel=1e-5)
+    noisy = swing + np.random.default_rng(0).standard_normal(len(t)) * 1e-4
+    assert quantisation_step(noisy) == 0.0  # off any lattice: smoothed as it is
+    assert quantisation_step(np.full(3000, 0.25)) == 0.0  # never changes: nothing to decide from
+
+
+def test_a_still_joint_flickering_by_one_step_has_no_velocity_or_acceleration() -> None:
+    """A joint at rest whose reading flickers between two adjacent steps (iCub's still joints) beside a
+    moving one: the still joint's velocity and acceleration are exactly 0 and its position the flicker's
+    mean, where SG of the flicker alone reads accelerations of rad/s^2; the moving joint's are as good as
+    when it is smoothed alone."""
+    n = 3000
+    t = np.arange(n) / RATE
+    rng = np.random.default_rng(3)
+    level = 0.1 + 0.5 * ICUB_STEP  # halfway between two steps
+    flicker = _quantised(
+        level + (rng.random(n) - 0.5) * 0.4 * ICUB_STEP + 0.45 * ICUB_STEP * np.sign(np.sin(7 * t))
+    )
+    assert len(np.unique(flicker)) == 2
+    moving, ddq_true = _motion(t, False)
+    q = np.column_stack([flicker, _quantised(moving)])
+    res = smooth_kinematics(uniform_stamps(n), q, 41, 5, 0.05, CHOICES)
+    assert res.still[:, 0].all() and not res.still[:, 1].any()
+    assert np.all(res.dq[:, 0] == 0.0) and np.all(res.ddq[:, 0] == 0.0)
+    np.testing.assert_allclose(res.q[:, 0], flicker.mean(), rtol=0, atol=1e-12)
+    (setting,) = res.chosen
+    plain = savgol_filter(flicker, *setting, deriv=2, delta=1 / RATE)
+    assert np.sqrt(np.mean(plain**2)) > 0.05  # rad/s^2 of a joint that does not move: what is avoided
+    alone = smooth_kinematics(uniform_stamps(n), q[:, 1:], 41, 5, 0.05, CHOICES)
+    inner = slice(40, n - 40)
+    rms = [np.sqrt(np.mean((r.ddq[inner, -1] - ddq_true[inner]) ** 2)) for r in (res, alone)]
+    assert rms[0] <= 1.05 * rms[1], rms
+
+
+def test_a_step_known_from_the_joints_own_board_holds_it_still_after_interpolation() -> None:
+    """A board interpolated at another board's stamps leaves the lattice (its readings are blends of two
+    steps): the step its own readings had (ingest's `encoders` record) still finds it at rest."""
+    n = 2000
+    stamps = uniform_stamps(n)
+    flicker = _quantised(0.3 + ICUB_STEP * (np.random.default_rng(4).random(n) > 0.5))
+    blended = np.interp(stamps + 3_000_000, stamps, flicker)  # read 3 ms later, interpolated
+    found = smooth_kinematics(stamps, blended[:, None], 41, 5, 0.05, CHOICES)
+    assert found.steps[0] == 0.0 and not found.still.any()
+    known = smooth_kinematics(stamps, blended[:, None], 41, 5, 0.05, CHOICES, steps=[ICUB_STEP])
+    assert known.still.all() and np.all(known.ddq == 0.0)

@@ -173,6 +173,9 @@ class LogSummary:
     # per label name: exact labels (samples), samples lost to joints not ok (lost), the streams (or joints)
     # missing there (lacks): `pipeline.labels.joints.Lacking.summary`
     exact: dict[str, dict[str, Any]] = field(default_factory=dict)
+    # joints declared still (ingest.fixed_joints): per exact sensor, the RMS change of its label (N, Nm,
+    # pooled) were they off by FIXED_DELTA_DEG
+    fixed_sensitivity: dict[str, float] = field(default_factory=dict)
 
 
 def contact_strings(contacts: Contacts) -> np.ndarray:
@@ -308,6 +311,36 @@ def _label_metadata(lab: Labeller) -> dict[str, Any]:
     }
 
 
+FIXED_DELTA_DEG = 5.0  # deg: how far off a joint declared still is assumed to be, for its labels' sensitivity
+
+
+def fixed_sensitivity(
+    lab: Labeller,
+    contacts: Contacts,
+    kin: tuple[np.ndarray, np.ndarray, np.ndarray],
+    ok: np.ndarray,
+    gravity_fixed: np.ndarray,
+    columns: dict[str, np.ndarray],
+    fixed: dict[str, float],
+) -> dict[str, float]:
+    """Per sensor with exact labels: the RMS change of its label (N, Nm, pooled over the 6 axes) when the
+    joints declared still (`fixed`: joint -> deg, ingest.fixed_joints) are all FIXED_DELTA_DEG further."""
+    if not fixed:
+        return {}
+    q = kin[0].copy()
+    for joint in fixed:
+        q[:, lab.robot.joint_names.index(joint)] += np.radians(FIXED_DELTA_DEG)
+    moved = label_arrays(lab, contacts, q, kin[1], kin[2], ok, gravity_fixed)
+    out = {}
+    for sensor in lab.robot.sensors:
+        on = columns[S.switch_col(sensor)] == 1
+        if on.any():
+            cols = S.wrench_cols(S.EXPECTED, sensor)
+            diff = np.column_stack([moved[c][on] - columns[c][on] for c in cols])
+            out[sensor] = float(np.sqrt(np.nanmean(diff**2)))
+    return out
+
+
 def label_table(src: Path, dst: Path, lab: Labeller, truth_dir: Path | None = None) -> LogSummary:
     """Label one smoothed table into `dst` (written atomically)."""
     start = time.perf_counter()
@@ -328,6 +361,8 @@ def label_table(src: Path, dst: Path, lab: Labeller, truth_dir: Path | None = No
             contacts = detect_contacts(robot, lab.feet, raw, time_s, lab.cfg, lab.gravity, str(src))
         gravity_fixed = experiment_gravity(src, experiment, lab.gravity)
         columns = label_arrays(lab, contacts, q, dq, ddq, ok, gravity_fixed, lacking)
+        fixed = ((meta.get(S.META_INGEST.decode()) or {}).get("fixed_joints")) or {}
+        sensitivity = fixed_sensitivity(lab, contacts, (q, dq, ddq), ok, gravity_fixed, columns, fixed)
         every = ok.all(axis=1)  # the IMU check reads every joint's kinematics
         imu = check_log(robot, table, meta, contacts, (q, dq, ddq), every, gravity_fixed, lab.cfg.imu_check)
     except RobotModelError as exc:
@@ -353,6 +388,7 @@ def label_table(src: Path, dst: Path, lab: Labeller, truth_dir: Path | None = No
             robot.joint_names,
             joint_streams(meta),
         ),
+        fixed_sensitivity=sensitivity,
     )
     truth_path = truth_dir / f"{src.stem}{S.TRUTH_SUFFIX}{S.PARQUET_SUFFIX}" if truth_dir else None
     if truth_path is not None and truth_path.is_file():
@@ -360,6 +396,8 @@ def label_table(src: Path, dst: Path, lab: Labeller, truth_dir: Path | None = No
             truth_path, out[S.STAMP], lab, contacts, columns
         )
     label_meta = {**_label_metadata(lab), "imu_axes": imu, "exact": summary.exact}
+    if fixed:
+        label_meta["fixed_joints"] = {"deg": fixed, "delta_deg": FIXED_DELTA_DEG, "label_rms": sensitivity}
     kv = {S.META_EXPERIMENT: experiment, S.META_LABEL: label_meta}
     for key in (S.META_INGEST, S.META_SMOOTH):
         if key.decode() in meta:

@@ -23,12 +23,16 @@ of ``ingest.dumper`` (`DumperParams`):
 Arrival order: the reception time where the dumper wrote one (two-time form), else the file order, so
 stamps stepping back in a file are re-sorted or are a clock jump, exactly as for an MCAP log.
 
-A port folder without ``data.log``, or a URDF FT sensor with no port in the run, is an absent stream: the
-``recording`` metadata record (`pipeline.logs.sidecar`) names it, ingest leaves its columns NaN and
-flagged and names it in its summary. Joints of absent boards are NaN. A port that no map names (and
-``ingest.dumper.ignore`` does not skip), two folders holding one port, ports of two robot prefixes, are
-errors, as are bad lines (`pipeline.logs.dumper_text`). The experiment metadata comes from the sidecar
-``<run>.yaml`` beside the run folder.
+A port folder without ``data.log`` (or with an empty one), or a URDF FT sensor with no port in the run, is
+an absent stream: the ``recording`` metadata record (`pipeline.logs.sidecar`) names it, ingest leaves its
+columns NaN and flagged and names it in its summary. Joints of absent boards are NaN. What a run holds
+beside the contract's ports is not read and named once in the ingest summary (the record's ``not_read``):
+ports that no map names (a skin board's ``/icub/right_leg/inertialMTB``, an estimator's
+``/wholeBodyDynamics/...`` or ``/QuaternionEKF/...`` outputs), and folders of a port that never connected
+(no port in their info.log, no data); ``ingest.dumper.ignore`` leaves a part, port or folder out without
+naming it. Two folders holding one port, contract ports of two robot prefixes, are errors, as are bad lines
+(`pipeline.logs.dumper_text`) and a folder with data whose info.log names no port. The experiment metadata
+comes from the sidecar ``<run>.yaml`` beside the run folder.
 """
 
 from __future__ import annotations
@@ -47,7 +51,8 @@ from pipeline.logs.align import align_continuous, sort_unique
 from pipeline.logs.dumper_text import PortData, read_analog, read_info, read_joint_port
 from pipeline.logs.matlog import iter_windows
 from pipeline.logs.params import DumperParams
-from pipeline.logs.sidecar import RECORDING, absent_record, read_sidecar
+from pipeline.logs.sidecar import ENCODERS, RECORDING, absent_record, encoders_record, read_sidecar
+from pipeline.logs.smoothing import quantisation_step
 
 DATA, INFO = "data.log", "info.log"
 CHUNK_ROWS = 3_000  # time-base messages per chunk handed out
@@ -104,8 +109,13 @@ class _Port:
 
     @property
     def data(self) -> Path | None:
-        path = self.folder / DATA
-        return path if path.is_file() else None
+        return _data(self.folder)
+
+
+def _data(folder: Path) -> Path | None:
+    """A port folder's data.log, None where it has none or an empty one (the port never sent)."""
+    path = folder / DATA
+    return path if path.is_file() and path.stat().st_size > 0 else None
 
 
 class DumperRunReader:
@@ -128,6 +138,8 @@ class DumperRunReader:
         self.cfg, self.topic_names, self.chunk_rows = cfg, topics, int(chunk_rows)
         self.max_gap_ns = round(max_gap_s * 1e9)
         self.warnings: list[str] = []
+        self.steps: dict[str, float] = {}  # joint -> encoder step on its own board's readings, rad
+        self.not_read: list[str] = []  # what the run holds beside the contract's ports
         experiment = read_sidecar(sidecar_of(self.path, cfg.sidecar_suffix), self.path)
         ports = self._ports()
         self.size_bytes = sum(p.data.stat().st_size for p in ports if p.data is not None)
@@ -161,7 +173,8 @@ class DumperRunReader:
         }
         self.metadata = {
             "experiment": experiment,
-            RECORDING: absent_record(absent_topics, absent_joints, absent_streams, by_stream),
+            RECORDING: absent_record(absent_topics, absent_joints, absent_streams, by_stream, self.not_read),
+            ENCODERS: encoders_record(self.steps),
             "dumper": {
                 "robot": ports[0].robot if ports else "",
                 "time_base": self.time_base,
@@ -183,43 +196,39 @@ class DumperRunReader:
         name = info["port"] or (f"/{rel}" if len(rel.split("/")) == 3 else "")
         if rel in self.cfg.ignore:
             return None
+        if not name and _data(folder) is None:
+            self.not_read.append(f"{rel} (never connected)")
+            return None
         if not name:
             raise DataError(
                 f"{folder}: its {INFO} names no port, so what it holds is unknown (ingest.dumper.ignore "
                 "skips a folder)"
             )
         elements = name.strip("/").split("/")
-        if len(elements) < 3 or not all(elements):
+        if not all(elements):
             raise DataError(f"{folder}: port {name!r} of its {INFO} is not /<robot>/<part>/<port>")
+        if len(elements) < 3:  # not a robot's port (an estimator's output, /<module>/<port>)
+            self.not_read.append(name)
+            return None
         *robot, part, port = elements
         if part in self.cfg.ignore or f"{part}/{port}" in self.cfg.ignore:
             return None
         return _Port("/".join(robot), part, port, folder, info)
 
     def _ports(self) -> list[_Port]:
-        """Every port the maps name, sorted by part and port; an unknown part or port is an error (unless
-        ignored), as are two folders of one port and ports of two robot prefixes."""
+        """Every port the maps name, sorted by part and port; the others are listed in `not_read`. Two
+        folders of one port and ports of two robot prefixes are errors."""
         cfg, out = self.cfg, {}
         for folder in port_folders(self.path):
             p = self._identify(folder)
             if p is None:
                 continue
-            # the folder to name: the part's own folder in the dumper's layout
-            where = folder.parent if folder.parent.name == p.part else folder
-            if p.part not in cfg.ft_ports and p.part not in cfg.joints:
-                raise DataError(
-                    f"{where}: unknown part {p.part!r} (not in ingest.dumper.ft_ports, ingest.dumper.joints "
-                    "or ingest.dumper.ignore)"
-                )
             wanted = (p.port == cfg.ft_port and p.part in cfg.ft_ports) or (
                 p.port in cfg.joint_ports and p.part in cfg.joints
             )
-            if not wanted:
-                raise DataError(
-                    f"{folder}: unknown port {p.port!r} of part {p.part!r} (ingest.dumper reads "
-                    f"{cfg.ft_port} of ft_ports parts and {', '.join(cfg.joint_ports)} of joints parts; "
-                    "ingest.dumper.ignore skips others)"
-                )
+            if not wanted:  # a port no map names: named once in the summary, not read
+                self.not_read.append(f"/{p.robot}/{p.name}")
+                continue
             if p.name in out:
                 raise DataError(f"{self.path}: {out[p.name].folder} and {folder} both hold port {p.name}")
             out[p.name] = p
@@ -280,18 +289,20 @@ class DumperRunReader:
 
     def _joint_states(self, state_ports: list) -> PortData:
         """The time base's messages with every board's joints (see the module docstring)."""
-        port, idx, _ = state_ports[0]
+        port, idx, names = state_ports[0]
         base = read_joint_port(port.data, len(self.cfg.joints[port.part]), port.info["stamp"])
         self.warnings += base.warnings
         values = {k: [v[:, idx]] for k, v in base.values.items()}
+        self._find_steps(names, values["position"][0])
         keep = np.ones(len(base), dtype=bool)
-        for other, other_idx, _ in state_ports[1:]:
+        for other, other_idx, other_names in state_ports[1:]:
             data = read_joint_port(other.data, len(self.cfg.joints[other.part]), other.info["stamp"])
             self.warnings += data.warnings
             order = np.lexsort((np.arange(len(data)), data.recv_ns))  # arrival order, then first kept
             stamps, rows, dropped = sort_unique(data.stamp_ns[order], np.arange(len(data))[order])
             if dropped:
                 self.warnings.append(f"{other.data}: {dropped} messages with an already seen stamp dropped")
+            self._find_steps(other_names, data.values["position"][rows][:, other_idx])
             for key, v in data.values.items():
                 aligned, ok = align_continuous(base.stamp_ns, stamps, v[rows][:, other_idx], self.max_gap_ns)
                 if key == "position":
@@ -310,6 +321,13 @@ class DumperRunReader:
             )
         merged = {k: np.concatenate(v, axis=1)[keep] for k, v in values.items()}
         return PortData(port.data, base.stamp_ns[keep], base.recv_ns[keep], merged, base.two_times)
+
+    def _find_steps(self, names: Sequence[str], positions: np.ndarray) -> None:
+        """Each joint's encoder step on its board's own readings (rad, `quantisation_step`), where found."""
+        for k, name in enumerate(names):
+            step = quantisation_step(positions[:, k])
+            if step > 0:
+                self.steps[name] = step
 
     def _port_info(self, port: _Port) -> dict[str, Any]:
         return {"type": port.info["type"], "port": port.info["port"], "data": port.data is not None}

@@ -10,6 +10,7 @@ by more than the reorder window and the max gap.
 
 from __future__ import annotations
 
+import math
 import time
 from collections.abc import Callable, Iterable, Mapping, Sequence
 from dataclasses import asdict, dataclass
@@ -87,10 +88,8 @@ class _LogIngest:
         joints: Sequence[str],
         sensors: Sequence[str],
         robot_names: Iterable[str],
-        min_gap_samples: int = 0,
     ):
         self.path, self.out_dir, self.name, self.cfg = path, out_dir, name, cfg
-        self.min_gap_samples = min_gap_samples  # smoothing window: the least gap between segments
         self.joints, self.sensors = list(joints), list(sensors)
         self.topics = topics
         self.robot_names = set(robot_names)
@@ -120,8 +119,7 @@ class _LogIngest:
                         self._emit(table, truth, final=False)
                 self._emit(table, truth, final=True)
                 self._check_counts()
-                rate = self.streams[S.JOINTS_STREAM].finish().rate_hz
-                table.check(1.0 / rate if rate > 0 else 0.0, self.min_gap_samples)
+                table.check()
                 meta = self._final_metadata()
                 table.commit({S.META_INGEST: meta})
                 if truth is not None:
@@ -156,8 +154,13 @@ class _LogIngest:
     def _resolve(self, reader: rosmsg.LogReader) -> list[_Want]:
         found = reader.topics
         declared = declared_absent(reader.metadata)
-        self.absent_joints = [j for j in declared["joints"] if j in self.joints]
+        absent = [j for j in declared["joints"] if j in self.joints]
+        fixed = self.cfg.fixed_joints  # joints the log lacks that the lab declared still: filled, not absent
+        self.fixed = {j: math.radians(v) for j, v in fixed.items() if j in set(absent)}
+        self.absent_joints = [j for j in absent if j not in self.fixed]
+        self.report.fixed = sorted(self.fixed)
         self.report.absent += declared["streams"]
+        self.report.not_read = declared["not_read"]
         wants, missing = [], []
         lacking: dict[str, list[str]] = {}  # stream kind -> sensors without it
         for want in wanted_topics(self.topics, self.sensors):
@@ -305,7 +308,7 @@ class _LogIngest:
         perm = self._perm_cache.get(names)
         if perm is None:
             perm, unknown, missing = joint_permutation(names, self.joints)
-            missing = [j for j in missing if j not in set(self.absent_joints)]
+            missing = [j for j in missing if j not in set(self.absent_joints) and j not in self.fixed]
             if unknown:
                 raise DataError(
                     f"{self.where}: {batch.topic} has joints not in the URDF: {', '.join(unknown[:5])}"
@@ -330,6 +333,8 @@ class _LogIngest:
                 )
             block = np.where(perm >= 0, arr[:, perm] if n else np.nan, np.nan)  # absent joints: NaN
             out[:, slot * len(self.joints) : (slot + 1) * len(self.joints)] = block
+        for joint, position in self.fixed.items():  # declared still: its position, no velocity
+            out[:, [self.joints.index(joint), len(self.joints) + self.joints.index(joint)]] = [position, 0.0]
         return out
 
     def _emit(self, table: SplitTables, truth: SplitTables | None, final: bool) -> None:
@@ -461,11 +466,11 @@ class _LogIngest:
             "joints": self.joints,
             "sensors": self.sensors,
             "streams": streams,
-            "max_gap_s": self.cfg.max_gap_s,
-            "max_gap_temperature_s": self.cfg.max_gap_temperature_s,
-            "max_reorder_s": self.cfg.max_reorder_s,
+            **{k: getattr(self.cfg, k) for k in ("max_gap_s", "max_gap_temperature_s", "max_reorder_s")},
             "warnings": self.report.warnings,
             "absent": self.report.absent,
+            "not_read": self.report.not_read,
+            "fixed_joints": {j: self.cfg.fixed_joints[j] for j in self.report.fixed},  # deg, declared
             "frozen_samples": self.report.frozen,
             "max_frozen_s": self.cfg.max_frozen_s,
             "imu_axes": {s: list(axes) for s, axes in self.cfg.imu_axes.items() if s in self.sensors},
@@ -482,14 +487,13 @@ def ingest_log(
     sensors: Sequence[str],
     robot_names: Iterable[str] = (),
     progress: Callable[[int], None] | None = None,
-    min_gap_samples: int = 0,
 ) -> LogReport:
     """Ingest one log (MCAP, logger .mat, dataDumper run) into ``<out_dir>/<name>.parquet`` (+
     ``<name>.truth.parquet`` if simulated), or one table per segment of its experiment metadata
-    (`pipeline.logs.segments`, at least `min_gap_samples` joint-state steps apart).
+    (`pipeline.logs.segments`).
 
     Raises DataError (naming the file and the problem) for a log that cannot be used; then no output
     file of this log is left behind.
     """
-    log = _LogIngest(path, out_dir, name, cfg, topics, joints, sensors, robot_names, min_gap_samples)
+    log = _LogIngest(path, out_dir, name, cfg, topics, joints, sensors, robot_names)
     return log.run(progress)

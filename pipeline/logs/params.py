@@ -27,6 +27,8 @@ class IngestParams:
     dumper: Any = None  # DumperParams (section ingest.dumper): the ports and joints of dataDumper runs
     # FT sensor -> its board's IMU axes in the sensor frame (pipeline.logs.imu_axes), mapped at ingest
     imu_axes: Any = None
+    # URDF joint -> deg: a joint a lab knows was still at this position where a log does not have it
+    fixed_joints: Any = None
 
     def __post_init__(self) -> None:
         if not isinstance(self.source, str) or not self.source.strip():
@@ -58,6 +60,21 @@ class IngestParams:
         if self.dumper is not None:
             object.__setattr__(self, "dumper", DumperParams.from_mapping(self.dumper))
         object.__setattr__(self, "imu_axes", parse_axis_maps(self.imu_axes, "ingest.imu_axes"))
+        object.__setattr__(self, "fixed_joints", _fixed_joints(self.fixed_joints))
+
+
+def _fixed_joints(data: Any) -> dict[str, float]:
+    """``ingest.fixed_joints``: joint name -> a finite position in degrees."""
+    if data is None:
+        return {}
+    if not isinstance(data, dict):
+        raise ConfigError(f"ingest.fixed_joints must map joint names to degrees, got {data!r}")
+    out = {}
+    for name, value in data.items():
+        if isinstance(value, bool) or not isinstance(value, int | float) or not math.isfinite(value):
+            raise ConfigError(f"ingest.fixed_joints.{name} must be a position in degrees, got {value!r}")
+        out[_name(name, "ingest.fixed_joints key")] = float(value)
+    return out
 
 
 def _name(value: Any, key: str) -> str:

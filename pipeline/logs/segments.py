@@ -11,10 +11,10 @@ joint-state stamp):
   later stage, and the split by whole logs, sees several logs. Samples between segments are dropped.
 
 Segments may not overlap, must lie inside the window when both are given (errors name the key at once),
-must lie inside the recording and hold samples, and consecutive segments must be at least the widest
-smoothing window apart (``smooth.window`` or of ``smooth.choices``, joint-state steps): those are checked
-once the log is read. Smoothing never
-crosses a table, so no test sample's kinematics are computed from a training segment's samples.
+and must lie inside the recording and hold samples (checked once the log is read). They may be as close as
+a lab writes them: smoothing never crosses a table, and the first and last half window of each are not ok
+for labelling (`pipeline.logs.smoothing`), so no test sample's kinematics are computed from a training
+segment's samples.
 """
 
 from __future__ import annotations
@@ -183,11 +183,8 @@ class SplitTables:
                 table.write({c: np.asarray(v)[keep] for c, v in columns.items()})
             self.rows[k] += int(keep.sum())
 
-    def check(self, step_s: float, min_gap_samples: int) -> None:
-        """After the last row: every stretch inside the log with samples, segments far enough apart.
-
-        `step_s`: the joint states' median step (s); `min_gap_samples`: the smoothing window (samples).
-        """
+    def check(self) -> None:
+        """After the last row: every stretch inside the log with samples."""
         end = self.last_time_s
         if self.window is not None and not self.rows[0] and not self.segments:
             raise DataError(
@@ -199,14 +196,6 @@ class SplitTables:
                 raise DataError(
                     f"{self.where}: {SEGMENTS}[{seg.index}] [{seg.start_s:g}, {seg.end_s:g}] s leaves the "
                     f"recording (its samples span 0 to {end:.3f} s)"
-                )
-        gap = min_gap_samples * step_s
-        for prev, seg in zip(self.segments[:-1], self.segments[1:], strict=True):
-            if seg.start_s - prev.end_s < gap:
-                raise DataError(
-                    f"{self.where}: {SEGMENTS}[{seg.index}] starts {seg.start_s - prev.end_s:.3f} s after "
-                    f"{SEGMENTS}[{prev.index}] ends: segments must be at least the widest smoothing window "
-                    f"apart (smooth.window, smooth.choices: {min_gap_samples} samples = {gap:.3f} s)"
                 )
 
     def commit(self, metadata: Mapping[bytes, Any]) -> None:

@@ -8,13 +8,14 @@ folder. It holds the fields of the MCAP ``experiment`` record (``type``, ``role`
 the form an MCAP ``experiment`` record carries them in (``ftcal convert-*`` writes them so).
 
 A reader that knows which of the contract's streams a recording lacks (a dataDumper port folder without
-``data.log``) says so in a ``recording`` metadata record (`RECORDING`): ``absent_topics`` (contract
-topics, comma-separated), ``absent_joints`` (URDF joints whose positions the recording does not have),
+``data.log``) says so in a ``recording`` metadata record (`RECORDING`): ``absent_topics`` (contract topics,
+comma-separated), ``absent_joints`` (URDF joints whose positions the recording does not have),
 ``absent_streams`` (the recording's own names of what is missing, for the ingest summary) and
 ``absent_joint_streams`` (JSON: each absent stream -> the joints it carries, so that a label lacking a joint
-names the recording's stream, e.g. ``left_arm/stateExt:o``). Ingest
-then treats those streams as absent (NaN and flagged) instead of as an error; a converted MCAP keeps
-the record.
+names the recording's stream, e.g. ``left_arm/stateExt:o``), and ``not_read``: what the recording holds that
+the contract does not read (a dataDumper run's other ports, e.g. ``right_leg/inertialMTB``, and folders of
+ports that never connected), named once in the ingest summary. Ingest then treats those streams as absent
+(NaN and flagged) instead of as an error; a converted MCAP keeps the record.
 """
 
 from __future__ import annotations
@@ -30,6 +31,8 @@ from pipeline.logs.segments import SPLIT_KEYS, parse_split, split_to_record
 RECORDING = "recording"  # metadata record name: what the recording lacks
 ABSENT_TOPICS, ABSENT_JOINTS, ABSENT_STREAMS = "absent_topics", "absent_joints", "absent_streams"
 ABSENT_JOINT_STREAMS = "absent_joint_streams"
+NOT_READ = "not_read"
+ENCODERS, ENCODER_STEPS = "encoders", "steps_rad"  # record: each joint's encoder step on its own board
 
 
 def read_sidecar(side: Path, log: Path) -> dict[str, str]:
@@ -77,7 +80,8 @@ def read_sidecar(side: Path, log: Path) -> dict[str, str]:
 
 def declared_absent(metadata: Mapping[str, Mapping[str, str]]) -> dict[str, Any]:
     """What the `recording` record of a log's metadata declares absent: {"topics", "joints", "streams"}
-    (lists of names) and "joint_streams" (joint -> its stream's name)."""
+    (lists of names), "joint_streams" (joint -> its stream's name) and "not_read" (names of what the
+    recording holds and ingest does not read)."""
     record = metadata.get(RECORDING) or {}
 
     def names(key: str) -> list[str]:
@@ -92,8 +96,25 @@ def declared_absent(metadata: Mapping[str, Mapping[str, str]]) -> dict[str, Any]
         "topics": names(ABSENT_TOPICS),
         "joints": names(ABSENT_JOINTS),
         "streams": names(ABSENT_STREAMS),
+        "not_read": names(NOT_READ),
         "joint_streams": {str(j): str(s) for s, joints in by_stream.items() for j in joints or ()},
     }
+
+
+def encoders_record(steps: Mapping[str, float]) -> dict[str, str]:
+    """The `encoders` record: joint -> its encoder step (rad) found on its board's own readings, before
+    they were interpolated at another board's stamps (which takes them off the lattice)."""
+    return {ENCODER_STEPS: json.dumps({str(j): float(v) for j, v in steps.items() if v > 0})}
+
+
+def declared_steps(metadata: Mapping[str, Any]) -> dict[str, float]:
+    """joint -> encoder step (rad) of a log's `encoders` record (`metadata`: its reader's records); {}
+    without one."""
+    try:
+        steps = json.loads((metadata.get(ENCODERS) or {}).get(ENCODER_STEPS) or "{}")
+    except (ValueError, AttributeError):
+        return {}
+    return {str(j): float(v) for j, v in steps.items()} if isinstance(steps, dict) else {}
 
 
 def absent_record(
@@ -101,9 +122,10 @@ def absent_record(
     joints: list[str],
     streams: list[str],
     joint_streams: Mapping[str, list[str]] | None = None,
+    not_read: list[str] | None = None,
 ) -> dict[str, str]:
     """The `recording` record declaring these absent (see the module docstring); `joint_streams`: absent
-    stream -> the joints it carries."""
+    stream -> the joints it carries; `not_read`: what the recording holds that ingest does not read."""
     record = {
         ABSENT_TOPICS: ",".join(topics),
         ABSENT_JOINTS: ",".join(joints),
@@ -111,6 +133,8 @@ def absent_record(
     }
     if joint_streams:
         record[ABSENT_JOINT_STREAMS] = json.dumps({k: list(v) for k, v in joint_streams.items()})
+    if not_read:
+        record[NOT_READ] = ",".join(not_read)
     return record
 
 

@@ -15,6 +15,17 @@ window get NaN and ``ok.kinematics`` False; so do, with their values kept, the f
 ``window // 2`` samples of every segment (its setting's window), where the fitted polynomial is
 one-sided and its derivatives extrapolate.
 
+Encoders count in steps (iCub's 0.088 deg), and a joint held still flickers by a step or two: SG of high
+order turns that flicker into accelerations of rad/s^2 and the labels into newtons of inertial force that
+is not there (measured on a real pole run: 0.07-0.65 N RMS in r_leg_ft's labels). So a joint whose
+positions lie on a lattice (`quantisation_step`, on its board's own readings where ingest recorded it, as
+interpolation takes them off it) is still wherever its readings within the widest window span at most two
+steps (`still_mask`; the joint then moves by less than 0.3 deg/s, whose inertial effect is far below a
+sensor's noise): there its position is the mean of that still stretch and its velocity and acceleration
+are zero; and its moving samples' noise is at least the lattice's (``step^2 / 12``) in the choice of
+setting. A joint off any lattice (no quantisation, an encoder with its own noise above a step) is
+smoothed as it is.
+
 Each joint is smoothed on the samples where its own position is finite: a joint whose stream is absent
 (a recording without that board) or invalid for a stretch gets NaN and ``ok.kinematics.<joint>`` False
 there only, its samples on either side being segments of their own when the stretch is longer than
@@ -41,6 +52,10 @@ STAGE = "smooth"
 DIFFERENCES = 6  # order of the differences that bound the encoder noise's variance (white noise: exact)
 DIFFERENCES_BOUND = 4.0  # the noise variance is at most this multiple of the differences' estimate
 TIE_RAD2_S4 = 1e-12  # (rad/s^2)^2: estimated acceleration errors this close are one (a still joint's are 0)
+LATTICE_TOL = 0.02  # steps: readings within this of a multiple of the step lie on the lattice
+LATTICE_SHARE = 0.99  # share of a joint's position changes that must lie on the lattice
+LATTICE_MIN_CHANGES = 20  # fewer changes than this: no lattice is decided (not quantised)
+STILL_STEPS = 2.0 + LATTICE_TOL  # still: the readings of a window span at most this many steps
 
 
 @dataclass(frozen=True)
@@ -116,20 +131,68 @@ def _interp_rows(x_new: np.ndarray, x: np.ndarray, y: np.ndarray) -> np.ndarray:
     return y[idx] + w[:, None] * (y[idx + 1] - y[idx])
 
 
+def quantisation_step(q: np.ndarray) -> float:
+    """The encoder step of joint positions q (N,) rad: the smallest change, where every change (at least
+    `LATTICE_SHARE` of them, `LATTICE_MIN_CHANGES` or more) is a whole number of it within `LATTICE_TOL`;
+    0.0 where the readings lie on no lattice (noise above a step, no quantisation, too few changes)."""
+    q = np.asarray(q, dtype=np.float64)
+    d = np.abs(np.diff(q[np.isfinite(q)]))
+    scale = max(float(np.max(np.abs(q[np.isfinite(q)]), initial=0.0)), 1.0)
+    d = d[d > 1e-12 * scale]
+    if len(d) < LATTICE_MIN_CHANGES:
+        return 0.0
+    step = float(np.quantile(d, 0.01))
+    ratio = d / step
+    on = np.abs(ratio - np.round(ratio)) <= LATTICE_TOL
+    return step if on.mean() >= LATTICE_SHARE else 0.0
+
+
+def still_mask(q: np.ndarray, step: float, window: int) -> np.ndarray:
+    """(M,) bool: the samples of q (M,) rad whose centred `window` (samples, odd; shorter at the ends)
+    spans at most `STILL_STEPS` encoder steps: a joint at rest whose reading flickers by a step or two.
+    All False where step is 0 (no lattice)."""
+    from scipy.ndimage import maximum_filter1d, minimum_filter1d
+
+    if step <= 0 or len(q) == 0:
+        return np.zeros(len(q), dtype=bool)
+    span = maximum_filter1d(q, window, mode="nearest") - minimum_filter1d(q, window, mode="nearest")
+    return span <= STILL_STEPS * step
+
+
+def hold_still(q: np.ndarray, steps: np.ndarray, window: int) -> tuple[np.ndarray, np.ndarray]:
+    """Joint positions q (M, J) rad with each still stretch (`still_mask`, steps (J,) rad) replaced by its
+    mean: (held (M, J), still (M, J) bool)."""
+    held, still = q.copy(), np.zeros(q.shape, dtype=bool)
+    for j in np.flatnonzero(steps > 0):
+        mask = still_mask(q[:, j], float(steps[j]), window)
+        still[:, j] = mask
+        if not mask.any():
+            continue
+        edges = np.diff(np.concatenate([[0], mask.astype(np.int8), [0]]))
+        for a, b in zip(np.flatnonzero(edges == 1), np.flatnonzero(edges == -1), strict=True):
+            held[a:b, j] = q[a:b, j].mean()
+    return held, still
+
+
 def savgol_uniform(
-    t_s: np.ndarray, q: np.ndarray, settings: Sequence[tuple[int, int]]
-) -> tuple[np.ndarray, np.ndarray, np.ndarray, int] | None:
+    t_s: np.ndarray,
+    q: np.ndarray,
+    settings: Sequence[tuple[int, int]],
+    steps: np.ndarray | None = None,
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, int, np.ndarray] | None:
     """SG smoothing of one gap-free segment with the setting of `settings` that `choose_setting` picks
-    (the one setting, if one is given).
+    (the one setting, if one is given), still joints held (`hold_still`).
 
     Args:
         t_s: (M,) s, increasing sample times (any origin).
         q: (M, J) positions (rad).
         settings: (window, polyorder) pairs: SG window (samples, odd) and polynomial order.
+        steps: (J,) rad, each joint's encoder step (`quantisation_step`; 0: none); None: no joint's.
 
     Returns:
-        (q, dq, ddq, chosen): the first three (M, J) in rad, rad/s, rad/s^2, chosen the index in `settings`
-        of the setting; None if the segment is shorter than every window.
+        (q, dq, ddq, chosen, still): the first three (M, J) in rad, rad/s, rad/s^2 (a still sample's dq and
+        ddq exactly 0), chosen the index in `settings` of the setting, still (M, J) bool the samples held
+        still; None if the segment is shorter than every window.
     """
     from scipy.signal import savgol_filter  # here: params validation imports this module, not scipy
 
@@ -140,18 +203,27 @@ def savgol_uniform(
     usable = [k for k, (w, _) in enumerate(settings) if w <= min(n, len(t_s))]
     if not usable:
         return None
+    steps = np.zeros(q.shape[1]) if steps is None else np.asarray(steps, dtype=np.float64)
+    held, still = hold_still(q, steps, max(w for w, _ in settings))
     grid = t_s[0] + np.arange(n) * dt
-    uniform = _interp_rows(grid, t_s, q)
-    chosen = usable[choose_setting(uniform, [settings[k] for k in usable], dt) if len(usable) > 1 else 0]
+    uniform = _interp_rows(grid, t_s, held)
+    floor = np.where(still.all(axis=0), 0.0, steps**2 / 12.0)  # a moving joint's lattice noise, rad^2
+    picked = choose_setting(uniform, [settings[k] for k in usable], dt, floor) if len(usable) > 1 else 0
+    chosen = usable[picked]
     w, p = settings[chosen]
     out = []
     for deriv in (0, 1, 2):
-        g = savgol_filter(uniform, w, p, deriv=deriv, delta=dt, axis=0, mode="interp")
-        out.append(_interp_rows(t_s, grid, g))
-    return out[0], out[1], out[2], chosen
+        g = _interp_rows(
+            t_s, grid, savgol_filter(uniform, w, p, deriv=deriv, delta=dt, axis=0, mode="interp")
+        )
+        g[still] = held[still] if deriv == 0 else 0.0
+        out.append(g)
+    return out[0], out[1], out[2], chosen, still
 
 
-def choose_setting(uniform: np.ndarray, settings: Sequence[tuple[int, int]], dt: float) -> int:
+def choose_setting(
+    uniform: np.ndarray, settings: Sequence[tuple[int, int]], dt: float, floor: np.ndarray | None = None
+) -> int:
     """The index in `settings` of the SG setting with the least estimated error of the joints' accelerations
     (summed over the joints), the quantity of the labels the smoothing decides (the dynamics are linear in
     it). One setting for all the joints: a link's motion composes theirs (a foot held still by a moving leg),
@@ -163,7 +235,8 @@ def choose_setting(uniform: np.ndarray, settings: Sequence[tuple[int, int]], dt:
     window with its highest order, is the reference r: the encoder noise variance s2 of each joint is its
     residual's mean square divided by 1 - h_r (h_r the centre weight of r's smoothing: the residual of a
     linear least-squares smoother keeps that share of white noise), at most 4 times the estimate from its
-    6th differences (a noise-free encoder's residual is r's bias); a setting c's noise variance is
+    6th differences (a noise-free encoder's residual is r's bias), and at least `floor` (J,) rad^2 (an
+    encoder's quantisation noise, step^2 / 12; None: 0); a setting c's noise variance is
     ``s2 |k_c|^2``, k_c its acceleration kernel; its bias squared (against r's) is the median over the
     samples of ``|a_c - a_r|^2`` (the joints summed) less the median of the noise that difference carries
     (``sum(s2) |k_c - k_r|^2`` its mean, a share of it its median). The median, not the mean: the segment's
@@ -196,6 +269,8 @@ def choose_setting(uniform: np.ndarray, settings: Sequence[tuple[int, int]], dt:
     # a noise-free encoder's residual is r's bias, not noise: at most a multiple of the differences' estimate
     diff = np.mean(np.diff(uniform, DIFFERENCES, axis=0) ** 2, axis=0)
     s2 = np.minimum(s2, DIFFERENCES_BOUND * diff / math.comb(2 * DIFFERENCES, DIFFERENCES))
+    if floor is not None:
+        s2 = np.maximum(s2, floor)
     a_ref, k_ref = fit(ref, 2), kernel(ref, 2)
     # the median of noise alone in a sum of squares over the joints: Wilson-Hilferty's, with the sum's
     # effective degrees of freedom (1 joint: 0.47 of the mean, many alike: the mean)
@@ -224,6 +299,8 @@ class SmoothResult:
     short_segments: int = 0  # too short to smooth: NaN, not ok
     periods_s: list[float] = field(default_factory=list)  # median step per smoothed segment
     chosen: dict[tuple[int, int], int] = field(default_factory=dict)  # (window, order): segments smoothed
+    steps: np.ndarray = field(default_factory=lambda: np.zeros(0))  # (J,) rad, encoder step (0: none)
+    still: np.ndarray = field(default_factory=lambda: np.zeros((0, 0), dtype=bool))  # (N, J) held still
 
 
 def validity_groups(valid: np.ndarray) -> list[tuple[np.ndarray, np.ndarray]]:
@@ -243,12 +320,14 @@ def smooth_kinematics(
     polyorder: int,
     max_gap_s: float,
     choices: Sequence[tuple[int, int]] = (),
+    steps: Sequence[float] | None = None,
 ) -> SmoothResult:
     """Savitzky-Golay positions, velocities, accelerations of joint positions q (N, J) rad at stamps (N,) ns.
 
     Each joint is smoothed on its finite samples, segments split at stamp steps > max_gap_s (s) smoothed
     separately (see the module docstring), with `window` and `polyorder`, or, given `choices` ((window,
-    polyorder) pairs), with the one `choose_setting` picks per segment. ``ok`` (N,) is
+    polyorder) pairs), with the one `choose_setting` picks per segment. `steps` (J,) rad: each joint's
+    encoder step where the recording knows it (0: found from q, `quantisation_step`). ``ok`` (N,) is
     ``joint_ok`` (N, J) of every joint.
     """
     settings = tuple(choices) or ((window, polyorder),)
@@ -261,20 +340,25 @@ def smooth_kinematics(
         np.full((n, j), np.nan),
         np.zeros(n, dtype=bool),
         np.zeros((n, j), dtype=bool),
+        still=np.zeros((n, j), dtype=bool),
     )
     t_s = (stamps_ns - (stamps_ns[0] if n else 0)) / 1e9
     max_gap_ns = round(max_gap_s * 1e9)
+    known = np.zeros(j) if steps is None else np.asarray(steps, dtype=np.float64)
+    res.steps = np.array([known[k] or quantisation_step(q[:, k]) for k in range(j)])
     for rows, cols in validity_groups(np.isfinite(q)):
         every = len(rows) == n and len(cols) == j  # a complete log: the arrays as they are, no copy
         part_q = q if every else q[np.ix_(rows, cols)]
         for start, stop in segments(stamps_ns[rows], max_gap_ns):
             res.segments += 1
-            smoothed = savgol_uniform(t_s[rows[start:stop]], part_q[start:stop], settings)
+            smoothed = savgol_uniform(t_s[rows[start:stop]], part_q[start:stop], settings, res.steps[cols])
             if smoothed is None:
                 res.short_segments += 1
                 continue
             at = rows[start:stop]
-            for out, values in zip((res.q, res.dq, res.ddq), smoothed[:3], strict=True):
+            for out, values in zip(
+                (res.q, res.dq, res.ddq, res.still), (*smoothed[:3], smoothed[4]), strict=True
+            ):
                 if every:
                     out[start:stop] = values
                 else:
@@ -308,6 +392,7 @@ class SmoothReport:
 def smooth_table(src: Path, dst: Path, cfg: SmoothParams) -> SmoothReport:
     """Read an ingested table, add the smoothed kinematics columns, write it atomically to `dst`."""
     from pipeline.core.io import atomic_path
+    from pipeline.logs.sidecar import declared_steps
     from pipeline.logs.tables import read_table_metadata
 
     t0 = time.perf_counter()
@@ -329,9 +414,11 @@ def smooth_table(src: Path, dst: Path, cfg: SmoothParams) -> SmoothReport:
         else np.empty((0, len(joints)))
     )
     del base
-    res = smooth_kinematics(stamps, q, cfg.window, cfg.polyorder, cfg.max_gap_s, cfg.choices)
-    extra = S.smoothed_extra_columns(joints)
     meta = read_table_metadata(pf)
+    known = declared_steps((meta.get(S.META_SOURCE.decode()) or {}).get("metadata") or {})
+    steps = [known.get(jt, 0.0) for jt in joints]
+    res = smooth_kinematics(stamps, q, cfg.window, cfg.polyorder, cfg.max_gap_s, cfg.choices, steps)
+    extra = S.smoothed_extra_columns(joints)
     never = [jt for k, jt in enumerate(joints) if len(stamps) and not res.joint_ok[:, k].any()]
     smooth_meta = {
         **asdict(cfg),
@@ -341,6 +428,11 @@ def smooth_table(src: Path, dst: Path, cfg: SmoothParams) -> SmoothReport:
         "median_period_s": float(np.median(res.periods_s)) if res.periods_s else None,
         "chosen": {f"{w}/{p}": n for (w, p), n in sorted(res.chosen.items())},  # segments per setting
         "joints_never_ok": never,  # no ok sample: absent from the log (or never a smoothable stretch)
+        # encoders on a lattice: each joint's step (deg) and the share of its samples held still
+        "encoder_steps_deg": {
+            jt: math.degrees(st) for jt, st in zip(joints, res.steps, strict=True) if st > 0
+        },
+        "still": {jt: float(res.still[:, k].mean()) for k, jt in enumerate(joints) if res.steps[k] > 0},
     }
     kv = {k.encode(): v for k, v in meta.items() if k != S.META_SCHEMA.decode()}
     kv[S.META_SMOOTH] = smooth_meta

@@ -33,6 +33,8 @@ class LogReport:
     streams: dict[str, StreamStats] = field(default_factory=dict)
     error: str | None = None
     absent: list[str] = field(default_factory=list)  # streams the log does not have (topics, ports)
+    not_read: list[str] = field(default_factory=list)  # what the log holds that ingest does not read
+    fixed: list[str] = field(default_factory=list)  # joints it lacks, filled from ingest.fixed_joints
     frozen: dict[str, int] = field(default_factory=dict)  # sensor -> samples flagged as frozen
     outputs: list[str] = field(default_factory=list)  # every table written (one per segment)
     kept: int | None = None  # samples written to the tables (the window's, the segments'); None: all

@@ -21,7 +21,7 @@ from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
 from pipeline.core.cliargs import add_params_option
-from pipeline.core.errors import DataError
+from pipeline.core.errors import ConfigError, DataError
 from pipeline.logs.params import IngestParams
 
 if TYPE_CHECKING:
@@ -31,18 +31,6 @@ if TYPE_CHECKING:
 STAGE = "ingest"
 LOG_SUFFIXES = (".mcap", ".mat")  # log formats read by `ingest_one` (.mat: YarpRobotLoggerDevice)
 _STAGING = ".{name}.{pid}.ingest-tmp"  # staging directory beside the output, per process
-
-
-# --- params --------------------------------------------------------------------------------------
-
-
-def smoothing_window(params: Params) -> int:
-    """The widest smoothing window (samples, `smooth.window` or the widest of `smooth.choices`), the least gap
-    between a log's segments; 0 without a smooth section."""
-    from pipeline.core.config import stage_section
-    from pipeline.logs.smoothing import SmoothParams
-
-    return stage_section(params, "smooth", SmoothParams).widest if "smooth" in params.raw else 0
 
 
 # --- one log -------------------------------------------------------------------------------------
@@ -57,9 +45,6 @@ class RobotLogSpec:
     joints: Sequence[str]  # URDF joint order
     sensors: Sequence[str]  # URDF FT sensor names
     robot_names: Sequence[str]  # names the logs' `experiment.robot` may use for this robot
-    min_gap_samples: int = (
-        0  # least gap between a log's segments, joint-state steps (widest smoothing window)
-    )
 
 
 def find_logs(source_dir: Path, sidecar_suffix: str = ".yaml") -> list[Path]:
@@ -108,7 +93,6 @@ def ingest_one(
         spec.sensors,
         spec.robot_names,
         progress,
-        spec.min_gap_samples,
     )
 
 
@@ -202,13 +186,15 @@ def run(
     urdf = resolve_urdf(params.robot.urdf, repo_root())
     robot = load_robot(urdf)
     check_sensors(cfg.imu_axes, robot.sensors, "ingest.imu_axes")
+    unknown = sorted(set(cfg.fixed_joints) - set(robot.joint_names))
+    if unknown:
+        raise ConfigError(f"ingest.fixed_joints.{unknown[0]}: not a joint of {params.robot.urdf}")
     spec = RobotLogSpec(
         cfg,
         params.topics,
         robot.joint_names,
         list(robot.sensors),
         [params.robot.urdf, robot.name, Path(urdf).stem],
-        smoothing_window(params),
     )
     run_params = {
         "ingest": asdict(cfg),
@@ -318,6 +304,8 @@ def _log_mlflow(active: Any, summary: IngestSummary) -> None:
                     "seconds": r.seconds,
                     "streams": {k: asdict(v) for k, v in r.streams.items()},
                     "absent": r.absent,
+                    "not_read": r.not_read,
+                    "fixed_joints": r.fixed,
                     "frozen_samples": r.frozen,
                     "tables": r.outputs,
                 }
@@ -342,7 +330,8 @@ def _cmd(args: argparse.Namespace) -> int:
 
 
 def summary_line(summary: IngestSummary, out: str | Path) -> str:
-    """One line: logs, samples, where; what the logs lack (absent streams) and what was frozen."""
+    """One line: logs, samples, where; what the logs lack (absent streams), what they hold that is not
+    read (each name once, with the number of logs holding it) and what was frozen."""
     from pipeline.logs import schema as S
 
     rows = sum(r.samples for r in summary.reports)
@@ -363,6 +352,16 @@ def summary_line(summary: IngestSummary, out: str | Path) -> str:
     ]
     if absent:
         parts.append("absent: " + "; ".join(absent))
+    many = len(summary.reports) > 1
+    for what, names in (
+        ("not read", [r.not_read for r in summary.reports]),
+        ("declared still", [r.fixed for r in summary.reports]),
+    ):
+        counts: dict[str, int] = {}
+        for name in (n for each in names for n in each):
+            counts[name] = counts.get(name, 0) + 1
+        if counts:
+            parts.append(f"{what}: " + ", ".join(f"{k} ({n} logs)" if many else k for k, n in counts.items()))
     frozen = []
     for r in summary.reports:
         rate = r.streams[S.JOINTS_STREAM].rate_hz if S.JOINTS_STREAM in r.streams else float("nan")

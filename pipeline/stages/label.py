@@ -143,6 +143,7 @@ def _cmd(args: argparse.Namespace) -> int:
 
     from pipeline.core.config import load_params
     from pipeline.labels.joints import exact_text, merge_exact
+    from pipeline.labels.table import FIXED_DELTA_DEG
     from pipeline.logs import schema as S
 
     params = load_params(args.params)
@@ -155,6 +156,15 @@ def _cmd(args: argparse.Namespace) -> int:
         f"labelled {len(summaries)} log(s), {samples} samples, {samples / max(seconds, 1e-9):.0f} samples/s, "
         f"into {args.out}; exact labels per sensor: {', '.join(exact_text(s, exact[s]) for s in sensors)}"
     )
+    moved = [(s.log, k, v) for s in summaries for k, v in s.fixed_sensitivity.items() if v > 0]
+    if moved:  # labels that rest on joints declared still: how far they move were those off
+        worst = {}
+        for log, sensor, rms in moved:
+            worst[sensor] = max(worst.get(sensor, (0.0, log)), (rms, log))
+        text = ", ".join(f"{k} {v[0]:.3g} ({v[1]})" for k, v in worst.items())
+        print(
+            f"labels' change were the declared-still joints {FIXED_DELTA_DEG:g} deg off (RMS, N/Nm): {text}"
+        )
     for line in imu_flagged(
         summaries
     ).values():  # a board whose IMU is not in the sensor frame: one line each
