@@ -141,3 +141,45 @@ def test_the_one_foot_run_labels_its_stance_foot_with_the_neck_declared_still(
         data / "s" / "run41s.parquet", columns=[f"{k}.neck_pitch" for k in (S.QS, S.DQS, S.DDQS)]
     )
     assert np.all(sm[f"{S.QS}.neck_pitch"] == 0.0) and np.all(sm[f"{S.DDQS}.neck_pitch"].abs() < 1e-6)
+
+
+def test_a_run_with_one_training_segment_validates_on_time_blocks_of_it(
+    tmp_path: Path, mlflow_store: None, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """One pole run cut into one training segment and one test segment, 0.1 s apart: there is no second
+    training log to hold out, so validation and the folds hold out time blocks of the training segment;
+    training completes and says so, and the blocks name their table."""
+    import json
+
+    if not POLE.is_dir():
+        pytest.skip(f"{POLE} absent (the real runs are not shipped with a clone)")
+    raw = tmp_path / "data" / "raw"
+    run = RUNS[1]
+    shutil.copytree(POLE / run, raw / run)
+    segments = [
+        {"start_s": 0.5, "end_s": 12.0, "role": "train"},
+        {"start_s": 12.1, "end_s": 17.5, "role": "test"},
+    ]
+    side = {"type": "pole", "robot": "iCubGenova02", "contacts": ["root_link"], "segments": segments}
+    (raw / f"{run}.yaml").write_text(yaml.safe_dump(side))
+    params = yaml.safe_load((REPO / "params.yaml").read_text())
+    params["robot"]["urdf"] = "iCubGenova02"
+    params["train"]["defaults"]["inputs"] = [6]
+    params["train"]["groups"] = {"r_leg_ft": {"sensor": "r_leg_ft", "n_trials": 1, "epochs": 2}}
+    (tmp_path / "params.yaml").write_text(yaml.safe_dump(params, sort_keys=False))
+    data, p = tmp_path / "data", ["--params", str(tmp_path / "params.yaml")]
+    models = tmp_path / "models" / "r_leg_ft"
+    steps = [
+        ["ingest", raw, data / "i"],
+        ["smooth", data / "i", data / "s"],
+        ["label", data / "s", data / "l"],
+        ["train", "r_leg_ft", data / "l", models, "--studies", tmp_path / "optuna"],
+    ]
+    for step in steps:
+        assert main([str(a) for a in step] + p) == 0, step
+    metrics = json.loads((models / "metrics.json").read_text())
+    train, val = metrics["logs"]["train"], metrics["logs"]["val"]
+    assert len(val) == 1 and len(train) == 4 and {n.split("#")[0] for n in train + val} == {f"{run}__seg0"}
+    assert metrics["logs"]["test"] == [f"{run}__seg1"]
+    assert any("validation holds out 5 time blocks" in note for note in metrics["notes"]), metrics["notes"]
+    assert np.isfinite(metrics["test"]["affine_ls"]["r_leg_ft"]["rmse"])

@@ -19,9 +19,10 @@ import yaml
 
 from pipeline.calib import search as calib_search
 from pipeline.calib.cuts import CutTerm, cut_sums_np
-from pipeline.calib.data import LogInfo, find_logs, input_cols, load_group_data, resolve_group, split_logs
+from pipeline.calib.data import LogInfo, find_logs, input_cols, load_group_data, resolve_group
 from pipeline.calib.models import load_model
 from pipeline.calib.params import TrainParams, select_by_folds, select_simplest
+from pipeline.calib.split import split_logs
 from pipeline.calib.training import train_network
 from pipeline.calib.window import WindowModel
 from pipeline.cli import main

@@ -149,6 +149,7 @@ class LogInfo:
     kind: str  # experiment type[/foot[/part]], e.g. half_foot/l_foot/front
     known_load: bool = False  # the experiment declares known loads (pipeline.physics.loads)
     simulated: bool = False  # the simulator wrote it (experiment ``sim: true``): a log with truth
+    span: tuple[float, float] | None = None  # s of time_s: a time block of the table (`time_blocks`)
 
 
 def find_logs(in_dir: Path) -> list[LogInfo]:
@@ -388,6 +389,8 @@ def _read_log(log: LogInfo, group: Group, index: int) -> GroupData:
         data.period = np.full(n, period)
         data.window = None if group.windows is None else lowpass_memory(data.x, group.windows, period)
     ok &= np.isfinite(data.x[:, :, : group.n_inputs]).all(axis=(1, 2))
+    if log.span is not None:  # a time block: its rows, the memory having run over the whole table
+        ok &= (data.time >= log.span[0]) & (data.time < log.span[1])
     data = data.subset(ok)
     exact = [(n, data.labels[:, s], data.switches[:, s]) for s, n in enumerate(group.sensors)]
     exact += [(c.label, data.cut_labels[:, k], data.cut_switches[:, k]) for k, c in enumerate(group.cuts)]
@@ -411,56 +414,6 @@ def derive_seed(seed: int, *parts: str | int) -> int:
     """A 32-bit seed from the master seed and names/numbers (stable across runs and platforms)."""
     words = [seed] + [zlib.crc32(p.encode()) if isinstance(p, str) else int(p) for p in parts]
     return int(np.random.SeedSequence(words).generate_state(1)[0])
-
-
-def split_logs(logs: Sequence[LogInfo], val_logs: int, seed: int, folds: int = 1) -> dict[str, Any]:
-    """Whole-log split: test = role test; validation = `val_logs` training logs; train = the rest.
-
-    Validation takes at most one log per experiment kind (type, supporting foot and part), never a
-    kind's only training log, drawn with a generator seeded from `seed` (kinds in a seeded order, those of
-    known-load logs first, then a seeded log of each): every kind of experiment stays in the training
-    set. That is fold 0 of the cross-validation; fold k (k < `folds`) holds out, of the same kinds, the
-    k-th next log of each in sorted order, so the folds' validation logs are disjoint. ``folds``: one
-    {train, val} per fold.
-
-    Raises:
-        DataError: no training or no test logs, too few training logs for a validation set, or a held-out
-            kind with fewer training logs than `folds`.
-    """
-    train = [log for log in logs if log.role == ROLE_TRAIN]
-    test = [log.name for log in logs if log.role == ROLE_TEST]
-    if not train:
-        raise DataError("no training logs (role 'train' in the experiment metadata)")
-    if not test:
-        raise DataError("no test logs (role 'test' in the experiment metadata)")
-    rng = np.random.default_rng(derive_seed(seed, "validation"))
-    by_kind: dict[str, list[str]] = {}
-    for log in train:
-        by_kind.setdefault(log.kind, []).append(log.name)
-    candidates = sorted(k for k, names in by_kind.items() if len(names) >= 2)
-    order = [candidates[i] for i in rng.permutation(len(candidates))]
-    # known-load logs are validated on first: their labels leave the relation a free limb's wrenches
-    # follow, so a model that exploits it loses there (the order is otherwise the seeded one)
-    loaded = {log.kind for log in train if log.known_load}
-    order = [k for k in order if k in loaded] + [k for k in order if k not in loaded]
-    first = {k: int(rng.integers(len(by_kind[k]))) for k in order[:val_logs]}
-    if not first:
-        raise DataError(
-            f"cannot hold out a validation log: no experiment kind has 2 or more training logs "
-            f"(training logs: {', '.join(log.name for log in train)})"
-        )
-    short = [k for k in first if len(by_kind[k]) < folds]
-    if short:
-        raise DataError(
-            f"cannot make {folds} cross-validation folds by whole logs: experiment kind {short[0]!r} has "
-            f"only {len(by_kind[short[0]])} training logs (train.folds at most that)"
-        )
-    names = sorted(log.name for log in train)
-    cv = []
-    for k in range(folds):
-        val = sorted(sorted(by_kind[kind])[(j + k) % len(by_kind[kind])] for kind, j in first.items())
-        cv.append({"train": [n for n in names if n not in val], "val": val})
-    return {**cv[0], "test": sorted(test), "folds": cv}
 
 
 def load_group_data(group: Group, logs: Sequence[LogInfo]) -> GroupData:

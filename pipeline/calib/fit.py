@@ -23,7 +23,6 @@ from pipeline.calib.data import (
     input_cols,
     load_group_data,
     resolve_group,
-    split_logs,
 )
 from pipeline.calib.exact import LEFT_OUT, calibrable
 from pipeline.calib.imu_gate import refuse_flagged_imu
@@ -32,6 +31,7 @@ from pipeline.calib.params import LS_AFFINE, GroupParams, TrainParams, baseline_
 from pipeline.calib.records import flatten_metrics
 from pipeline.calib.registry import AFFINE, ARX, PLAY, poly_name
 from pipeline.calib.search import NetResult
+from pipeline.calib.split import split_logs, time_blocks
 from pipeline.calib.training import NetSetting
 from pipeline.core.config import Params, stage_section
 from pipeline.core.errors import DataError
@@ -74,6 +74,8 @@ def prepare(params: Params, group_name: str, in_dir: Path) -> Prepared:
     gp = expand_feet(cfg.group(group_name), logs)
     gp, group = _calibrable(params, gp, resolve_group(gp, params, logs), logs)
     gp, group, notes = refuse_flagged_imu(gp, group, logs)  # a board whose IMU check failed: no nn13
+    logs, blocked = time_blocks(logs, cfg.folds)
+    notes += [f"{group.name}: {blocked}"] if blocked else []
     split = split_logs(logs, cfg.val_logs, params.seed, cfg.folds)
     log_names = [log.name for log in logs]
     data = {}

@@ -102,11 +102,12 @@ def _config(params: Any) -> tuple[Any, dict[str, float]]:
 
 def _training_logs(model: Any, models_dir: Path, labelled: Path) -> list[Path]:
     """The labelled tables a group model was trained on (train and validation logs of its metrics.json)."""
+    from pipeline.calib.split import table_name
     from pipeline.export.trained import read_metrics
 
     metrics = read_metrics(models_dir)
     logs = [*(metrics.get("logs") or {}).get("train", []), *(metrics.get("logs") or {}).get("val", [])]
-    paths = [labelled / f"{log}.parquet" for log in logs]
+    paths = [labelled / f"{name}.parquet" for name in dict.fromkeys(table_name(log) for log in logs)]
     missing = [p for p in paths if not p.is_file()]
     if missing:
         raise DataError(f"{missing[0]}: training log of {model.group} not found (for the data hash)")
