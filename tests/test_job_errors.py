@@ -227,6 +227,10 @@ def _children(pid: int) -> list[int]:
     return kids
 
 
+def _interruptible() -> None:
+    signal.signal(signal.SIGINT, signal.SIG_DFL)
+
+
 class _Ftcal:
     """`python -m pipeline.cli ARGS` in a session of its own, its stdout and stderr pipes read to their end
     by threads that note when each closed."""
@@ -240,6 +244,9 @@ class _Ftcal:
             stdout=subprocess.PIPE,
             stderr=subprocess.PIPE,
             start_new_session=True,
+            # as a terminal's foreground job: SIGINT handled (a shell's background job, as a CI runner may
+            # start this suite, inherits it ignored, and Python then never raises KeyboardInterrupt)
+            preexec_fn=_interruptible,
         )
         self.text: dict[str, str] = {}
         self.closed: dict[str, float] = {}

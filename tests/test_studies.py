@@ -119,9 +119,9 @@ def _train_params(tmp_path: Path) -> Path:
     train = copy.deepcopy(TRAIN_PARAMS)
     train["heartbeat"] = 2
     train["groups"] = {LEG: {"sensor": LEG}}
-    # trials long enough (a few s) that the workers, which start in a few s, take part under load; random
+    # trials long enough (1-2 s) that the workers, which start in a few s, take part under load; random
     # trials only (params.yaml's policy: tpe_startup_trials = n_trials)
-    train["defaults"].update(n_trials=8, epochs=40, tpe_startup_trials=8, prune_startup_trials=3)
+    train["defaults"].update(n_trials=8, epochs=20, tpe_startup_trials=8, prune_startup_trials=3)
     return write_params(tmp_path, train)
 
 
