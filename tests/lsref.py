@@ -35,8 +35,13 @@ class Reference:
     keys: pd.MultiIndex
 
 
+def _window(dt: float) -> int:
+    """The SG window, samples (odd), of WINDOW_S at a step of dt s."""
+    return int(round(WINDOW_S / dt)) | 1
+
+
 def _kinematics(q: np.ndarray, dt: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    w = int(round(WINDOW_S / dt)) | 1
+    w = _window(dt)
     q = np.where(np.isfinite(q), q, 0.0)  # joints the log lacks: a label with its switch on needs none
     dq = savgol_filter(q, w, ORDER, deriv=1, delta=dt, axis=0)
     ddq = savgol_filter(q, w, ORDER, deriv=2, delta=dt, axis=0)
@@ -57,10 +62,9 @@ def reference(
         labelled = pd.read_parquet(table, columns=[S.STAMP, S.switch_col(sensor)])
         ingested = pd.read_parquet(project / "data" / "ingested" / table.name).set_index(S.STAMP)
         stamps = ingested.index.to_numpy()
-        q, dq, ddq = _kinematics(
-            ingested[S.joint_cols(S.Q, joints)].to_numpy(), float(np.median(np.diff(stamps))) / 1e9
-        )
-        half = int(round(WINDOW_S / (np.median(np.diff(stamps)) / 1e9))) // 2
+        dt = float(np.median(np.diff(stamps))) / 1e9
+        q, dq, ddq = _kinematics(ingested[S.joint_cols(S.Q, joints)].to_numpy(), dt)
+        half = _window(dt) // 2
         on = labelled[S.switch_col(sensor)].to_numpy() == 1
         at = np.searchsorted(stamps, labelled[S.STAMP].to_numpy()[on])
         ok = (

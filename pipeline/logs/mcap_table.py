@@ -156,7 +156,7 @@ class _LogIngest:
         declared = declared_absent(reader.metadata)
         absent = [j for j in declared["joints"] if j in self.joints]
         fixed = self.cfg.fixed_joints  # joints the log lacks that the lab declared still: filled, not absent
-        self.fixed = {j: math.radians(v) for j, v in fixed.items() if j in set(absent)}
+        self.fixed = {j: math.radians(v) for j, v in fixed.items() if j in absent}
         self.absent_joints = [j for j in absent if j not in self.fixed]
         self.report.fixed = sorted(self.fixed)
         self.report.absent += declared["streams"]

@@ -136,8 +136,9 @@ def quantisation_step(q: np.ndarray) -> float:
     `LATTICE_SHARE` of them, `LATTICE_MIN_CHANGES` or more) is a whole number of it within `LATTICE_TOL`;
     0.0 where the readings lie on no lattice (noise above a step, no quantisation, too few changes)."""
     q = np.asarray(q, dtype=np.float64)
-    d = np.abs(np.diff(q[np.isfinite(q)]))
-    scale = max(float(np.max(np.abs(q[np.isfinite(q)]), initial=0.0)), 1.0)
+    q = q[np.isfinite(q)]
+    d = np.abs(np.diff(q))
+    scale = max(float(np.max(np.abs(q), initial=0.0)), 1.0)
     d = d[d > 1e-12 * scale]
     if len(d) < LATTICE_MIN_CHANGES:
         return 0.0
