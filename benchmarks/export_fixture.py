@@ -59,16 +59,19 @@ def synthetic_models(
 
 
 def synthetic_linear(models_dir: Path, name: str = "play", seed: int = 0) -> list[GroupModel]:
-    """Write models/<group>/ with a random `name` model (``affine``, ``play`` with the widths or ``arx`` with
-    the time constants of the params' train.defaults, at 100 Hz) in baselines.json for every group; return
-    the export adapter's view."""
+    """Write models/<group>/ with a random `name` model (``affine``, ``play`` with the width fractions or
+    ``arx`` with the time constants of the params' train.defaults, at 100 Hz) in baselines.json for every
+    group; return the export adapter's view."""
     from pipeline.calib.linear import LinearBaseline, monomial_powers
     from pipeline.calib.params import TrainParams
     from pipeline.core.config import stage_section
 
     gp = stage_section(load_params(ROOT / "params.yaml"), "train", TrainParams).group("r_arm_ft")
-    widths = None if name != "play" else np.asarray(gp.play_widths(), dtype=np.float64)
-    tcs = None if name != "arx" else np.asarray(gp.arx_time_constants(), dtype=np.float64)
+    span = np.r_[
+        np.full(3, 300.0), np.full(3, 20.0)
+    ]  # a limb's raw span, N and Nm: the widths' fractions of it
+    widths = None if name != "play" else np.outer(gp.play_width_fractions, span)
+    tcs = None if name != "arx" else np.asarray(gp.arx_time_constants_s, dtype=np.float64)
     rng = np.random.default_rng(seed)
     out = []
     for group, sensors in GROUPS.items():

@@ -1,4 +1,5 @@
-"""Variants of the default data, set in params only: stronger hidden distortions, or another gait.
+"""Variants of the default data, set in params only: stronger hidden distortions, another gait, or other
+sensor memory physics.
 
 Writes a copy of the repository (git-tracked files) into WORK with its params.yaml changed, then, in WORK,
 ``dvc repro`` runs the whole pipeline on the variant and ``reports/`` holds its figures (against truth,
@@ -12,9 +13,15 @@ training params.
   support (weight transfer), shorter single support and longer steps, so the robot walks faster, with
   more of each step on both feet (where no leg has a label of its own); distortions as the default's unless
   --scale is given.
+- memory variants (--memory wide|slow): the sensors' path- and time-dependence of ``simulate.sensors`` set
+  to physics the models were not tuned on, everything else the default's (seed included unless --seed):
+  ``wide``, hysteresis 0.5 % of full scale over 5 play operators of widths 0.2-10 % of full scale, creep
+  0.6 % with time constants 5-60 s, the gauges 30 s behind the thermometer; ``slow``, hysteresis 0.4 % of
+  full scale in one operator of 1 %, creep 0.2 % with time constants 200-900 s, the gauges 240 s behind.
 
     python benchmarks/variant.py WORK [--seed 7] [--scale 2.0]
     python benchmarks/variant.py WORK --gait [--seed 11]
+    python benchmarks/variant.py WORK --memory wide
     cd WORK && dvc repro
 """
 
@@ -39,11 +46,26 @@ SCALED = (
 # the gait variant's walking (simulate.motion): default 0.4 s double and 0.8 s single support, steps of
 # L / 8 (about 0.07 m on iCub 3)
 GAIT = {"double_support_s": 0.7, "single_support_s": 0.6, "step_length_m": 0.12}
+MEMORY = {
+    "wide": {
+        "hysteresis": 0.005, "hysteresis_width_min": 0.002, "hysteresis_width_max": 0.1,
+        "hysteresis_operators": 5, "creep": 0.006, "creep_tau_min_s": 5.0, "creep_tau_max_s": 60.0,
+        "thermal_lag_s": 30.0,
+    },
+    "slow": {
+        "hysteresis": 0.004, "hysteresis_width_min": 0.01, "hysteresis_width_max": 0.01,
+        "hysteresis_operators": 1, "creep": 0.002, "creep_tau_min_s": 200.0, "creep_tau_max_s": 900.0,
+        "thermal_lag_s": 240.0,
+    },
+}  # fmt: skip
 
 
-def variant_params(text: str, seed: int, scale: float, gait: bool = False) -> str:
-    """params.yaml text with `seed`, the scaled distortion ranges and (`gait`) the variant's walking
-    (comments kept: line edits)."""
+def variant_params(
+    text: str, seed: int, scale: float, gait: bool = False, memory: dict[str, float] | None = None
+) -> str:
+    """params.yaml text with `seed`, the scaled distortion ranges, (`gait`) the variant's walking and
+    (`memory`) the sensors' memory physics (comments kept: line edits)."""
+    memory = memory or {}
     values = yaml.safe_load(text)["simulate"]["sensors"]
     lines, section, sub = [], None, None
     for line in text.splitlines():
@@ -57,6 +79,8 @@ def variant_params(text: str, seed: int, scale: float, gait: bool = False) -> st
         comment = line.split("#", 1)[1].strip() if "#" in line else ""
         if indent == 0 and key == "seed":
             line = f"seed: {seed}  # variant of the default data (benchmarks/variant.py)"
+        elif section == "simulate" and sub == "sensors" and indent == 4 and key in memory:
+            line = f"    {key}: {memory[key]!r}  # memory variant (benchmarks/variant.py); {comment}"
         elif section == "simulate" and sub == "sensors" and indent == 4 and key in SCALED and scale != 1.0:
             line = f"    {key}: {values[key] * scale!r}  # x{scale:g} the default; {comment}"
         elif section == "simulate" and sub == "motion" and indent == 4 and key in GAIT and gait:
@@ -71,21 +95,28 @@ def main() -> None:
         "work", type=Path, help="new directory: a copy of the repository with the variant params"
     )
     parser.add_argument("--gait", action="store_true", help="the gait variant instead of the distortion one")
-    parser.add_argument("--seed", type=int, default=None, help="seed (default 7, or 11 with --gait)")
+    parser.add_argument(
+        "--memory", choices=sorted(MEMORY), default=None, help="a memory variant instead (module docstring)"
+    )
+    parser.add_argument(
+        "--seed", type=int, default=None, help="seed (default 7, 11 with --gait, the default's with --memory)"
+    )
     parser.add_argument(
         "--scale", type=float, default=None, help="distortion scale (default 2, 1 with --gait)"
     )
     args = parser.parse_args()
-    seed = args.seed if args.seed is not None else (11 if args.gait else 7)
-    scale = args.scale if args.scale is not None else (1.0 if args.gait else 2.0)
+    default_seed = int(yaml.safe_load((ROOT / "params.yaml").read_text())["seed"])
+    seed = args.seed if args.seed is not None else default_seed if args.memory else (11 if args.gait else 7)
+    scale = args.scale if args.scale is not None else (1.0 if args.gait or args.memory else 2.0)
     if args.work.exists():
         sys.exit(f"error: {args.work} exists (choose a new directory)")
     subprocess.run(["git", "clone", "-q", str(ROOT), str(args.work)], check=True)
     params = args.work / "params.yaml"
-    params.write_text(variant_params((ROOT / "params.yaml").read_text(), seed, scale, args.gait))
+    memory = MEMORY[args.memory] if args.memory else None
+    params.write_text(variant_params((ROOT / "params.yaml").read_text(), seed, scale, args.gait, memory))
     changed = yaml.safe_load(params.read_text())
     print(f"seed {changed['seed']}; simulate.sensors:")
-    for key in SCALED:
+    for key in (*SCALED, *(memory or {})):
         print(f"  {key}: {changed['simulate']['sensors'][key]}")
     print("simulate.motion:")
     for key in GAIT:

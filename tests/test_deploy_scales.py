@@ -58,7 +58,7 @@ def _distortion() -> SensorDistortion:
         nonlinearity=rng.uniform(-0.02, 0.02, 6),
         full_scale=full,
         hysteresis=0.01 * full,
-        hysteresis_width=0.02 * full,
+        hysteresis_width=[0.02 * full],
         noise_std=np.r_[np.full(3, 0.6), np.full(3, 0.03)],
     )
 
@@ -69,7 +69,7 @@ def _reading_by_loop(d: SensorDistortion, w: np.ndarray, temperature: np.ndarray
     z, out = np.zeros(6), np.empty_like(w)
     for k in range(len(w)):
         if k:
-            z = np.clip(z + (v[k] - v[k - 1]) / d.hysteresis_width, -1, 1)
+            z = np.clip(z + (v[k] - v[k - 1]) / d.hysteresis_width[0], -1, 1)
         g = 1 + d.temperature_gain * (temperature[k] - d.temperature_ref)
         out[k] = g * v[k] + d.nonlinearity * v[k] * np.abs(v[k]) / d.full_scale + d.hysteresis * z
     return out

@@ -144,7 +144,7 @@ def test_registry_names_every_family_once() -> None:
 def test_export_of_an_unknown_model_names_the_families(tmp_path: Path) -> None:
     (tmp_path / "metrics.json").write_text(json.dumps({"group": "g", "sensors": ["s"], "test": {}}))
     with pytest.raises(
-        DataError, match=r"unknown model 'gru' \(raw, affine, poly<n>, play, arx, nn<n>, win\)"
+        DataError, match=r"unknown model 'gru' \(raw, offset, affine, poly<n>, play, arx, nn<n>, win\)"
     ):
         read_group(tmp_path, "gru", "g")
 

@@ -105,6 +105,51 @@ ONE_FOOT = REPO.parent / "shared" / "data" / "icub02-onefoot-balancing"
 NECK = {"neck_pitch": 0.0, "neck_roll": 0.0, "neck_yaw": 0.0}
 
 
+def test_the_one_foot_run_deploys_a_faithful_model_and_its_page_says_why_it_is_above_least_squares(
+    tmp_path: Path, mlflow_store: None
+) -> None:
+    """The one-foot run (neck declared still) cut into a training segment (24-35 s) and a test segment
+    (35-40 s): its labels contradict the foot sensor's torque gains (the affine map reads tx at about 0.4
+    along the excited sway), so every model that corrects the gains is unfaithful to a push and the offset
+    model is deployed; the page names why it stays above the plain least squares, and every model worse
+    than the affine map with its cause (`_no_family_breaks_..._unnamed`)."""
+    import json
+
+    if not ONE_FOOT.is_dir():
+        pytest.skip(f"{ONE_FOOT} absent (the real runs are not shipped with a clone)")
+    raw = tmp_path / "data" / "raw"
+    shutil.copytree(ONE_FOOT / "run41s", raw / "run41s")
+    segments = [
+        {"start_s": 24.0, "end_s": 35.0, "role": "train"},
+        {"start_s": 35.0, "end_s": 40.0, "role": "test"},
+    ]
+    side = {"type": "balancing", "robot": "iCubGenova02", "contacts": ["r_sole"], "segments": segments}
+    (raw / "run41s.yaml").write_text(yaml.safe_dump(side))
+    params = yaml.safe_load((REPO / "params.yaml").read_text())
+    params["robot"]["urdf"] = "iCubGenova02"
+    params["ingest"]["fixed_joints"] = NECK
+    params["train"]["defaults"]["inputs"] = [6]
+    params["train"]["groups"] = {"r_foot_ft": {"sensor": "r_foot_ft", "n_trials": 1, "epochs": 2}}
+    (tmp_path / "params.yaml").write_text(yaml.safe_dump(params, sort_keys=False))
+    data, p = tmp_path / "data", ["--params", str(tmp_path / "params.yaml")]
+    models, reports = tmp_path / "models" / "r_foot_ft", tmp_path / "reports"
+    for step in (
+        ["ingest", raw, data / "ingested"],
+        ["smooth", data / "ingested", data / "smoothed"],
+        ["label", data / "smoothed", data / "labelled"],
+        ["train", "r_foot_ft", data / "labelled", models, "--studies", tmp_path / "optuna"],
+        ["evaluate", "r_foot_ft", models, data / "labelled", reports, "--smoothed", data / "smoothed"],
+    ):
+        assert main([str(a) for a in step] + p) == 0, step
+    report = json.loads((reports / "groups" / "r_foot_ft" / "report.json").read_text())
+    assert report["recommended"] == "offset" and "affine" in report["unfaithful"], report["unfaithful"]
+    errors = {m: v["rmse"] for m, v in report["tables"]["r_foot_ft"]["labels"].items()}
+    assert errors["offset"] < 0.1 * errors["raw"]  # the factory offsets of 300 N removed
+    why = report["held_out"]["r_foot_ft"]["why_not_lower"]
+    assert "contradict the factory's gain" in why and "passed over as unfaithful" in why, why
+    _no_family_breaks_or_is_worse_than_the_affine_unnamed(reports, "r_foot_ft", tmp_path / "params.yaml")
+
+
 @pytest.mark.parametrize("neck", ["declared still", "not declared"])
 def test_the_one_foot_run_labels_its_stance_foot_with_the_neck_declared_still(
     tmp_path: Path, mlflow_store: None, capsys: pytest.CaptureFixture[str], neck: str
@@ -183,3 +228,38 @@ def test_a_run_with_one_training_segment_validates_on_time_blocks_of_it(
     assert metrics["logs"]["test"] == [f"{run}__seg1"]
     assert any("validation holds out 5 time blocks" in note for note in metrics["notes"]), metrics["notes"]
     assert np.isfinite(metrics["test"]["affine_ls"]["r_leg_ft"]["rmse"])
+    reports = tmp_path / "reports"
+    evaluate = ["evaluate", "r_leg_ft", models, data / "l", reports, "--smoothed", data / "s"]
+    assert main([str(a) for a in evaluate] + p) == 0
+    _no_family_breaks_or_is_worse_than_the_affine_unnamed(reports, "r_leg_ft", tmp_path / "params.yaml")
+
+
+def _no_family_breaks_or_is_worse_than_the_affine_unnamed(reports: Path, group: str, params: Path) -> None:
+    """On the held-out segments of a recorded run: every model's error finite and none above the affine's
+    by more than 2 % unless the page names it with its cause; the deployed model at most the plain least
+    squares' error, or the page saying why; the residual figure drawn."""
+    import json
+
+    from pipeline.evaluation.residual import SAME, held_out_lines
+
+    report = json.loads((reports / "groups" / group / "report.json").read_text())
+    errors = {m: v["rmse"] for m, v in report["tables"][group]["labels"].items()}
+    assert all(np.isfinite(v) for v in errors.values()), errors
+    held = report["held_out"][group]
+    named = held["worse_than_affine"]
+    for model, err in errors.items():
+        if model not in ("raw", "affine_ls") and err > errors["affine"] * (1 + SAME):
+            assert model in named and named[model], (model, errors, named)
+    for model in ("play", "arx", "win"):  # the memory models' state does not run away on a fresh segment
+        assert errors[model] < 3 * errors["affine"], errors
+    if errors[report["recommended"]] > errors["affine_ls"] * (1 + SAME):
+        assert held["why_not_lower"], held
+    inertial = held["label_noise"]  # the labels' inertial part per log: every log, finite, in N and Nm
+    assert inertial and all(len(v) == 6 and np.all(np.isfinite(v)) for v in inertial.values()), inertial
+    lines = held_out_lines(group, report["held_out"])
+    assert len(lines) == len(named) + bool(held["why_not_lower"])
+    assert (reports / report["figures"]["held_out"][group]).is_file()
+    page = reports / "index.html"
+    assert main(["report", str(reports), "--params", str(params)]) == 0
+    text = page.read_text()
+    assert "Held out (recorded, against labels)" in text and "where the held-out residual comes from" in text

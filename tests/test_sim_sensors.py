@@ -6,6 +6,7 @@ from __future__ import annotations
 import json
 import math
 from dataclasses import replace
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -81,7 +82,7 @@ def test_static_distortion_matches_formula_per_axis() -> None:
 
 def test_oracle_error_on_raw_is_hysteresis_plus_noise() -> None:
     rng = np.random.default_rng(7)
-    d = draw_distortion(rng, DistortionRanges())
+    d = draw_distortion(rng, DistortionRanges(creep=0.0, thermal_lag_s=0.0))
     w, temperature = leg_like_wrench(20_000), np.linspace(30.0, 36.0, 20_000)
     clean, raw = distort(d, w, temperature, rng)
 
@@ -107,7 +108,9 @@ def test_oracle_error_on_raw_is_hysteresis_plus_noise() -> None:
 
 def test_without_hysteresis_and_noise_the_oracle_is_exact() -> None:
     rng = np.random.default_rng(3)
-    d = draw_distortion(rng, DistortionRanges(hysteresis=0.0, noise_force=0.0, noise_torque=0.0))
+    d = draw_distortion(
+        rng, DistortionRanges(hysteresis=0.0, noise_force=0.0, noise_torque=0.0, creep=0.0, thermal_lag_s=0.0)
+    )
     w, temperature = leg_like_wrench(1000), np.full(1000, 42.0)
     clean, raw = distort(d, w, temperature, rng)
     np.testing.assert_array_equal(clean, raw)
@@ -184,7 +187,7 @@ def test_draw_respects_ranges() -> None:
             r"simulate\.sensors\.noise_force must be a number in \[0, inf\), got 'a lot'",
         ),
         ("full_scale_torque", 0, r"simulate\.sensors\.full_scale_torque must be in \(0, inf\), got 0"),
-        ("hysteresis_width", True, r"simulate\.sensors\.hysteresis_width must be a number"),
+        ("hysteresis_width_min", True, r"simulate\.sensors\.hysteresis_width_min must be a number"),
         (
             "offset_force_min",
             50.0,
@@ -325,3 +328,52 @@ def test_encoder_velocity_is_the_backward_difference() -> None:
     np.testing.assert_allclose(v[1:], np.tile([1.0, -2.0], (99, 1)), atol=1e-12)
     quantised = encoder_readings(np.random.default_rng(0), q, 3e-3, 0.0)  # steps of 3-4 counts
     assert encoder_velocity(quantised, dt)[1:].std(axis=0).min() > 0.01  # quantisation makes it noisy
+
+
+def test_creep_and_the_gauges_thermal_lag_follow_their_first_order_step_responses() -> None:
+    """A load step held: the reading first lacks c of the step, then creeps back as exp(-t / tau); the
+    gauges' temperature follows a step of the board's as 1 - exp(-t / lag). Against the analytic
+    responses (a sample's filter output includes that sample: the step is seen from its own sample on)."""
+    from pipeline.sim.distortion import creep_term, gauge_temperature
+
+    ranges = DistortionRanges(creep=0.01, creep_tau_min_s=5.0, creep_tau_max_s=5.0, thermal_lag_s=30.0)
+    d = draw_distortion(np.random.default_rng(3), ranges)
+    dt, n = 0.01, 3000
+    t = np.arange(n) * dt
+    w = np.zeros((n, 6))
+    w[100:, 2] = 200.0  # a 200 N load on fz from t = 1 s
+    step = (w @ d.coupling.T)[-1]  # the coupled signal's step
+    expected = -d.creep * step * np.exp(-(t[:, None] - t[100] + dt) / 5.0) * (t[:, None] >= t[100])
+    np.testing.assert_allclose(
+        creep_term(d, w, dt), expected, rtol=0, atol=1e-9 + 1e-3 * np.abs(expected).max()
+    )
+    assert 0.5 * 0.01 * 200 > abs(creep_term(d, w, dt)[100, 2]) > 0.0  # c drawn in [0, 0.01]
+    board = np.where(t >= 1.0, 35.0, 30.0)
+    lagged = np.asarray(gauge_temperature(d, board, dt))
+    want = 30.0 + 5.0 * (1 - np.exp(-(t - t[100] + dt) / 30.0)) * (t >= t[100])
+    np.testing.assert_allclose(lagged, want, rtol=0, atol=2e-3)
+
+
+def test_the_memory_variants_change_only_the_sensors_memory_physics() -> None:
+    """benchmarks/variant.py --memory wide|slow: params.yaml with the preset's simulate.sensors keys, valid
+    ranges, every other key and the seed as the default's."""
+    import sys
+
+    import yaml
+
+    sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "benchmarks"))
+    import variant
+
+    text = (Path(__file__).resolve().parents[1] / "params.yaml").read_text()
+    default = yaml.safe_load(text)
+    for name, preset in variant.MEMORY.items():
+        changed = yaml.safe_load(variant.variant_params(text, default["seed"], 1.0, False, preset))
+        sensors = changed["simulate"].pop("sensors")
+        assert {k: sensors[k] for k in preset} == preset, name
+        assert {k: v for k, v in sensors.items() if k not in preset} == {
+            k: v for k, v in default["simulate"]["sensors"].items() if k not in preset
+        }
+        rest = dict(default["simulate"])
+        rest.pop("sensors")
+        assert changed["simulate"] == rest and changed["seed"] == default["seed"]
+        DistortionRanges(**sensors)  # valid

@@ -78,8 +78,7 @@ TRAIN_PARAMS = {
         "prune_margin": 0.1,
         "poly_orders": [1, 2],
         "ridge": 1.0e-6,
-        "play_widths_n": [10.0, 30.0],
-        "play_widths_nm": [0.5, 1.5],
+        "play_width_fractions": [0.05, 0.2],
         "arx_time_constants_s": [0.5, 5.0],
         "window_time_constants_s": [0.05, 0.5],
         "window_hidden": 8,
@@ -515,7 +514,7 @@ def test_cli_single_sensor_group(
     assert code == 0, captured.err
     assert captured.out.startswith(f"{LEG}: test RMSE of {LEG}")
     metrics = json.loads((out / "metrics.json").read_text())
-    assert set(metrics["test"]) == {"raw", "affine", "poly1", "poly2", "play", "arx", "nn7", "win"}
+    assert set(metrics["test"]) == {"raw", "offset", "affine", "poly1", "poly2", "play", "arx", "nn7", "win"}
     assert metrics["kind"] == "sensor" and metrics["headline"] == LEG
     assert sorted(p.name for p in out.iterdir()) == [
         "baselines.json",

@@ -203,8 +203,6 @@ def resolve_group(gp: GroupParams, params: Params, logs: Sequence[LogInfo]) -> G
     return replace(
         _resolve_group(gp, params, logs),
         n_inputs=max(gp.inputs),
-        widths=gp.play_widths(),
-        time_constants=gp.arx_time_constants(),
         windows=gp.windowed(),
     )
 
@@ -383,14 +381,15 @@ def _read_log(log: LogInfo, group: Group, index: int) -> GroupData:
                 data.cut_switches[:, c] &= np.isfinite(data.poses[:, p]).all(axis=1)
                 p += 1
         data.poses = np.nan_to_num(data.poses)
+    period = nominal_period(data.time)
+    if log.span is not None:  # a time block: its rows, the memory starting afresh at its start
+        inside = (data.time >= log.span[0]) & (data.time < log.span[1])
+        data, ok = data.subset(inside), ok[inside]
     if group.widths is not None or group.time_constants is not None:  # over every reading, before any pick
-        period = nominal_period(data.time)
         data.memory = memory_of(data.x, group.widths, group.time_constants, period)
-        data.period = np.full(n, period)
+        data.period = np.full(len(data.x), period)
         data.window = None if group.windows is None else lowpass_memory(data.x, group.windows, period)
     ok &= np.isfinite(data.x[:, :, : group.n_inputs]).all(axis=(1, 2))
-    if log.span is not None:  # a time block: its rows, the memory having run over the whole table
-        ok &= (data.time >= log.span[0]) & (data.time < log.span[1])
     data = data.subset(ok)
     exact = [(n, data.labels[:, s], data.switches[:, s]) for s, n in enumerate(group.sensors)]
     exact += [(c.label, data.cut_labels[:, k], data.cut_switches[:, k]) for k, c in enumerate(group.cuts)]

@@ -27,9 +27,10 @@ from pipeline.calib.data import (
 from pipeline.calib.exact import LEFT_OUT, calibrable
 from pipeline.calib.imu_gate import refuse_flagged_imu
 from pipeline.calib.linear import LinearBaseline, fit_linear_baseline
+from pipeline.calib.memory import structure
 from pipeline.calib.params import LS_AFFINE, GroupParams, TrainParams, baseline_inputs
 from pipeline.calib.records import flatten_metrics
-from pipeline.calib.registry import AFFINE, ARX, PLAY, poly_name
+from pipeline.calib.registry import AFFINE, ARX, OFFSET, PLAY, poly_name
 from pipeline.calib.search import NetResult
 from pipeline.calib.split import split_logs, time_blocks
 from pipeline.calib.training import NetSetting
@@ -56,6 +57,7 @@ class Prepared:
     folds: list[tuple[GroupData, GroupData]] = field(default_factory=list)
     recorded: list[str] = field(default_factory=list)  # the logs that are recordings (no truth)
     notes: list[str] = field(default_factory=list)  # what the group does not train and why (imu_gate)
+    memory: dict[str, Any] = field(default_factory=dict)  # the memory models' structure the data chose
 
 
 def prepare(params: Params, group_name: str, in_dir: Path) -> Prepared:
@@ -78,6 +80,8 @@ def prepare(params: Params, group_name: str, in_dir: Path) -> Prepared:
     notes += [f"{group.name}: {blocked}"] if blocked else []
     split = split_logs(logs, cfg.val_logs, params.seed, cfg.folds)
     log_names = [log.name for log in logs]
+    training = [logs[log_names.index(n)] for n in split["train"]]
+    group, memory = structure(group, training, gp.play_width_fractions, gp.arx_time_constants_s)
     data = {}
     for k in ("train", "val", "test"):
         part = load_group_data(group, [logs[log_names.index(n)] for n in split[k]])
@@ -104,7 +108,9 @@ def prepare(params: Params, group_name: str, in_dir: Path) -> Prepared:
     recorded = [log.name for log in logs if not log.simulated]
     seed = derive_seed(params.seed, group_name, "pushes")
     test = data["test"]
-    return Prepared(cfg, gp, seed, group, split, log_names, train, data["val"], test, folds, recorded, notes)
+    return Prepared(
+        cfg, gp, seed, group, split, log_names, train, data["val"], test, folds, recorded, notes, memory
+    )
 
 
 def _calibrable(
@@ -130,7 +136,7 @@ def fit_baselines(
 ) -> dict[str, LinearBaseline]:
     """The affine (least squares) and polynomial (ridge) baselines on the switched loss of the networks, each
     with the group's virtual pushes (`pipeline.calib.pushes`; the polynomials' sampled from `seed`); without
-    `affine`, the polynomials only (each fit is independent of the others).
+    `affine`, the offset, the polynomials and the models with memory (each fit is independent of the others).
 
     A group of several sensors is fitted part by part: each foot pair (a cut set with constant transforms)
     jointly with its sum term, every other sensor alone; the cut sets whose transforms depend on the joints
@@ -143,7 +149,7 @@ def fit_baselines(
 
 def fit_affine(gp: GroupParams, group: Group, train: GroupData, seed: int) -> LinearBaseline:
     """The affine baseline of `fit_baselines` alone: the map the group's networks correct."""
-    alone = replace(gp, poly_orders=(), play_widths_n=(), play_widths_nm=(), arx_time_constants_s=())
+    alone = replace(gp, poly_orders=(), play_width_fractions=(), arx_time_constants_s=())
     return fit_baselines(alone, group, train, seed)[AFFINE]
 
 
@@ -189,8 +195,8 @@ def _fit_group_baselines(
     seed: int,
     affine: bool = True,
 ) -> dict[str, LinearBaseline]:
-    """The baselines of a group of one sensor or one foot pair (its sum term with `lambda_sum`); without
-    `affine`, the polynomials and the play model only."""
+    """The baselines of a group of one sensor or one foot pair (its sum term with `lambda_sum`): with
+    `affine` the affine map alone, without the others (offset, polynomials, play and arx models)."""
     args = {
         "push": gp.push,
         "seed": seed,
@@ -205,6 +211,8 @@ def _fit_group_baselines(
         "n_inputs": baseline_inputs(gp.inputs),
     }
     out = {AFFINE: fit_linear_baseline(AFFINE, order=1, ridge=0.0, **args)} if affine else {}
+    if not affine:  # with the polynomials: the networks start from the affine map alone (`fit_affine`)
+        out[OFFSET] = fit_linear_baseline(OFFSET, order=0, ridge=0.0, **args)
     for order in gp.poly_orders:
         out[poly_name(order)] = fit_linear_baseline(poly_name(order), order=order, ridge=gp.ridge, **args)
     if group.widths is not None:
@@ -308,6 +316,7 @@ def score(
         "samples": {"train": len(prep.train), "val": len(prep.val), "test": len(prep.test)},
         "selection": cv["rule"],
         "cv": dict(cv),
+        "memory": prep.memory,  # the play widths and arx time constants the training data chose
     }
     if group.left_out:  # sensors of the group without any exact label: not calibrated, and why
         metrics[LEFT_OUT] = dict(group.left_out)

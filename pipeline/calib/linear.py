@@ -32,6 +32,7 @@ from typing import Any
 
 import numpy as np
 
+from pipeline.calib.memory import saturated
 from pipeline.calib.pushes import PushPrior, linear_push_gram, push_gram
 from pipeline.calib.scores import WRENCH
 from pipeline.core.errors import DataError
@@ -41,6 +42,9 @@ from pipeline.core.play import play_features
 AFFINE_INPUTS = 7  # raw wrench + temperature: the inputs of the affine map and the polynomials (6 where
 # a group trains on the wrench alone: `fit_linear_baseline(n_inputs=6)`, the networks' affine map then 6 wide)
 TINY_SCALE = 1e-9  # a normalisation scale below this (a constant input) is replaced by 1
+# the ridge of a memory model's operator columns, per sample, relative to each column's mean square: a
+# column must explain more than this fraction of its own energy to earn its weight (`_memory_terms`)
+MEMORY_RIDGE = 1e-3
 
 
 # --- linear baselines ----------------------------------------------------------------------------
@@ -286,6 +290,9 @@ def fit_linear_baseline(
     if use_sum:
         _add_sum_term(normal, rhs, phis, x, sum_label, alpha_sum.astype(bool), transforms, lambda_sum)
     penalty = np.tile(np.r_[0.0, np.ones(p - 1)], WRENCH * n_sensors) * ridge * n
+    allowed = None
+    if model.memory:
+        penalty, allowed = _memory_terms(phis, switches, len(powers), model, penalty)
     normal[np.diag_indices_from(normal)] += penalty
     if push is not None and push.active:
         rng, k, eye = np.random.default_rng(seed), WRENCH * p, np.eye(WRENCH)
@@ -298,9 +305,34 @@ def fit_linear_baseline(
             normal[s * k : (s + 1) * k, s * k : (s + 1) * k] += push.weight * np.kron(eye, gram)
             if push.free_lever:
                 _free_lever(normal[s * k : (s + 1) * k, s * k : (s + 1) * k], gram, push.weight, model, s)
-    allowed = np.tile(_own_axis(len(powers), model.n_operators), n_sensors) if model.memory else None
     model.weights = _solve_informed(normal, rhs, allowed).reshape(n_sensors, WRENCH, p)
     return model
+
+
+def _memory_terms(
+    phis: Sequence[np.ndarray], switches: np.ndarray, static: int, model: LinearBaseline, penalty: np.ndarray
+) -> tuple[np.ndarray, np.ndarray]:
+    """The penalty (one per unknown, `penalty` the static features') and the allowed unknowns of a model
+    with memory: each operator column pays ``MEMORY_RIDGE`` per sample times its mean square over the
+    labelled samples (a scale-free ridge: a state the data barely move cannot take a weight that a fresh
+    start would multiply), and output axis a reads only its own raw axis's states (`_own_axis`) of the play
+    operators the labelled samples saturate (`pipeline.calib.memory.saturated`)."""
+    n, p = len(switches), phis[0].shape[1]
+    out, allowed = penalty.copy(), []
+    for s, phi in enumerate(phis):
+        rows = phi[switches[:, s]] if switches[:, s].any() else phi
+        states = rows[:, static:]
+        usable = np.ones(p - static, dtype=bool)
+        if model.widths is not None:
+            usable[: model.widths.size] = saturated(states[:, : model.widths.size])
+        msq = np.mean(states**2, axis=0) if len(states) else np.zeros(p - static)
+        for o in range(WRENCH):
+            at = (s * WRENCH + o) * p
+            out[at + static : at + p] += MEMORY_RIDGE * n * msq
+        own = _own_axis(static, model.n_operators).reshape(WRENCH, p)
+        own[:, static:] &= usable
+        allowed.append(own.reshape(-1))
+    return out, np.concatenate(allowed)
 
 
 def _free_lever(block: np.ndarray, gram: np.ndarray, weight: float, model: LinearBaseline, s: int) -> None:

@@ -14,7 +14,7 @@ from typing import Any
 from pipeline.calib.pushes import PushPrior
 from pipeline.calib.registry import complexity
 from pipeline.core.errors import ConfigError
-from pipeline.core.play import checked_widths, distinct_positive, width_rows
+from pipeline.core.play import distinct_positive
 
 INPUT_SIZES = (6, 7, 13)  # raw wrench (+ temperature (+ accelerometer + gyroscope))
 NORMALISATIONS = ("max", "standard")
@@ -140,9 +140,9 @@ class GroupParams:
     prune_margin: float  # a trial is pruned when its error exceeds the earlier slots' median by more
     poly_orders: tuple[int, ...]  # polynomial baselines
     ridge: float  # ridge penalty per sample (standardised features)
-    play_widths_n: tuple[float, ...]  # the play model's widths on force axes, N (empty: no play model) ...
-    play_widths_nm: tuple[float, ...]  # ... and on torque axes, Nm (as many)
-    arx_time_constants_s: tuple[float, ...]  # the arx model's low-pass filters, s (empty: no arx model)
+    play_width_fractions: tuple[float, ...]  # the play model's widths, of each raw axis's training span
+    #                                          (pipeline.calib.memory; empty: no play model)
+    arx_time_constants_s: tuple[float, ...]  # the arx model's candidate low-pass filters, s (empty: no arx)
     window_time_constants_s: tuple[float, ...]  # the windowed network's windows, s (empty: no such network)
     window_hidden: int  # its neurons per hidden layer
     window_activations: tuple[str, ...]  # its hidden layers' activations, one per layer
@@ -240,9 +240,13 @@ class GroupParams:
                 raise ConfigError(f"{key}.{attr} must be an integer >= {low}, got {value!r}")
 
     def _check_widths(self, key: str) -> None:
-        widths = checked_widths(key, self.play_widths_n, self.play_widths_nm)
-        object.__setattr__(self, "play_widths_n", widths[0])
-        object.__setattr__(self, "play_widths_nm", widths[1])
+        fractions = distinct_positive(self.play_width_fractions, f"{key}.play_width_fractions")
+        if any(f > 0.5 for f in fractions):
+            raise ConfigError(
+                f"{key}.play_width_fractions must lie in (0, 0.5] (a wider operator never saturates on the "
+                f"training motion), got {list(fractions)}"
+            )
+        object.__setattr__(self, "play_width_fractions", fractions)
         taus = distinct_positive(self.arx_time_constants_s, f"{key}.arx_time_constants_s")
         object.__setattr__(self, "arx_time_constants_s", taus)
         taus = distinct_positive(self.window_time_constants_s, f"{key}.window_time_constants_s")
@@ -293,19 +297,14 @@ class GroupParams:
         """The virtual pushes every model of the group is fitted with."""
         return PushPrior(self.lambda_push, self.push_force_n, self.push_lever_m, self.free_lever)
 
-    def play_widths(self) -> tuple[tuple[float, ...], ...] | None:
-        """The play model's widths, one row per operator (K, 6: force axes N, torque axes Nm); None: the
-        group trains no play model."""
-        return width_rows(self.play_widths_n, self.play_widths_nm) if self.play_widths_n else None
-
-    def arx_time_constants(self) -> tuple[float, ...] | None:
-        """The arx model's filters' time constants, s; None: the group trains no arx model."""
-        return self.arx_time_constants_s or None
-
     def windowed(self) -> tuple[float, ...] | None:
         """The windowed network's time constants, s; None: the group trains none (none given, or no play
         model for it to correct)."""
-        return self.window_time_constants_s if self.window_time_constants_s and self.play_widths_n else None
+        return (
+            self.window_time_constants_s
+            if self.window_time_constants_s and self.play_width_fractions
+            else None
+        )
 
     def hyperparameters(self) -> dict[str, Any]:
         """The searchable values of these params."""

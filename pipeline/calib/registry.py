@@ -1,7 +1,8 @@
 """The model families of ftcal: one entry each, where training, scoring, export, the deployment tests and the
 pages find a family by the name of one of its models.
 
-A model's name is its family's key, followed for a numbered family by its number: ``raw``, ``affine``,
+A model's name is its family's key, followed for a numbered family by its number: ``raw``, ``offset`` (the
+factory map with a constant correction: what a re-zeroing does), ``affine``,
 ``poly2`` (a polynomial of order 2), ``play`` (the affine map with play-operator features of the raw
 wrench: memory), ``arx`` (the affine map with low-pass departures of the raw wrench: memory), ``nn7`` (a
 network of 7 inputs per sensor), ``win`` (a network over a causal window of the raw wrench correcting the play
@@ -11,6 +12,7 @@ them, `pipeline.calib.params.select_by_folds`):
 | family | kind | memory | fitted by | exported as |
 |---|---|---|---|---|
 | raw | identity | no | nothing (the factory map) | the raw wrench |
+| offset | linear | no | closed form (the mean residual) | a linear part (the constant) |
 | affine | linear | no | closed form (`pipeline.calib.linear`) | a linear part |
 | poly<n> | linear | no | closed form, ridge | a linear part (monomials) |
 | play | linear | yes | closed form | a linear part with play state |
@@ -59,20 +61,22 @@ class Family:
 
 FAMILIES = (
     Family("raw", 0, IDENTITY, False, False, "the factory map (the raw wrench)", "#8c8c8c"),
-    Family("affine", 1, LINEAR, False, False, "affine map with temperature (least squares)", "#bcbd22"),
-    Family("poly", 2, LINEAR, False, True, "polynomial of wrench and temperature (ridge)", "#c8553d",
+    Family("offset", 1, LINEAR, False, False, "the factory map and a constant offset (least squares: the "
+           "factory's gains kept, as a re-zeroing does)", "#393b79"),
+    Family("affine", 2, LINEAR, False, False, "affine map with temperature (least squares)", "#bcbd22"),
+    Family("poly", 3, LINEAR, False, True, "polynomial of wrench and temperature (ridge)", "#c8553d",
            ((1, "#d9b36c"), (2, "#e0894a"), (3, "#c8553d"), (4, "#8c2d04"))),
-    Family("play", 3, LINEAR, True, False, "affine map and play operators of the raw wrench (memory: "
+    Family("play", 4, LINEAR, True, False, "affine map and play operators of the raw wrench (memory: "
            "hysteresis)", "#9467bd"),
-    Family("arx", 4, LINEAR, True, False, "affine map and low-pass departures of the raw wrench (memory: a "
+    Family("arx", 5, LINEAR, True, False, "affine map and low-pass departures of the raw wrench (memory: a "
            "lagged linear map, ARX with fixed poles)", "#17becf"),
-    Family("nn", 5, NETWORK, False, True, "neural network (a Lipschitz-bounded correction of the affine map)",
+    Family("nn", 6, NETWORK, False, True, "neural network (a Lipschitz-bounded correction of the affine map)",
            "#1f77b4", ((13, "#d62728"),)),
-    Family("win", 6, WINDOW, True, False, "windowed network (a Lipschitz-bounded correction of the play "
+    Family("win", 7, WINDOW, True, False, "windowed network (a Lipschitz-bounded correction of the play "
            "model over a causal window of the raw wrench: memory)", "#8c564b"),
 )  # fmt: skip
 BY_KEY = {f.key: f for f in FAMILIES}
-RAW, AFFINE, POLY, PLAY, ARX, NN, WIN = (f.key for f in FAMILIES)
+RAW, OFFSET, AFFINE, POLY, PLAY, ARX, NN, WIN = (f.key for f in FAMILIES)
 OTHER_COLOUR = "#7f7f7f"  # a name of no family (the oracle and the labels have their own colours)
 
 

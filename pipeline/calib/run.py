@@ -28,6 +28,7 @@ from pipeline.calib.fit import (
     score,
 )
 from pipeline.calib.linear import LinearBaseline
+from pipeline.calib.memory import describe
 from pipeline.calib.models import WRENCH, save_model
 from pipeline.calib.params import LS_AFFINE
 from pipeline.calib.records import TrainResult, log_network, log_trial_run, write_predictions
@@ -96,6 +97,8 @@ def fit_models(params: Params, prep: Prepared, studies: Path, ui: ProgressLog) -
             fitted.preds[k][name] = model.predict(d.x, d.memory)
     fitted.timings["baselines"] = seconds + time.perf_counter() - t
     ui.line(f"{group.name}: baselines fitted on {len(prep.train)} samples in {seconds:.1f} s")
+    if prep.memory:
+        ui.line(describe(group.name, prep.memory))
     fitted.window = fit_windowed(gp, group, prep.train, prep.val, fitted.baselines, prep.seed)
     if fitted.window is not None:
         model, fitted.timings[WIN] = fitted.window.model, fitted.window.seconds

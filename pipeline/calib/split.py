@@ -31,7 +31,8 @@ def time_blocks(logs: Sequence[LogInfo], folds: int) -> tuple[list[LogInfo], str
     """`logs`, with each training log cut into max(TIME_BLOCKS, `folds`) blocks of equal duration
     (``<log>#<k>``) where no experiment kind has two training logs (a recording with one training segment):
     validation and the cross-validation folds then hold out blocks in time, the memory models' states
-    running over the whole table. Returns (logs, a note saying so, or None where nothing was cut)."""
+    starting afresh at each block (as at a test segment's start, or a calibrator's). Returns (logs, a note
+    saying so, or None where nothing was cut)."""
     train = [log for log in logs if log.role == ROLE_TRAIN]
     kinds = [log.kind for log in train]
     if not train or any(kinds.count(k) > 1 for k in kinds):

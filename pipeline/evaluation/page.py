@@ -31,6 +31,7 @@ from pipeline.evaluation.params import (
     REPORT_FILE,
     TRUTH,
 )
+from pipeline.evaluation.residual import held_out_html, held_out_lines
 from pipeline.evaluation.sections import (
     availability_section,
     cv_section,
@@ -198,6 +199,20 @@ def _flags_box(results: Sequence[GroupReport], cfg: EvaluateParams) -> str:
     return notes + noise + faith + fallbacks
 
 
+def _held_out_box(results: Sequence[GroupReport]) -> str:
+    """Recorded groups: one line per held-out finding (`pipeline.evaluation.residual.held_out_lines`), the
+    detail folded below it."""
+    items = []
+    for r in results:
+        for line in held_out_lines(r.group, r.held_out):
+            head, _, detail = line.partition(": ")
+            what, _, why = detail.partition(": ")
+            items.append(f"<details><summary><b>{_e(head)}</b>: {_e(what)}</summary>{_e(why)}</details>")
+    if not items:
+        return ""
+    return "<div class='flags'><b>Held out (recorded, against labels):</b>" + "".join(items) + "</div>"
+
+
 def _no_truth_box(results: Sequence[GroupReport]) -> str:
     """A plain warning where the test logs are recordings: no truth, no oracle, errors against labels."""
     if not results or any(TRUTH in r.tables[h] for r in results for h in _headlines(r)):
@@ -270,6 +285,7 @@ def _group_section(r: GroupReport, tolerance: float) -> list[str]:
         cv_section(r.cv),
         fidelity_table(r, tolerance),
         excitation_html(r),
+        held_out_html(r.held_out, (r.figures or {}).get("held_out") or {}) if r.held_out else "",
     ]
     for name in g.names:
         if name == g.pair:
@@ -348,6 +364,7 @@ def render_html(
         return document("ftcal evaluation report", [*parts, labels])
     parts += [
         _no_truth_box(results),
+        _held_out_box(results),
         _flags_box(results, cfg),
         summary_table(results, cfg),
         _SUMMARY_NOTE.format(a=cfg.target_raw_over_nn7, b=cfg.target_nn7_over_oracle),

@@ -123,6 +123,8 @@ class GroupReport:
     excitation: dict[str, Any] = field(default_factory=dict)
     outside: dict[str, Any] = field(default_factory=dict)
     floor: dict[str, float] = field(default_factory=dict)  # name -> noise floor (pipeline.evaluation.floors)
+    # recorded test logs: name -> where the held-out residual comes from (pipeline.evaluation.residual)
+    held_out: dict[str, Any] = field(default_factory=dict)
     notes: list[str] = field(default_factory=list)  # train's: a network not trained and why (metrics.json)
     # a group nothing could be calibrated for: why (train's record, `pipeline.calib.exact`); the sensors of a
     # calibrated group left out of it and why; in report.json only where set

@@ -331,14 +331,35 @@ def fixed_sensitivity(
     for joint in fixed:
         q[:, lab.robot.joint_names.index(joint)] += np.radians(FIXED_DELTA_DEG)
     moved = label_arrays(lab, contacts, q, kin[1], kin[2], ok, gravity_fixed)
+    return {s: float(np.sqrt(np.nanmean(d**2))) for s, d in _changes(lab, columns, moved).items()}
+
+
+def _changes(lab: Labeller, columns: dict[str, np.ndarray], other: dict[str, np.ndarray]) -> dict[str, Any]:
+    """Per sensor with exact labels: (M, 6) its labels in `other` less those of `columns`, where exact."""
     out = {}
     for sensor in lab.robot.sensors:
         on = columns[S.switch_col(sensor)] == 1
         if on.any():
             cols = S.wrench_cols(S.EXPECTED, sensor)
-            diff = np.column_stack([moved[c][on] - columns[c][on] for c in cols])
-            out[sensor] = float(np.sqrt(np.nanmean(diff**2)))
+            out[sensor] = np.column_stack([other[c][on] - columns[c][on] for c in cols])
     return out
+
+
+def inertial_part(
+    lab: Labeller,
+    contacts: Contacts,
+    kin: tuple[np.ndarray, np.ndarray, np.ndarray],
+    ok: np.ndarray,
+    gravity_fixed: np.ndarray,
+    columns: dict[str, np.ndarray],
+) -> dict[str, list[float]]:
+    """Per sensor with exact labels: the RMS per axis (6,) of its label's inertial part (N, Nm), the label
+    less the same pose's label at rest: all that the smoothed velocities and accelerations put in it. Where
+    a recording moves slowly it is mostly their noise (a still joint's flicker, a narrow window's
+    accelerations), the labels' kinematic noise."""
+    q, dq, ddq = kin
+    rest = label_arrays(lab, contacts, q, np.zeros_like(dq), np.zeros_like(ddq), ok, gravity_fixed)
+    return {s: np.sqrt(np.nanmean(d**2, axis=0)).tolist() for s, d in _changes(lab, columns, rest).items()}
 
 
 def label_table(src: Path, dst: Path, lab: Labeller, truth_dir: Path | None = None) -> LogSummary:
@@ -363,6 +384,8 @@ def label_table(src: Path, dst: Path, lab: Labeller, truth_dir: Path | None = No
         columns = label_arrays(lab, contacts, q, dq, ddq, ok, gravity_fixed, lacking)
         fixed = ((meta.get(S.META_INGEST.decode()) or {}).get("fixed_joints")) or {}
         sensitivity = fixed_sensitivity(lab, contacts, (q, dq, ddq), ok, gravity_fixed, columns, fixed)
+        recorded = str(experiment.get("sim", "")).strip().lower() != "true"
+        inertial = inertial_part(lab, contacts, (q, dq, ddq), ok, gravity_fixed, columns) if recorded else {}
         every = ok.all(axis=1)  # the IMU check reads every joint's kinematics
         imu = check_log(robot, table, meta, contacts, (q, dq, ddq), every, gravity_fixed, lab.cfg.imu_check)
     except RobotModelError as exc:
@@ -396,6 +419,8 @@ def label_table(src: Path, dst: Path, lab: Labeller, truth_dir: Path | None = No
             truth_path, out[S.STAMP], lab, contacts, columns
         )
     label_meta = {**_label_metadata(lab), "imu_axes": imu, "exact": summary.exact}
+    if inertial:  # a recording's labels' kinematic noise, on its page (pipeline.evaluation.residual)
+        label_meta["inertial_rms"] = inertial
     if fixed:
         label_meta["fixed_joints"] = {"deg": fixed, "delta_deg": FIXED_DELTA_DEG, "label_rms": sensitivity}
     kv = {S.META_EXPERIMENT: experiment, S.META_LABEL: label_meta}

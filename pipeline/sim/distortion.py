@@ -6,20 +6,34 @@ Every random quantity comes from the `numpy.random.Generator` passed in, in a fi
 gives one log. The reading model (per sensor, parameters drawn once by `draw_distortion`)::
 
       v    = C @ w                                        coupled signal (C = I + E, gains on the diagonal)
-      D    = G(T) * v + k * v * |v| / s + o + o_T * (T - T_ref)     static (memoryless) part
-      read = D + h * play(v; width)                       + hysteresis (path-dependent)
+      T_g  = LP(T; thermal_lag)                           the gauges' temperature lags the board's
+      D    = G(T_g) * v + k * v * |v| / s + o + o_T * (T_g - T_ref)   static (memoryless) part
+      read = D + sum_k h_k * play(v; width_k)             + hysteresis (path-dependent, a spread of widths)
+               + c * (LP(v; creep_tau) - v)               + creep and its recovery under a held load
       raw  = read + noise                                 white, per-axis std
 
-with ``G(T) = 1 + g_T * (T - T_ref)`` per axis. `oracle_inverse` inverts the static part exactly, so its
-error on the raw reading (noise + hysteresis) is the floor no per-sample calibration can beat.
+with ``G(T) = 1 + g_T * (T - T_ref)`` per axis and LP a first-order low-pass (exact discretisation,
+starting at the log's first value: the robot held its load and temperature before the log). Creep is zero
+at rest and after a load step reads ``-c`` of the step, recovering with `creep_tau`: the reading creeps
+towards its static value (the foil gauges' adhesive and the body relax under a held load, and back once
+it is removed). `oracle_inverse` inverts the static part exactly at the board's temperature, so its error
+on the raw reading (noise, hysteresis, creep, the gauges' thermal lag) is the floor no memoryless
+calibration can beat; the white noise alone is the floor of any calibration.
+
+Magnitudes (`pipeline.sim.params.DistortionRanges`): strain-gauge load cells of accuracy class C (OIML R 60)
+keep hysteresis and creep (30 min) within a few 0.01 % of full scale, 6-axis FT sensors specify hysteresis
+and non-linearity within 0.5-1 % of full scale (ATI, their "Hysteresis" spec), creep 0.05-0.5 % of the load
+change over minutes; the sensors' aluminium and steel bodies reach the board's temperature with time
+constants of about a minute.
 """
 
 from __future__ import annotations
 
-from dataclasses import dataclass, fields
+from dataclasses import dataclass, field, fields
 from typing import Any
 
 import numpy as np
+from scipy.signal import lfilter
 
 from pipeline.core.play import play_operator
 from pipeline.sim.params import DistortionRanges
@@ -55,8 +69,11 @@ class SensorDistortion:
     temperature_gain: (6,) g_T, 1/degC.        temperature_ref: T_ref, deg C.
     offset: (6,) o, N / Nm.                    offset_drift: (6,) o_T, N/degC / Nm/degC.
     nonlinearity: (6,) k, dimensionless.       full_scale: (6,) s, N / Nm.
-    hysteresis: (6,) h, N / Nm.                hysteresis_width: (6,) play width, N / Nm (of v).
+    hysteresis: (6,) h, N / Nm (the sum of the operators' amplitudes, split equally among them).
+    hysteresis_width: (K, 6) the K play operators' widths, N / Nm (of v).
     noise_std: (6,) white noise std, N / Nm.
+    creep: (6,) c, dimensionless.             creep_tau_s: (6,) its time constant, s.
+    thermal_lag_s: the gauges' thermal time constant behind the board's thermometer, s (0: none).
     """
 
     coupling: np.ndarray
@@ -69,27 +86,38 @@ class SensorDistortion:
     hysteresis: np.ndarray
     hysteresis_width: np.ndarray
     noise_std: np.ndarray
+    creep: np.ndarray = field(default_factory=lambda: np.zeros(6))
+    creep_tau_s: np.ndarray = field(default_factory=lambda: np.ones(6))
+    thermal_lag_s: float = 0.0
 
     def __post_init__(self) -> None:
         for f in fields(self):
-            if f.name == "temperature_ref":
-                object.__setattr__(self, f.name, float(self.temperature_ref))
+            if f.name in ("temperature_ref", "thermal_lag_s"):
+                object.__setattr__(self, f.name, float(getattr(self, f.name)))
                 continue
-            shape = (6, 6) if f.name == "coupling" else (6,)
             value = np.array(getattr(self, f.name), dtype=float)  # a private copy
+            if f.name == "hysteresis_width":
+                value = value.reshape(-1, 6) if value.size and value.size % 6 == 0 else value
+            shape = (6, 6) if f.name == "coupling" else value.shape if f.name == "hysteresis_width" else (6,)
             if value.shape != shape or not np.all(np.isfinite(value)):
                 raise ValueError(
                     f"SensorDistortion.{f.name} must be finite with shape {shape}, got shape {value.shape}"
                 )
             value.setflags(write=False)
             object.__setattr__(self, f.name, value)
-        if np.any(self.full_scale <= 0) or np.any(self.hysteresis_width <= 0):
-            raise ValueError("SensorDistortion.full_scale and hysteresis_width must be positive")
+        if (
+            np.any(self.full_scale <= 0)
+            or np.any(self.hysteresis_width <= 0)
+            or np.any(self.creep_tau_s <= 0)
+        ):
+            raise ValueError("SensorDistortion.full_scale, hysteresis_width and creep_tau_s must be positive")
+        if self.hysteresis_width.ndim != 2 or self.thermal_lag_s < 0:
+            raise ValueError("SensorDistortion.hysteresis_width must be (K, 6), thermal_lag_s >= 0")
 
     def to_dict(self) -> dict[str, Any]:
         """JSON-serialisable form (nested lists of floats), e.g. for MCAP metadata or MLflow."""
         return {
-            f.name: (getattr(self, f.name).tolist() if f.name != "temperature_ref" else self.temperature_ref)
+            f.name: v.tolist() if isinstance(v := getattr(self, f.name), np.ndarray) else v
             for f in fields(self)
         }
 
@@ -128,6 +156,10 @@ def draw_distortion(rng: np.random.Generator, ranges: DistortionRanges) -> Senso
     nonlinearity = rng.uniform(-r.nonlinearity, r.nonlinearity, size=6)
     full_scale = _per_axis(r.full_scale_force, r.full_scale_torque)
     hysteresis = rng.uniform(0.0, r.hysteresis, size=6) * full_scale
+    low, high = np.log(r.hysteresis_width_min), np.log(r.hysteresis_width_max)
+    widths = np.exp(rng.uniform(low, high, size=(r.hysteresis_operators, 6))) * full_scale
+    creep = rng.uniform(0.0, r.creep, size=6)
+    creep_tau = np.exp(rng.uniform(np.log(r.creep_tau_min_s), np.log(r.creep_tau_max_s), size=6))
     return SensorDistortion(
         coupling=coupling,
         temperature_gain=temperature_gain,
@@ -137,8 +169,11 @@ def draw_distortion(rng: np.random.Generator, ranges: DistortionRanges) -> Senso
         nonlinearity=nonlinearity,
         full_scale=full_scale,
         hysteresis=hysteresis,
-        hysteresis_width=r.hysteresis_width * full_scale,
+        hysteresis_width=widths,
         noise_std=_per_axis(r.noise_force, r.noise_torque),
+        creep=creep,
+        creep_tau_s=creep_tau,
+        thermal_lag_s=r.thermal_lag_s,
     )
 
 
@@ -164,24 +199,62 @@ def static_distortion(d: SensorDistortion, wrench: np.ndarray, temperature: np.n
 
 
 def hysteresis_term(d: SensorDistortion, wrench: np.ndarray) -> np.ndarray:
-    """The path-dependent part of the reading, ``h * play(C @ w)``, (N, 6) N / Nm; zero at the first sample.
+    """The path-dependent part of the reading, ``sum_k (h / K) play(C @ w; width_k)``, (N, 6) N / Nm; zero
+    at the first sample.
 
     wrench: (N, 6) true wrench of one continuous recording, N / Nm.
     """
     v = _as_samples(wrench, 6, "wrench") @ d.coupling.T
-    return d.hysteresis * play_operator(v, d.hysteresis_width)
+    k = len(d.hysteresis_width)
+    return sum(d.hysteresis / k * play_operator(v, width) for width in d.hysteresis_width)
+
+
+def lowpass(x: np.ndarray, tau_s: np.ndarray | float, dt: float) -> np.ndarray:
+    """First-order low-pass of each column of x (N, m) with time constants `tau_s` (scalar or (m,), s) at
+    a step of `dt` s, exact for x held over a step, starting at x[0]."""
+    x = np.asarray(x, dtype=float)
+    a = 1.0 - np.exp(-dt / np.broadcast_to(np.asarray(tau_s, dtype=float), x.shape[1:]))
+    out = np.empty_like(x)
+    for j in range(x.shape[1]):
+        out[:, j] = (
+            lfilter([a[j]], [1.0, a[j] - 1.0], x[:, j], zi=[(1.0 - a[j]) * x[0, j]])[0] if len(x) else 0
+        )
+    return out
+
+
+def creep_term(d: SensorDistortion, wrench: np.ndarray, dt: float) -> np.ndarray:
+    """The reading's creep, ``c (LP(C @ w; creep_tau) - C @ w)``, (N, 6) N / Nm: zero at rest, ``-c`` of a
+    load step at once, recovering with `creep_tau`. wrench: (N, 6) of one recording at a step of dt s."""
+    v = _as_samples(wrench, 6, "wrench") @ d.coupling.T
+    if not np.any(d.creep):
+        return np.zeros_like(v)
+    return d.creep * (lowpass(v, d.creep_tau_s, dt) - v)
+
+
+def gauge_temperature(d: SensorDistortion, temperature: np.ndarray | float, dt: float) -> np.ndarray | float:
+    """The gauges' temperature, deg C: the board's (scalar or (N,)) through the thermal lag (none: as is)."""
+    t = np.asarray(temperature, dtype=float)
+    if t.ndim == 0 or d.thermal_lag_s <= 0:
+        return temperature
+    return lowpass(t[:, None], d.thermal_lag_s, dt)[:, 0]
 
 
 def distort(
-    d: SensorDistortion, wrench: np.ndarray, temperature: np.ndarray | float, rng: np.random.Generator
+    d: SensorDistortion,
+    wrench: np.ndarray,
+    temperature: np.ndarray | float,
+    rng: np.random.Generator,
+    dt: float = 0.01,
 ) -> tuple[np.ndarray, np.ndarray]:
     """The sensor's readings of a true wrench: (noise-free distorted, raw), each (N, 6) N / Nm.
 
-    wrench: (N, 6) true wrench, N / Nm, one continuous recording (the hysteresis state starts at 0).
-    temperature: (N,) or scalar, deg C. The noise-free reading is D(w, T) + hysteresis; raw adds
-    white noise of std `d.noise_std` drawn from `rng`.
+    wrench: (N, 6) true wrench, N / Nm, one continuous recording at a step of dt s (the hysteresis state
+    starts at 0, the creep and the gauges' temperature at rest). temperature: the board's, (N,) or scalar,
+    deg C. The noise-free reading is D(w, T_g) + hysteresis + creep; raw adds white noise of std
+    `d.noise_std` drawn from `rng`.
     """
-    clean = static_distortion(d, wrench, temperature) + hysteresis_term(d, wrench)
+    gauges = gauge_temperature(d, temperature, dt)
+    clean = static_distortion(d, wrench, gauges) + hysteresis_term(d, wrench) + creep_term(d, wrench, dt)
     raw = clean + rng.standard_normal(clean.shape) * d.noise_std
     return clean, raw
 

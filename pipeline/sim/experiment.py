@@ -124,7 +124,8 @@ def sensor_readings(
         # the FT board samples at its own stamps: the truth there, by interpolation of the smooth signals
         w_true = np.stack([np.interp(t_ft, motion.t, truth.wrench[s][:, a]) for a in range(6)], axis=1)
         temp_at = np.interp(t_ft, motion.t, temp_true)
-        distorted, raw = distort(world.distortions[s], w_true, temp_at, rng)
+        step = float(np.median(np.diff(t_ft))) if len(t_ft) > 1 else dt
+        distorted, raw = distort(world.distortions[s], w_true, temp_at, rng, step)
         acc, gyro = imu_readings(rng, truth.proper_acc[s], truth.gyro[s], dt, sim.imu)
         if s in sim.imu.axes:  # a board whose IMU is mounted in other axes reads in them
             acc, gyro = np.split(to_board(np.c_[acc, gyro], sim.imu.axes[s]), 2, axis=1)

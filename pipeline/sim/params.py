@@ -1,9 +1,9 @@
 """Parameters of the simulator (section ``simulate`` of params.yaml), validated on construction.
 
-Every dataclass below is one subsection; its ``__post_init__`` raises `ConfigError` naming the dotted
-key. Motion lengths left ``null`` in params.yaml are derived from the robot's URDF when the motions are
-built (:mod:`pipeline.sim.derive`), so changing ``robot.urdf`` alone gives motions fitted to the robot.
-Light imports only (no numpy): the stage's CLI loads this module to validate params.
+Every dataclass below is one subsection; its ``__post_init__`` raises `ConfigError` naming the dotted key.
+Motion lengths left ``null`` in params.yaml are derived from the robot's URDF (:mod:`pipeline.sim.derive`),
+so changing ``robot.urdf`` alone gives motions fitted to the robot. Light imports (no numpy): the CLI loads
+this module to validate params.
 """
 
 from __future__ import annotations
@@ -16,9 +16,8 @@ from pipeline.core.config import Params, stage_section
 from pipeline.core.errors import ConfigError
 from pipeline.logs.imu_axes import parse_axis_maps
 
-EXPERIMENT_TYPES = (
-    "pole", "balancing", "half_foot", "walking", "standing", "known_load", "interaction", "poses"
-)  # fmt: skip
+EXPERIMENT_TYPES = ("pole", "balancing", "half_foot", "walking", "standing", "known_load", "interaction",
+                    "poses")  # fmt: skip
 
 
 def check_number(
@@ -52,9 +51,8 @@ def check_order(obj: Any, low: str, high: str) -> None:
 class DistortionRanges:
     """Ranges from which each FT sensor's hidden distortion is drawn (section ``simulate.sensors``).
 
-    Defaults give raw-vs-truth errors like the thesis's raw columns for loads of a few hundred N:
-    ~25-50 N RMSE on the force axes and ~1.5-6 Nm on the torque axes, dominated by the offsets.
-    "uniform +-x" means each entry is drawn from U(-x, x), independently per sensor and axis.
+    Defaults give raw-vs-truth errors like the thesis's raw columns for loads of a few hundred N: ~25-50 N
+    RMSE on force axes, ~1.5-6 Nm on torque axes, mostly offsets. "uniform +-x": U(-x, x) per sensor, axis.
     """
 
     coupling: float = 0.02  # off-diagonal cross-talk of C, uniform +-: dimensionless in the force<-force
@@ -73,7 +71,13 @@ class DistortionRanges:
     full_scale_force: float = 1500.0  # s of force axes, N
     full_scale_torque: float = 100.0  # s of torque axes, Nm
     hysteresis: float = 0.003  # h, uniform in [0, hysteresis] x full scale, per axis (0.3% of FS)
-    hysteresis_width: float = 0.02  # play width = this x full scale; a reversal of 2x width saturates
+    hysteresis_width_min: float = 0.005  # the play operators' widths, log-uniform in [min, max] x full scale
+    hysteresis_width_max: float = 0.05  # per operator and axis; a reversal of 2x a width saturates it
+    hysteresis_operators: int = 3  # play operators per axis, the amplitude split equally among them
+    creep: float = 0.003  # c, uniform in [0, creep] per axis: a load step reads -c of itself, then recovers
+    creep_tau_min_s: float = 20.0  # creep's time constant, log-uniform in [min, max], s, per axis
+    creep_tau_max_s: float = 200.0
+    thermal_lag_s: float = 60.0  # the gauges' temperature lags the board thermometer's by this, s (0: none)
     noise_force: float = 0.6  # white noise std of force axes, N
     noise_torque: float = 0.03  # white noise std of torque axes, Nm
 
@@ -85,24 +89,23 @@ class DistortionRanges:
         check_number(self, "gain", 0.0, 0.5)
         check_number(self, "temperature_gain", 0.0, 0.005)  # keeps G(T) > 0.5 within 100 degC of T_ref
         check_number(self, "temperature_ref", -50.0, 150.0, hi_open=False)
-        for name in (
-            "offset_force_min",
-            "offset_force_max",
-            "offset_torque_min",
-            "offset_torque_max",
-            "offset_drift_force",
-            "offset_drift_torque",
-            "noise_force",
-            "noise_torque",
-        ):
+        nonnegative = ("offset_force_min", "offset_force_max", "offset_torque_min", "offset_torque_max",
+                       "offset_drift_force", "offset_drift_torque", "noise_force", "noise_torque",
+                       "thermal_lag_s")  # fmt: skip
+        for name in nonnegative:
             check_number(self, name, 0.0, math.inf)
-        check_order(self, "offset_force_min", "offset_force_max")
-        check_order(self, "offset_torque_min", "offset_torque_max")
+        for name in ("full_scale_force", "full_scale_torque", "creep_tau_min_s", "creep_tau_max_s"):
+            check_number(self, name, 0.0, math.inf, lo_open=True)
+        for name in ("hysteresis_width_min", "hysteresis_width_max"):
+            check_number(self, name, 0.0, 1.0, lo_open=True, hi_open=False)
+        for low in ("offset_force_min", "offset_torque_min", "hysteresis_width_min", "creep_tau_min_s"):
+            check_order(self, low, low.replace("min", "max"))
         check_number(self, "nonlinearity", 0.0, 0.2)  # keeps the static map monotonic far beyond full scale
-        check_number(self, "full_scale_force", 0.0, math.inf, lo_open=True)
-        check_number(self, "full_scale_torque", 0.0, math.inf, lo_open=True)
         check_number(self, "hysteresis", 0.0, 0.1)
-        check_number(self, "hysteresis_width", 0.0, 1.0, lo_open=True, hi_open=False)
+        check_number(self, "creep", 0.0, 0.1, hi_open=False)
+        if not isinstance(self.hysteresis_operators, int) or not 1 <= self.hysteresis_operators <= 10:
+            got = repr(self.hysteresis_operators)
+            raise ConfigError(f"{self.SECTION}.hysteresis_operators must be an integer in [1, 10], got {got}")
 
 
 @dataclass(frozen=True)
@@ -127,16 +130,13 @@ class ThermalParams:
     SECTION = "simulate.thermal"  # dotted params key, for error messages (a class attribute, not a field)
 
     def __post_init__(self) -> None:
-        check_number(self, "baseline", -50.0, 150.0, hi_open=False)
-        check_number(self, "baseline_spread", 0.0, 50.0)
-        check_number(self, "heat_gain", 0.0, 100.0)
-        check_number(self, "tau_s", 0.0, math.inf, lo_open=True)
-        check_number(self, "t_min", -50.0, 150.0, hi_open=False)
-        check_number(self, "t_max", -50.0, 150.0, hi_open=False)
-        check_order(self, "t_min", "t_max")
-        check_number(self, "noise", 0.0, 10.0)
-        check_number(self, "resolution", 0.0, 10.0)
+        for name in ("baseline", "t_min", "t_max"):
+            check_number(self, name, -50.0, 150.0, hi_open=False)
+        for name, high in (("baseline_spread", 50), ("heat_gain", 100), ("noise", 10), ("resolution", 10)):
+            check_number(self, name, 0.0, high)
         check_number(self, "warmup_max", 0.0, 50.0)
+        check_number(self, "tau_s", 0.0, math.inf, lo_open=True)
+        check_order(self, "t_min", "t_max")
 
 
 @dataclass(frozen=True)

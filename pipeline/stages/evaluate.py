@@ -40,6 +40,7 @@ def run(
     out_dir: str | Path,
     truth_dir: str | Path | None = None,
     *,
+    smoothed_dir: str | Path | None = None,
     progress: bool | None = None,
 ) -> Any:
     """Evaluate one group into `out_dir` (module docstring) in one MLflow run ``evaluate@<group>``.
@@ -71,7 +72,8 @@ def run(
     if truth is not None and not truth.is_dir():
         raise DataError(f"{truth}: truth directory not found")
     with stage_run(f"{STAGE}@{group}", {STAGE: asdict(cfg), "group": group}) as active:
-        result = _scored(group, models, labelled, out, truth, cfg, progress)
+        smoothed = Path(smoothed_dir) if smoothed_dir is not None else None
+        result = _scored(group, models, labelled, out, truth, cfg, progress, smoothed)
         files = figures.write_plot_data(out, result)
         report_path = out / GROUPS_DIR / group / GROUP_REPORT
         write_json(report_path, result.report().to_dict())
@@ -101,7 +103,14 @@ def run(
 
 
 def _scored(
-    group: str, models: Path, labelled: Path, out: Path, truth: Path | None, cfg: Any, progress: bool | None
+    group: str,
+    models: Path,
+    labelled: Path,
+    out: Path,
+    truth: Path | None,
+    cfg: Any,
+    progress: bool | None,
+    smoothed: Path | None = None,
 ) -> Any:
     """The group's `GroupResult` with its figures written under `out`; a group that train could not
     calibrate (its record says why) gets the result saying so, no score and no figure."""
@@ -119,10 +128,59 @@ def _scored(
         task = bar.add_task(f"evaluate {group}: scoring", total=None)
         inputs = load_group(group, models, labelled, truth, cfg)
         result = results.evaluate_group(inputs, cfg)
+        joints = None
+        if not inputs.has_truth:  # a recording: where its held-out error comes from
+            result.held_out, joints = _held_out(inputs, result, models, labelled, smoothed)
         links.read_train_links(result, inputs.train)
         bar.remove_task(task)
         result.figures = figures.write_group_figures(out, result, cfg, bar)
+        if joints is not None:
+            result.figures["held_out"] = _plot_held_out(out, result, inputs, joints)
     return result
+
+
+def _plot_held_out(out: Path, result: Any, inputs: Any, joints: Any) -> dict[str, str]:
+    """The held-out residual figure of each sensor of a recorded group; name -> path relative to `out`."""
+    from pipeline.calib.params import LS_AFFINE
+    from pipeline.evaluation.params import GROUPS_DIR, PLOTS_DIR
+    from pipeline.evaluation.residual import plot_held_out
+
+    shown = [m for m in dict.fromkeys([result.recommended, LS_AFFINE]) if m in inputs.models]
+    paths = {}
+    for name in result.held_out:
+        rel = f"{GROUPS_DIR}/{result.group}/{PLOTS_DIR}/{name}_held_out.png"
+        plot_held_out(inputs.frame, joints, name, shown, out / rel)
+        paths[name] = rel
+    return paths
+
+
+def _held_out(
+    inputs: Any, result: Any, models: Path, labelled: Path, smoothed: Path | None
+) -> tuple[dict[str, Any], Any]:
+    """`pipeline.evaluation.residual.held_out` of a recorded group, with train's linear maps and the joints
+    of the smoothed tables (none without `smoothed`); and those joints per test sample."""
+    import json
+
+    from pipeline.calib.linear import LinearBaseline
+    from pipeline.evaluation import residual
+
+    path = models / "baselines.json"
+    entries = json.loads(path.read_text()) if path.is_file() else {}
+    baselines = {k: LinearBaseline.from_dict(v) for k, v in entries.items() if "weights" in v}
+    joints = residual.read_joints(inputs.frame, smoothed)
+    held = residual.held_out(
+        inputs.frame,
+        joints,
+        inputs.names,
+        inputs.models,
+        result.recommended,
+        inputs.train,
+        baselines,
+        inputs.sensors,
+        result.unfaithful,
+        residual.read_inertial(labelled),
+    )
+    return held, joints
 
 
 def _fmt(v: float | None, digits: int = 3) -> str:
@@ -137,7 +195,7 @@ def _cmd(args: argparse.Namespace) -> int:
     from pipeline.evaluation.params import LABELS, NN6, NN7, NO_TRUTH, TRUTH
 
     params = load_params(args.params)
-    r = run(params, args.group, args.models, args.labelled, args.out, args.truth)
+    r = run(params, args.group, args.models, args.labelled, args.out, args.truth, smoothed_dir=args.smoothed)
     if r.not_calibrated is not None:
         print(f"{r.group}: not calibrated: {r.not_calibrated}")
         return 0
@@ -159,7 +217,7 @@ def _cmd(args: argparse.Namespace) -> int:
 
 
 def add_cli(subparsers: Any) -> None:
-    """Add `ftcal evaluate GROUP MODELS LABELLED OUT [--truth DIR]`."""
+    """Add `ftcal evaluate GROUP MODELS LABELLED OUT [--truth DIR] [--smoothed DIR]`."""
     parser = subparsers.add_parser(
         STAGE,
         help="error tables, figures and noise check of one group's models",
@@ -175,6 +233,13 @@ def add_cli(subparsers: Any) -> None:
         default=None,
         help="directory of simulated <log>.truth.parquet tables (optional): adds the errors against the "
         "true wrench and the oracle calibration",
+    )
+    parser.add_argument(
+        "--smoothed",
+        type=Path,
+        default=None,
+        help="directory of smoothed <log>.parquet tables (optional): recorded test logs' held-out residual "
+        "set against their joints' positions and speeds",
     )
     add_params_option(parser)
     parser.set_defaults(func=_cmd)

@@ -8,10 +8,10 @@ Optuna search, scores every model and writes ``OUT_DIR``:
   validation and test errors against the labels (MSE/MAE/RMSE global, force, torque, per axis; per sensor
   and, for a foot, of the sum in the sole frame; a group of several sensors: also each cut set's sum),
   ``cv``: every model's validation error on each cross-validation fold, their mean and spread, and
-  ``best_on_validation``: the model to deploy, the simplest (raw < affine < poly < play < arx < nn7 < nn13 <
-  win) unless a more complex one's mean fold error is lower by more than ``train.selection_margin`` and by
-  more than the spread of its per-fold improvements (`pipeline.calib.crossval`); ``windowed``: the windowed
-  network's window, best epoch and history.
+  ``best_on_validation``: the model to deploy, the simplest (raw < offset < affine < poly < play < arx < nn7 <
+  nn13 < win) unless a more complex one's mean fold error is lower by more than ``train.selection_margin``
+  and by more than the spread of its per-fold improvements (`pipeline.calib.crossval`); ``windowed``: the
+  windowed network's window, best epoch and history.
 - ``nn7.json`` + ``nn7.pt``, ``nn13.json`` + ``nn13.pt``: the best networks (`calib.models.load_model`
   rebuilds them from the JSON and a weights-only state dict; normalisation constants are in the weights).
 - ``baselines.json``: the fitted affine, polynomial and play coefficients (the play model: memory, its
