@@ -397,7 +397,18 @@ def test_end_to_end_resumes_registers_and_repeats(
 
     m = a.metrics
     for split in ("val", "test"):
-        assert set(m[split]) == {"raw", "affine", "poly1", "poly2", "play", "arx", "nn7", "nn13", "win"}
+        assert set(m[split]) == {
+            "raw",
+            "offset",
+            "affine",
+            "poly1",
+            "poly2",
+            "play",
+            "arx",
+            "nn7",
+            "nn13",
+            "win",
+        }
         for errors in m[split].values():
             assert {FRONT, REAR, PAIR, "rmse", "rmse_labelled"} <= set(errors)
             assert errors["rmse"] == errors[PAIR]["rmse"]
