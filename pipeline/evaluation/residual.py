@@ -71,7 +71,9 @@ def decompose(
     r = residual.copy()
     parts = {}
     ones = np.ones((len(r), 1))
-    centred = time - np.array([time[segment == s].mean() for s in segment]) if len(r) else time
+    ids, at = np.unique(segment, return_inverse=True)
+    means = np.array([time[segment == k].mean() for k in ids]) if len(r) else np.zeros(0)
+    centred = time - means[at] if len(r) else time
     steps = [
         ("offset", ones, segment),
         ("time", centred[:, None], segment),
