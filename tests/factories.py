@@ -23,6 +23,9 @@ SHANK_SIGNS = {LEG: 1.0, FRONT: -1.0, REAR: -1.0}
 SHANK_P = np.array([0.02, -0.01, -0.4])  # m: the leg sensor's position in the sole frame
 SCALE = np.array([60.0, 60.0, 200.0, 4.0, 4.0, 1.5])  # N, N, N, Nm, Nm, Nm: amplitude of the true wrenches
 # Which labels each synthetic experiment type has: (leg, parts, pair) as functions of the phase u in [0, 1).
+# every model a group trains on these tables with the tests' train params (poly orders 1 and 2, networks of 7
+# and 13 inputs, play, arx and the windowed network), the raw wrench apart
+TRAINED = ("offset", "affine", "poly1", "poly2", "play", "arx", "nn7", "nn13", "win")
 SWITCHES = {
     "pole": lambda u: (np.ones_like(u), np.ones_like(u), np.ones_like(u)),  # the foot touches nothing
     "balancing": lambda u: (np.ones_like(u), np.zeros_like(u), np.ones_like(u)),  # whole foot on the floor

@@ -31,8 +31,8 @@ from pipeline.deploy import checks
 from pipeline.deploy.prepare import read_day
 from pipeline.evaluation.params import EvaluateParams
 from pipeline.logs import schema as S
+from tests.factories import FRONT, LEG, PAIR, REAR, TRAINED
 from tests.test_export import _report
-from tests.test_train import FRONT, LEG, PAIR, REAR
 
 pytestmark = pytest.mark.slow  # the deployment stages on trained groups
 
@@ -205,17 +205,7 @@ def test_a_flags_exactly_the_models_above_the_params_limit(stage: dict[str, Any]
     assert set(test_a) == set(DEPLOYED)
     for group, entry in test_a.items():
         assert entry["deployed"] == DEPLOYED[group] and entry["quasi_static_s"] > 1.0
-        assert set(entry["models"]) == {
-            "offset",
-            "affine",
-            "poly1",
-            "poly2",
-            "play",
-            "arx",
-            "nn7",
-            "nn13",
-            "win",
-        }
+        assert set(entry["models"]) == set(TRAINED)
         for model, r in entry["models"].items():
             assert math.isfinite(r["worst"]) and r["worst"] == max(r["ratio_axes"]), (group, model)
             assert r["flagged"] == (r["worst"] > limit), (group, model, r["worst"], limit)

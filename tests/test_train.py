@@ -32,7 +32,7 @@ from pipeline.logs import schema as S
 from pipeline.logs.schema import LOG, prediction_cols
 from pipeline.physics.cuts import map_wrenches, pose_wrench_transforms
 from pipeline.stages.train import train_group  # the stage entry (default studies dir)
-from tests.factories import FRONT, LEG, PAIR, REAR, SHANK, write_labelled_log, write_labelled_logs
+from tests.factories import FRONT, LEG, PAIR, REAR, SHANK, TRAINED, write_labelled_log, write_labelled_logs
 from tests.test_models import TRANSFORMS
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -397,18 +397,7 @@ def test_end_to_end_resumes_registers_and_repeats(
 
     m = a.metrics
     for split in ("val", "test"):
-        assert set(m[split]) == {
-            "raw",
-            "offset",
-            "affine",
-            "poly1",
-            "poly2",
-            "play",
-            "arx",
-            "nn7",
-            "nn13",
-            "win",
-        }
+        assert set(m[split]) == {"raw", *TRAINED}
         for errors in m[split].values():
             assert {FRONT, REAR, PAIR, "rmse", "rmse_labelled"} <= set(errors)
             assert errors["rmse"] == errors[PAIR]["rmse"]
