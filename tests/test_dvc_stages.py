@@ -64,7 +64,6 @@ def test_recorded_logs_only_dvc_repro_simulates_nothing(tmp_path: Path) -> None:
     the label stage, which stops at ingest with one line naming the empty folder (the steps of deploy_days
     on recorded logs: tests/test_recorded.py)."""
     import os
-    import time
 
     clone = tmp_path / "clone"
     subprocess.run(["git", "clone", "--quiet", str(ROOT), str(clone)], check=True)
@@ -77,14 +76,12 @@ def test_recorded_logs_only_dvc_repro_simulates_nothing(tmp_path: Path) -> None:
         "PYTHONPATH": os.pathsep.join(filter(None, [str(clone), os.environ.get("PYTHONPATH")])),
         "MLFLOW_TRACKING_URI": f"sqlite:///{tmp_path / 'mlflow.db'}",
     }
-    start = time.perf_counter()
     simulated, days = (
         subprocess.run(
             [sys.executable, "-m", "dvc", "repro", stage], cwd=clone, env=env, capture_output=True, text=True
         )
         for stage in ("simulate", "deploy_days")
     )
-    seconds = time.perf_counter() - start
     assert simulated.returncode == 0, simulated.stderr[-2000:]
     note = "simulate: data/sim: nothing simulated: ingest.source is data/raw, not data/sim"
     assert note in simulated.stdout
@@ -93,7 +90,6 @@ def test_recorded_logs_only_dvc_repro_simulates_nothing(tmp_path: Path) -> None:
     assert [p.name for p in (clone / "data/sim").iterdir()] == ["not_simulated.txt"]
     assert not (clone / "data/deploy/tables").exists()
     assert not list(clone.rglob("*.mcap"))
-    assert seconds < 60, f"dvc repro took {seconds:.0f} s"
 
 
 _CODE_HASHES = """
