@@ -166,7 +166,7 @@ def run_group(
     from pipeline.calib.exact import LEFT_OUT, NOT_CALIBRATED
     from pipeline.core.io import atomic_dir, write_json
     from pipeline.core.tracking import stage_run
-    from pipeline.export import check, manifest
+    from pipeline.export import check, manifest, wbd
     from pipeline.export.registry import ARTIFACT_DIR, tag_network
     from pipeline.export.trained import read_group, read_metrics
 
@@ -200,6 +200,7 @@ def run_group(
         with atomic_dir(out) as tmp:
             entry = manifest.write_graphs(tmp, group, entry, graphs)
             doc = manifest.document(params.robot.urdf, {group: entry}, fused=None)
+            doc[wbd.KEY] = _wbd_terms(models_dir / group, group, name, Path(report))
             left_out = read_metrics(models_dir / group).get(LEFT_OUT)
             if left_out:  # sensors of the group without an exact label: nothing exported for them
                 doc[NOT_CALIBRATED] = dict(left_out)
@@ -211,6 +212,26 @@ def run_group(
         run_id = active.info.run_id
     files = sorted(p.name for p in out.iterdir())
     return ExportResult(out, doc, files, time.perf_counter() - t0, run_id, registered)
+
+
+def _wbd_terms(model_dir: Path, group: str, deployed: str, report: Path) -> dict[str, Any]:
+    """The group's wholeBodyDynamics configuration values (`pipeline.export.wbd`): its affine map per
+    sensor, and per headline what that map costs beside the deployed model (from evaluate's report.json,
+    ``<report>/../groups/<group>/report.json``, where there is one)."""
+    from pipeline.core.io import read_json
+    from pipeline.evaluation.params import GROUP_REPORT
+    from pipeline.export import wbd
+    from pipeline.export.trained import read_group
+
+    try:
+        affine = read_group(model_dir, wbd.AFFINE_NAME, group)
+    except DataError as exc:
+        return {"sensors": {}, "why_not": str(exc)}
+    entry: dict[str, Any] = {"model": wbd.AFFINE_NAME, "sensors": wbd.group_terms(affine)}
+    evaluated = report.parent / "groups" / group / GROUP_REPORT
+    if evaluated.is_file():
+        entry["fallback"] = wbd.fallback_cost(read_json(evaluated, "an evaluation report"), deployed)
+    return entry
 
 
 def _not_calibrated(model_dir: Path) -> str | None:
@@ -242,7 +263,7 @@ def run_fused(
     from pipeline.calib.exact import NOT_CALIBRATED
     from pipeline.core.io import write_json
     from pipeline.core.tracking import stage_run
-    from pipeline.export import check, manifest
+    from pipeline.export import check, manifest, wbd
     from pipeline.export.registry import ARTIFACT_DIR, register_export
     from pipeline.export.trained import read_group
 
@@ -280,15 +301,37 @@ def run_fused(
         doc = manifest.document(params.robot.urdf, entries)
         if uncalibrated:  # groups and sensors without an exact label, and why: nothing exported for them
             doc[NOT_CALIBRATED] = uncalibrated
+        doc[wbd.KEY] = _write_wbd(out, params.robot.urdf, dict(entries[manifest.FUSED]["models"]))
         write_json(out / manifest.MANIFEST_FILE, doc)  # last: it names (and hashes) the files above
         _log_checks(doc)
-        for name in (*entries[manifest.FUSED]["files"].values(), manifest.MANIFEST_FILE):
+        for name in (*entries[manifest.FUSED]["files"].values(), wbd.FILE, manifest.MANIFEST_FILE):
             mlflow.log_artifact(str(out / name), ARTIFACT_DIR)
         mlflow.log_artifacts(str(out / GROUPS_DIR), f"{ARTIFACT_DIR}/{GROUPS_DIR}")
         registered = register_export(mlflow.MlflowClient(), active, doc)
         run_id = active.info.run_id
     files = sorted(p.name for p in out.iterdir())
     return ExportResult(out, doc, files, time.perf_counter() - t0, run_id, registered)
+
+
+def _write_wbd(out: Path, robot: str, models: dict[str, str]) -> dict[str, Any]:
+    """Write ``out``/wholebodydynamics.xml from the groups' manifests' affine maps; the manifest's entry:
+    the file, per sensor its values and per group what the map costs beside the deployed model."""
+    from pipeline.core.io import write_text
+    from pipeline.export import manifest, wbd
+
+    sensors, fallback = {}, {}
+    for group in models:
+        entry = manifest.read_manifest(out / GROUPS_DIR / group).get(wbd.KEY) or {}
+        sensors.update(entry.get("sensors") or {})
+        fallback[group] = entry.get("fallback") or entry.get("why_not") or {}
+    write_text(out / wbd.FILE, wbd.fragment(sensors, wbd.about(robot, models)))
+    return {
+        "file": wbd.FILE,
+        "model": wbd.AFFINE_NAME,
+        "models": models,
+        "sensors": sensors,
+        "fallback": fallback,
+    }
 
 
 def _fuse_nothing(params: Any, out: Path, uncalibrated: dict[str, str], t0: float) -> ExportResult:

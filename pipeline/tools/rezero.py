@@ -130,7 +130,25 @@ def run(
 
     target = Path(out) if out is not None else Path(models) / FILE
     write_json(target, doc)
-    return doc | {"written": str(target), "warnings": warnings}
+    fragment = _rezero_wbd(Path(models), target.parent, result.rezeroed().values)
+    return doc | {"written": str(target), "wholebodydynamics": fragment, "warnings": warnings}
+
+
+def _rezero_wbd(models: Path, out: Path, deltas: dict[str, Any]) -> str | None:
+    """The export's wholeBodyDynamics fragment (`pipeline.export.wbd`) with each re-zeroed sensor's
+    FT_OFFSET moved by its offset change (N, Nm), written beside the offsets file: its path (None: the
+    export has no fragment)."""
+    from pipeline.core.io import read_json, write_text
+    from pipeline.export import manifest, wbd
+
+    doc = read_json(models / manifest.MANIFEST_FILE, "an export manifest")
+    entry = doc.get(wbd.KEY) or {}
+    if not entry.get("sensors"):
+        return None
+    sensors = {s: wbd.rezeroed(t, deltas[s]) if s in deltas else t for s, t in entry["sensors"].items()}
+    note = wbd.about(str(doc.get("robot", "?")), entry.get("models") or {})
+    write_text(out / wbd.FILE, wbd.fragment(sensors, f"{note} FT_OFFSET re-zeroed by ftcal rezero."))
+    return str(out / wbd.FILE)
 
 
 def _unreached(sensors: list[str], picked: list[Any], cuts: list[Any]) -> str:
@@ -170,6 +188,8 @@ def _print(doc: dict[str, Any]) -> None:
                 print(f"  {sensor}: depends on the pose ({len(log['poses'])} poses of {log['log']}: spread "
                       f"{p['ratio']:.1f} x the noise)")  # fmt: skip
     print(f"{doc['written']}: offsets of {len(doc['sensors'])} sensor(s)")
+    if doc.get("wholebodydynamics"):
+        print(f"{doc['wholebodydynamics']}: wholeBodyDynamics configuration with the re-zeroed FT_OFFSET")
 
 
 def _cmd(args: argparse.Namespace) -> int:
