@@ -22,7 +22,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 from pipeline.calib.models import GroupNet, NetConfig, save_model  # noqa: E402
 from pipeline.core.config import load_params  # noqa: E402
 from pipeline.core.io import write_json  # noqa: E402
-from pipeline.export import manifest  # noqa: E402
+from pipeline.export import csource, manifest  # noqa: E402
 from pipeline.export.trained import GroupModel, read_group  # noqa: E402
 from pipeline.stages.export import GROUPS_DIR  # noqa: E402
 
@@ -124,7 +124,8 @@ def synthetic_window(models_dir: Path, seed: int = 0) -> list[GroupModel]:
 def synthetic_export(out_dir: Path, models: list[GroupModel]) -> dict:
     """Export `models` into `out_dir` as the export steps lay an export out (`pipeline.stages.export`): each
     group's graphs and manifest in ``groups/<group>/``, the fused graph and ``manifest.json`` at the top;
-    returns that manifest. No check against stored predictions (there are none)."""
+    returns that manifest; the fused graph's C calibrator in ``c/`` (`pipeline.export.csource`). No check
+    against stored predictions (there are none)."""
     params = load_params(ROOT / "params.yaml")
     robot, topics = params.robot.urdf, params.topics
     trainings = {m.group: manifest.training(m, "synthetic", None) for m in models}
@@ -139,6 +140,9 @@ def synthetic_export(out_dir: Path, models: list[GroupModel]) -> dict:
         entries[m.group] = entry
     entry, graphs = manifest.build_graph(manifest.FUSED, models, topics, robot, trainings)
     entries[manifest.FUSED] = manifest.write_graphs(out_dir, manifest.FUSED, entry, graphs)
+    (out_dir / "c").mkdir(exist_ok=True)  # the fused graph's C calibrator, where the export writes it
+    for name, text in csource.generate(models, entry).items():
+        (out_dir / "c" / name).write_text(text)
     doc = manifest.document(robot, entries)
     write_json(out_dir / manifest.MANIFEST_FILE, doc)
     return doc

@@ -19,6 +19,10 @@ search may pick 64, 100 or 128) and measures, on one thread:
 6. the linear families fused for the 8 sensors through the C API: affine (memoryless), play and arx (with
    memory: their state carried from call to call), and the windowed network (`win`: the play model, its
    filters and a network per sensor, of the params' size).
+7. the generated C calibrator of each of those exports (`pipeline.export.csource`: plain C99, the
+   export's ``c/ftcal_calibrator.c``), built here with the system's C compiler and called one sample at a
+   time on the same rows (`benchmarks/c_latency.c`), and its p50 against onnxruntime's C API in the same run
+   (target: at least 5x below).
 
 Both agree on the outputs first. Then 1. and 2. for the real export's fused graph (``--export DIR``,
 default ``exported/`` when present; ``--export ''`` skips it), on random inputs of plausible size (the
@@ -148,6 +152,49 @@ def c_api_latency(
     return json.loads(done.stdout)
 
 
+def c_calibrator_latency(
+    directory: Path, pool: np.ndarray, calls: int, work: Path, warmup: int = 500
+) -> dict | str:
+    """{"p50_us", "p99_us", "checksum"} of the generated C calibrator in `directory` (``c/`` of an
+    export) called one row of `pool` at a time, as `c_api_latency` calls onnxruntime on the same rows
+    (`benchmarks/c_latency.c`, built with the system's C compiler against the calibrator's source); or why it
+    could not run (one line)."""
+    import subprocess
+
+    from pipeline.export.cbuild import compiler
+
+    cc = compiler()
+    if cc is None or not (directory / "ftcal_calibrator.c").is_file():
+        return "needs a C compiler (cc) and the export's c/ftcal_calibrator.c"
+    exe, rows = work / f"c_latency_{abs(hash(str(directory)))}", work / "c_rows.f32"
+    build = [cc, "-O3", "-std=c99", "-I", str(directory), str(ROOT / "benchmarks" / "c_latency.c")]
+    done = subprocess.run(
+        [*build, str(directory / "ftcal_calibrator.c"), "-o", str(exe), "-lm"], capture_output=True, text=True
+    )
+    if done.returncode:
+        return f"cannot build benchmarks/c_latency.c: {' '.join(done.stderr.split())[:300]}"
+    np.ascontiguousarray(pool, dtype=np.float32).tofile(rows)
+    done = subprocess.run(
+        [str(exe), str(rows), str(len(pool)), str(calls), str(warmup)], capture_output=True, text=True
+    )
+    if done.returncode:
+        return (done.stderr.strip().splitlines() or [f"exit status {done.returncode}"])[-1]
+    return json.loads(done.stdout)
+
+
+def _ratio(name: str, ort: Any, c: Any) -> str:
+    """One line: onnxruntime's C API p50 over the C calibrator's, on the same rows in the same run."""
+    if not isinstance(ort, dict) or not isinstance(c, dict):
+        return f"{name}: ratio not measured ({ort if isinstance(ort, str) else c})"
+    return (
+        f"{name}: p50 onnxruntime C API {ort['p50_us']:.2f} us / C calibrator {c['p50_us']:.2f} us = "
+        f"{ort['p50_us'] / c['p50_us']:.1f}x (target >= {C_TARGET_RATIO:.0f}x)"
+    )
+
+
+C_TARGET_RATIO = 5.0  # the generated C calibrator's p50 at least this many times below onnxruntime's C API
+
+
 def _onnxruntime(
     sessions: dict[str, Any], pool: np.ndarray, n_out: int, calls: int, label: str = ""
 ) -> dict[str, np.ndarray]:
@@ -184,7 +231,8 @@ def _real_export(
     results: dict[str, Any] = {
         "real onnxruntime C API float32": c_api_latency(
             directory / fused["files"]["float32"], pool, n_out, calls, work, state=state
-        )
+        ),
+        "real C calibrator": c_calibrator_latency(directory / "c", pool, calls, work),
     }
     results.update(_onnxruntime(sessions, pool, n_out, calls, "real "))
     return about, len(fused["sensors"]), results
@@ -204,7 +252,7 @@ def _print(results: dict[str, Any], sensors: int) -> None:
             print(f"{name:33s} not measured: {t}")
             continue
         p50, p99 = _p50_p99(t)
-        print(f"{name:33s} {sensors} sensors per call: p50 {p50:6.1f} us  p99 {p99:6.1f} us")
+        print(f"{name:33s} {sensors} sensors per call: p50 {p50:7.2f} us  p99 {p99:7.2f} us")
 
 
 def _verdict(name: str, result: Any) -> str:
@@ -269,6 +317,7 @@ def _measure(args: argparse.Namespace, work: Path) -> None:
     onnx.save_model(_empty_model(n_in), work / "empty.onnx")
     results: dict[str, Any] = {
         "onnxruntime C API float32": c_api_latency(files["float32"], pool, n_out, args.calls, work),
+        "C calibrator": c_calibrator_latency(work / "export" / "c", pool, args.calls, work),
         "onnxruntime C API empty graph": c_api_latency(work / "empty.onnx", pool, n_in, args.calls, work),
     }
     results.update(_onnxruntime(sessions, pool, n_out, args.calls))
@@ -288,6 +337,9 @@ def _measure(args: argparse.Namespace, work: Path) -> None:
         results[f"{name} 8 sensors C API float32"] = c_api_latency(
             file, pool7, n_out, args.calls, work, state=state
         )
+        results[f"{name} 8 sensors C calibrator"] = c_calibrator_latency(
+            work / name / "c", pool7, args.calls, work
+        )
     shape = f"13-{args.hidden}-{args.hidden}-6"
     print(f"synthetic export (six groups, 8 networks {shape}); 1 thread; {args.calls} calls per line")
     _print(results, 8)
@@ -295,12 +347,24 @@ def _measure(args: argparse.Namespace, work: Path) -> None:
     verdicts.append(_verdict("synthetic, Python", results["onnxruntime float32 bound"]))
     for k in ("affine", "play", "arx", "win"):
         verdicts.append(_verdict(f"synthetic {k}, C API", results[f"{k} 8 sensors C API float32"]))
+    ratios = [_ratio("synthetic networks", results["onnxruntime C API float32"], results["C calibrator"])]
+    for k in ("affine", "play", "arx", "win"):
+        ratios.append(
+            _ratio(
+                f"synthetic {k}",
+                results[f"{k} 8 sensors C API float32"],
+                results[f"{k} 8 sensors C calibrator"],
+            )
+        )
     if args.export:
         about, n_sensors, real = _real_export(Path(args.export), args.calls, args.rows, work)
         print(f"real export {about}")
         _print(real, n_sensors)
         verdicts.append(_verdict("real export, C API", real["real onnxruntime C API float32"]))
         verdicts.append(_verdict("real export, Python", real["real onnxruntime float32 bound"]))
+        ratios.append(
+            _ratio("real export", real["real onnxruntime C API float32"], real["real C calibrator"])
+        )
     groups = [session(work / "export" / doc["graphs"][m.group]["files"]["float32"]) for m in models]
     for name, call in (
         ("onnxruntime float32 fused graph", lambda: run(sessions["float32"], batch)),
@@ -321,6 +385,9 @@ def _measure(args: argparse.Namespace, work: Path) -> None:
     print(f"load average {os.getloadavg()[0]:.2f} at the end")
     print(f"target p50 <= {TARGET_P50:.0f} us, p99 <= {TARGET_P99:.0f} us (onnxruntime float32, 1 thread):")
     for line in verdicts:
+        print(f"  {line}")
+    print("the generated C calibrator against onnxruntime's C API, the same rows, one thread:")
+    for line in ratios:
         print(f"  {line}")
     ort_p50 = np.percentile(results["onnxruntime float32 bound"], 50)
     torch_p50 = np.percentile(results["torch eager float32"], 50)

@@ -25,6 +25,8 @@
 #include <stdlib.h>
 #include <time.h>
 
+#include "latency.h"
+
 typedef void *Status; /* OrtStatus*, NULL on success */
 typedef struct {
   const void **(*GetApi)(uint32_t version);
@@ -56,16 +58,6 @@ static void check(Status status, const char *what) {
   }
 }
 
-static int by_value(const void *a, const void *b) {
-  double d = *(const double *)a - *(const double *)b;
-  return (d > 0) - (d < 0);
-}
-
-static double now_us(void) {
-  struct timespec t;
-  clock_gettime(CLOCK_MONOTONIC, &t);
-  return t.tv_sec * 1e6 + t.tv_nsec / 1e3;
-}
 
 int main(int argc, char **argv) {
   if (argc != 11 && argc != 14) {

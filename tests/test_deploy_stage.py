@@ -183,6 +183,48 @@ def test_stages_write_pages_metrics_details_and_figures(stage: dict[str, Any]) -
     assert read_day(stage["tables"] / "real") == []  # a recorded-logs folder without logs: nothing tested
 
 
+def _verdicts(result: Any, path: str = "") -> dict[str, Any]:
+    """Every flag and string (exact) and number of a deployment result, by its path in the result."""
+    if isinstance(result, dict):
+        return {k: v for key, item in result.items() for k, v in _verdicts(item, f"{path}.{key}").items()}
+    if isinstance(result, list):
+        return {k: v for j, item in enumerate(result) for k, v in _verdicts(item, f"{path}[{j}]").items()}
+    return {
+        path: float(result) if isinstance(result, int | float) and not isinstance(result, bool) else result
+    }
+
+
+def test_the_deployment_tests_judge_the_c_calibrator_alike(stage: dict[str, Any], tmp_path: Path) -> None:
+    """Tests A-D of the trained export, as delivered and re-zeroed, run through its generated C calibrators
+    (`--runtime c`, compiled with the system's cc): the same verdicts, and every figure within 2 %."""
+    from pipeline.export.cbuild import compiler
+
+    if compiler() is None:
+        pytest.skip("no C compiler (cc) to build the C calibrator")
+    root, reports = stage["root"], tmp_path / "reports"
+    exported, params = root / "exported_trained", root / "params_trained.yaml"
+    for group in (LEG, PAIR):
+        args = [group, str(stage["models"] / group), str(exported / "groups" / group), str(stage["tables"])]
+        args.append(str(reports / group))
+        assert main(["deploy-test", *args, "--runtime", "c", "--params", str(params)]) == 0
+        ours = _verdicts(json.loads((reports / group / "result.json").read_text()))
+        theirs = _verdicts(
+            json.loads(
+                (stage["trained_reports"] / "deployment" / "groups" / group / "result.json").read_text()
+            )
+        )
+        assert ours.keys() == theirs.keys()
+        exact = {k: v for k, v in theirs.items() if not isinstance(v, float)}
+        assert exact and {k: ours[k] for k in exact} == exact
+        assert any(k.endswith("pass") for k in exact), sorted(exact)[:5]
+        near = {
+            k: (ours[k], v)
+            for k, v in theirs.items()
+            if isinstance(v, float) and abs(ours[k] - v) > 0.02 * abs(v) + 1e-3
+        }
+        assert not near, near
+
+
 def test_pages_share_one_look_and_link_each_other(stage: dict[str, Any], tmp_path: Path) -> None:
     """The deployment page has the report page's stylesheet and frame, and each links to the other."""
     from pipeline.evaluation.html import CSS

@@ -294,11 +294,11 @@ def exported(trained_models: dict, tmp_path_factory: pytest.TempPathFactory) -> 
 def test_stage_writes_checked_graphs_and_manifest(exported: dict, trained_models: dict) -> None:
     out, doc = exported["dir"], exported["manifest"]
     assert sorted(p.name for p in out.iterdir()) == sorted(
-        [f"all.{d}.onnx" for d in graph.DTYPES] + ["groups", "manifest.json", "wholebodydynamics.xml"]
+        [f"all.{d}.onnx" for d in graph.DTYPES] + ["c", "groups", "manifest.json", "wholebodydynamics.xml"]
     )
     for group in (LEG, PAIR):  # each group's export is an export directory of its own
         assert sorted(p.name for p in (out / "groups" / group).iterdir()) == sorted(
-            [f"{group}.{d}.onnx" for d in graph.DTYPES] + ["manifest.json"]
+            [f"{group}.{d}.onnx" for d in graph.DTYPES] + ["c", "manifest.json"]
         )
         own = json.loads((out / "groups" / group / "manifest.json").read_text())
         assert set(own["graphs"]) == {group} and own["fused"] is None

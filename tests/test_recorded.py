@@ -220,6 +220,21 @@ def _metrics_files(run: dict[str, Any]) -> dict[str, dict[str, Any]]:
     return {f"{p.parent.name}/{p.stem}": json.loads(p.read_text()) for p in root.glob("*/*.json")}
 
 
+def test_the_c_calibrator_computes_the_float32_graph_on_every_test_sample(
+    recorded_run: dict[str, Any],
+) -> None:
+    """Every graph's generated C calibrator (exported/.../c), compiled with the system's cc by the export's
+    check, computes the float32 graph's outputs on every test sample of the recorded runs within
+    export.tolerance_float32_ulps, its state carried across calls."""
+    from pipeline.export.cbuild import compiler
+
+    if compiler() is None:
+        pytest.skip("no C compiler (cc) to build the C calibrator")
+    for name, entry in recorded_run["exported"].manifest["graphs"].items():
+        c = entry["check"]["c"]
+        assert c["max_ulps"] <= 8 and c["samples"] == entry["check"]["float32"]["samples"] > 100, (name, c)
+
+
 def test_a_run_without_the_arms_joints_calibrates_the_legs_and_names_what_the_arms_lack(
     without_arms: dict[str, Any],
 ) -> None:

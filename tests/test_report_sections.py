@@ -138,3 +138,18 @@ def test_summary_has_one_row_per_headline() -> None:
     assert rows[1][:5] == ["r_leg", "2.00", "4.00", "4.00", "8.00"] and len(rows[1]) < len(rows[0])
     assert rows[2][1] == "4.00" and rows[3][:3] == ["arm", "arm", "8.00"]
     assert "<td rowspan=3>legs</td>" in summary_table([legs], cfg)
+
+
+def test_the_wholebodydynamics_section_gives_the_affine_maps_cost_per_headline() -> None:
+    from pipeline.evaluation.sections import wbd_section
+
+    legs = _report("legs", ["l_leg", "r_leg"], {"l_leg": 1.0, "r_leg": 2.0})
+    for name, affine in (("l_leg", 3.0), ("r_leg", 2.5)):
+        legs.tables[name]["labels"]["affine"] = {"rmse": affine}
+    html = wbd_section([legs, _report("arm", None, {"arm": 8.0})])  # the arm has no affine map: no row
+    rows = _rows(html)
+    assert rows == [
+        ["l_leg", "nn7", "2.00", "3.00", "1.50", "labels"],
+        ["r_leg", "nn7", "4.00", "2.50", "0.625", "labels"],
+    ]
+    assert "exported/wholebodydynamics.xml" in html and wbd_section([]) == ""

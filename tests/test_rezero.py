@@ -192,6 +192,44 @@ def test_calibrate_runs_the_offsets_beside_the_export(day: dict[str, Any], tmp_p
             full.append(sensor)
             assert np.all(error[:3] < 0.3) and np.all(error[3:] < 0.02), (sensor, error)
     assert set(full) >= {FRONT, REAR}  # the feet's labels carry little model error (a foot's weight)
+    # the wholeBodyDynamics configuration beside it: each sensor's FT_OFFSET moved by S delta
+    from pipeline.export import wbd
+
+    delivered_terms = json.loads((export / "manifest.json").read_text())[wbd.KEY]["sensors"]
+    fragment = (export / wbd.FILE).read_text()
+    assert (
+        "re-zeroed by ftcal rezero" in fragment
+        and fragment != (day["exports"]["trained"] / wbd.FILE).read_text()
+    )
+    for sensor in SENSORS:
+        s_matrix = np.reshape(delivered_terms[sensor]["secondary_calibration"], (6, 6))
+        moved = np.array(delivered_terms[sensor]["offset"]) - s_matrix @ np.array(
+            doc["sensors"][sensor]["offset"]
+        )
+        line = next(x for x in fragment.split("<group")[3].split("<param")[1:] if f'name="{sensor}"' in x)
+        written = [float(v) for v in line.split("(")[1].split(")")[0].split(",")]
+        np.testing.assert_allclose(written, moved, rtol=0, atol=1e-12)
+    # the same log through the generated C calibrator (`--runtime c`): the same calibrated wrenches
+    out_c = tmp_path / "calibrated_c.mcap"
+    args = [str(log), str(out_c), "--models", str(export), "--runtime", "c", "--params", str(day["params"])]
+    assert main(["calibrate", *args]) == 0
+    decoded_c = _decoded(out_c)
+    for sensor in SENSORS:
+        ours = np.array(
+            [
+                _vec(m.ros_msg.wrench.force) + _vec(m.ros_msg.wrench.torque)
+                for m in decoded_c[f"/ft/{sensor}/wrench_calibrated"]
+            ]
+        )
+        theirs = np.array(
+            [
+                _vec(m.ros_msg.wrench.force) + _vec(m.ros_msg.wrench.torque)
+                for m in decoded[f"/ft/{sensor}/wrench_calibrated"]
+            ]
+        )
+        assert ours.shape == theirs.shape and np.abs(ours - theirs).max() < 1e-3 * max(
+            1.0, np.abs(theirs).max()
+        )
 
 
 def test_pose_dependence_is_each_pose_re_zeroed_alone(day: dict[str, Any], tmp_path: Path) -> None:

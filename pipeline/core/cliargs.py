@@ -37,3 +37,17 @@ def models_dir(models: Path | None) -> Path:
     from pipeline.core.config import repo_root
 
     return models if models is not None else repo_root() / DEFAULT_MODELS
+
+
+RUNTIMES = ("onnxruntime", "c")  # what runs an export: its ONNX graphs, or its generated C calibrators
+
+
+def add_runtime_option(parser: argparse.ArgumentParser) -> None:
+    """``--runtime {onnxruntime,c}``: what runs the export (`pipeline.export.cbuild.using`)."""
+    parser.add_argument(
+        "--runtime",
+        choices=RUNTIMES,
+        default=RUNTIMES[0],
+        help="run the export's ONNX graphs with onnxruntime (default), or its generated C calibrators "
+        "compiled with cc",
+    )

@@ -189,7 +189,9 @@ def rezero_day(
     fields; or ``{"error": why}`` when the day has no still stretch, or none with an exact label."""
     from pipeline.export.runtime import Deployment
 
-    deployment = Deployment.load(exported, offsets=False)
+    # the offsets are solved for offline, with the float64 graphs whatever runs the calibration (a float32
+    # runtime's rounding would only slow the solver's convergence); the days are then judged through it
+    deployment = Deployment.load(exported, offsets=False, runtime="onnxruntime")
     chosen = [s for s in sensors if s in deployment.sensors()]
     for log in logs:
         tables = log_tables(log.name, log.labelled, log.smoothed, robot, cfg)

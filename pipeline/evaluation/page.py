@@ -37,6 +37,7 @@ from pipeline.evaluation.sections import (
     cv_section,
     identification_section,
     phase_section,
+    wbd_section,
 )
 from pipeline.evaluation.trust import excitation_html, fidelity_table, passed_over_html
 from pipeline.logs import schema as S
@@ -373,6 +374,7 @@ def render_html(
             "Headline test RMSE (6 axes pooled) of every model per group and headline, log scale",
         ),
         prior_box(results, [m for r in results for m in (r.best_on_validation, NN7) if m]),
+        wbd_section(results),
         "<h2 id='noise'>Deployment noise check</h2>",
         _NOISE_NOTE.format(speed=cfg.still_gyro_rad_s, min_s=cfg.still_min_s, hz=cfg.highpass_hz),
         f'<table class="num"><thead><tr>{head}</tr></thead><tbody>{"".join(noise_rows)}</tbody></table>',

@@ -212,3 +212,30 @@ def identification_section(ident: Mapping[str, Any] | None, figure: str | None) 
         + table(sensor_head, sensor_rows, "num", raw_html=True)
         + img
     )
+
+
+def wbd_section(results: Sequence[GroupReport]) -> str:
+    """What wholeBodyDynamics' own linear calibration (the export's ``wholebodydynamics.xml``: each group's
+    affine map) costs beside the deployed model, per headline: both test RMSEs (N/Nm pooled), against the
+    truth where the logs have it, else the held-out labels."""
+    rows = []
+    for r in results:
+        for name in r.headlines or [r.headline]:
+            against = TRUTH if (r.tables.get(name) or {}).get(TRUTH) else LABELS
+            errors = (r.tables.get(name) or {}).get(against) or {}
+            deployed, affine = errors.get(r.recommended or ""), errors.get("affine")
+            if deployed is None or affine is None:
+                continue
+            ratio = affine["rmse"] / deployed["rmse"] if deployed["rmse"] else math.nan
+            rows.append(
+                [name, r.recommended, fmt(deployed["rmse"]), fmt(affine["rmse"]), fmt(ratio), against]
+            )
+    if not rows:
+        return ""
+    head = ["headline", "deployed", "deployed RMSE", "affine RMSE", "affine / deployed", "against"]
+    return (
+        "<h2 id='wbd'>wholeBodyDynamics configuration</h2><p>The export writes "
+        "<code>exported/wholebodydynamics.xml</code>: each group's affine map as wholeBodyDynamics' own "
+        "secondary calibration, which a robot runs without ftcal's runtime (docs/deployment.md). What it "
+        "costs beside the deployed model, on the test logs:</p>" + table(head, rows)
+    )

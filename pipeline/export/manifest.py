@@ -18,7 +18,10 @@ or filter time constant it belongs to (a windowed network's windows are filters)
 sample period their rows must have (``period_s``).
 ``offsets`` describes the graph's second input (`pipeline.export.graph`: subtracted from ``inputs``,
 default zeros) and the file a re-zeroing writes beside the manifest (`pipeline.export.offsets`);
-``serials`` the sensor boards the calibration belongs to (`pipeline.export.identity`).
+``serials`` the sensor boards the calibration belongs to (`pipeline.export.identity`). A graph's ``check``
+also holds ``c``: its generated C calibrator (``c/`` beside it, `pipeline.export.csource`) against the same
+references. ``wholebodydynamics`` (the fused manifest's): the affine maps written as wholeBodyDynamics'
+configuration (`pipeline.export.wbd`) and per headline what they cost beside the deployed model.
 """
 
 from __future__ import annotations

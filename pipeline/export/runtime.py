@@ -33,6 +33,7 @@ from typing import Any
 import numpy as np
 
 from pipeline.core.errors import DataError
+from pipeline.export.cbuild import c_runtime, default_runtime
 from pipeline.export.check import check_rate, run, run_state, session
 from pipeline.export.offsets import Offsets
 from pipeline.logs.imu_axes import to_sensor_frame
@@ -104,10 +105,12 @@ class Deployment:
         return replace(self, offsets=offsets)
 
     @classmethod
-    def load(cls, path: str | Path, threads: int = 1, offsets: Path | bool = True) -> Deployment:
-        """Read `path`/manifest.json and open the float64 graphs; `offsets`: True, those of
-        `path`/offsets.json if it exists; False, none; a path, that file's (it must exist). Raises DataError
-        naming the file."""
+    def load(
+        cls, path: str | Path, threads: int = 1, offsets: Path | bool = True, runtime: str | None = None
+    ) -> Deployment:
+        """Read `path`/manifest.json and open the float64 graphs with onnxruntime, or with `runtime` "c" their
+        C calibrators (default `default_runtime`); `offsets`: True, those of `path`/offsets.json if it
+        exists; False, none; a path, that file's (it must exist). Raises DataError naming the file."""
         from pipeline.export import offsets as O
         from pipeline.export.manifest import MANIFEST_FILE, read_manifest, sha256_file
 
@@ -124,6 +127,9 @@ class Deployment:
             deployment.offsets = O.read_offsets(chosen, deployment.manifest_sha256, deployment.sensors())
         for group, entry in deployment.groups().items():
             graph = path / entry["files"]["float64"]
+            if (runtime or default_runtime()) == "c":  # the generated C calibrator beside the graph
+                sessions[group] = c_runtime(graph.parent, entry)
+                continue
             if not graph.is_file():
                 raise DataError(f"{graph}: not found (listed in {file})")
             if sha256_file(graph) != entry["sha256"]["float64"]:

@@ -24,7 +24,7 @@ import argparse
 from pathlib import Path
 from typing import Any
 
-from pipeline.core.cliargs import add_params_option
+from pipeline.core.cliargs import add_params_option, add_runtime_option
 from pipeline.core.errors import DataError
 
 STAGE = "deploy_test"
@@ -141,10 +141,12 @@ def _rezero_days(
 
 def _cmd(args: argparse.Namespace) -> int:
     from pipeline.core.config import load_params
+    from pipeline.export.cbuild import using
 
-    result = run(
-        load_params(args.params), args.group, args.models, args.exported, args.tables, args.out, args.urdf
-    )
+    with using(args.runtime):
+        result = run(
+            load_params(args.params), args.group, args.models, args.exported, args.tables, args.out, args.urdf
+        )
     if "not_calibrated" in result:
         print(f"{args.group}: not calibrated, nothing to test: {result['not_calibrated']}")
         return 0
@@ -172,6 +174,7 @@ def add_cli(subparsers: Any) -> None:
     p.add_argument(
         "out", type=Path, help="the group's results and figures (reports/deployment/groups/<group>)"
     )
+    add_runtime_option(p)
     p.add_argument(
         "--urdf",
         type=Path,

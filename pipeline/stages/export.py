@@ -36,6 +36,7 @@ from pipeline.core.errors import ConfigError, DataError
 
 STAGE = "export"
 GROUPS_DIR = "groups"  # OUT/groups/<group>: each group's export
+C_DIR = "c"  # beside each graph: its C calibrator (pipeline.export.csource)
 
 
 @dataclass
@@ -97,7 +98,24 @@ def _config(params: Any) -> tuple[Any, dict[str, float]]:
     from pipeline.core.config import ExportParams, stage_section
 
     cfg = stage_section(params, STAGE, ExportParams)
-    return cfg, {"float32": cfg.tolerance_float32_ulps, "float64": cfg.tolerance_float64}
+    tolerance = {"float32": cfg.tolerance_float32_ulps, "float64": cfg.tolerance_float64}
+    return cfg, tolerance | {"c": cfg.tolerance_float32_ulps}
+
+
+def _c_calibrator(directory: Path, models: list[Any], entry: dict[str, Any], measure: Any) -> dict[str, Any]:
+    """Write the graph's C calibrator into `directory` (`pipeline.export.csource`) and check it, compiled
+    with the system's cc, as the float32 graph is (`measure`: {"c": session} -> its check); where there is
+    no compiler, the check says so."""
+    from pipeline.core.io import write_text
+    from pipeline.export import cbuild, csource
+
+    for name, text in csource.generate(models, entry).items():
+        write_text(directory / name, text)
+    if cbuild.compiler() is None:
+        return {"skipped": "no C compiler (cc) here to build it"}
+    n_state = int(entry["state"]["shape"][0]) if "state" in entry else 0
+    built = cbuild.c_session(directory, len(entry["inputs"]), len(entry["outputs"]), n_state)
+    return measure({"c": built})["c"]
 
 
 def _training_logs(model: Any, models_dir: Path, labelled: Path) -> list[Path]:
@@ -198,6 +216,9 @@ def run_group(
         entry["check"] = check.check_group(graphs, samples)
         check.assert_within(group, entry["check"], tolerance)
         with atomic_dir(out) as tmp:
+            measure = lambda c: check.check_group(c, samples)  # noqa: E731
+            entry["check"]["c"] = _c_calibrator(tmp / C_DIR, [model], entry, measure)
+            check.assert_within(group, {"c": entry["check"]["c"]}, tolerance)
             entry = manifest.write_graphs(tmp, group, entry, graphs)
             doc = manifest.document(params.robot.urdf, {group: entry}, fused=None)
             doc[wbd.KEY] = _wbd_terms(models_dir / group, group, name, Path(report))
@@ -296,6 +317,8 @@ def run_fused(
             manifest.FUSED, models, params.topics, params.robot.urdf, trainings, serials, imu_axes
         )
         entry["check"] = check.check_fused(graphs, samples, models)
+        measure = lambda c: check.check_fused(c, samples, models)  # noqa: E731
+        entry["check"]["c"] = _c_calibrator(out / C_DIR, models, entry, measure)
         check.assert_within(manifest.FUSED, entry["check"], tolerance)
         entries[manifest.FUSED] = manifest.write_graphs(out, manifest.FUSED, entry, graphs)
         doc = manifest.document(params.robot.urdf, entries)
@@ -406,10 +429,15 @@ def _cmd(args: argparse.Namespace) -> int:
         for d, k in (("float32", "max_ulps"), ("float64", "max_abs_diff"))
     }
     models = ", ".join(f"{g} {e['models'][g]}" for g, e in graphs.items() if g in e["models"])
+    c_checks = [e["check"].get("c") or {} for e in graphs.values()]
+    skipped = next((c["skipped"] for c in c_checks if "skipped" in c), None)
+    c_line = f"C calibrator {skipped}" if skipped else (
+        f"C calibrator {max(c.get('max_ulps', 0.0) for c in c_checks):.2g} float32 steps"
+    )  # fmt: skip
     print(
         f"export: {models} -> {result.out_dir} ({len(result.files)} files); onnxruntime vs the project's "
         f"predictions on the test samples: max |diff| {checks['float32']:.2g} float32 steps, "
-        f"{checks['float64']:.2g} N/Nm (float64) ({result.seconds:.0f} s){uncalibrated}"
+        f"{checks['float64']:.2g} N/Nm (float64); {c_line} ({result.seconds:.0f} s){uncalibrated}"
     )
     return 0
 

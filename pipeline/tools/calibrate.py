@@ -25,7 +25,7 @@ import sys
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
-from pipeline.core.cliargs import add_models_option, add_params_option, models_dir
+from pipeline.core.cliargs import add_models_option, add_params_option, add_runtime_option, models_dir
 from pipeline.core.errors import DataError
 
 COMMAND = "calibrate"
@@ -92,7 +92,10 @@ def _cmd(args: argparse.Namespace) -> int:
     params = load_params(args.params)
     models = models_dir(args.models)
     offsets = False if args.no_offsets else (args.offsets if args.offsets is not None else True)
-    results = run(params, args.source, args.out, models, force=args.force, offsets=offsets)
+    from pipeline.export.cbuild import using
+
+    with using(args.runtime):
+        results = run(params, args.source, args.out, models, force=args.force, offsets=offsets)
     if results:
         print(results[0].offsets)
     for r in results:
@@ -122,5 +125,6 @@ def add_cli(subparsers: Any) -> None:
         help="a re-zeroing's offsets (default: DIR/offsets.json if it exists; `ftcal rezero`)",
     )  # fmt: skip
     which.add_argument("--no-offsets", action="store_true", help="the calibration as delivered")
+    add_runtime_option(parser)
     add_params_option(parser, "topic names")
     parser.set_defaults(func=_cmd)
