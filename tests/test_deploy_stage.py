@@ -508,3 +508,19 @@ def test_rezeroed_exact_affine_map_solves_its_linear_equation(stage: dict[str, A
     assert np.all(np.asarray(rezero["offsets"][LEG])[within] == 0.0)
     page = (stage["exact_reports"] / "deployment.html").read_text()
     assert "<h2 id='later-rezeroed'>later, re-zeroed</h2>" in page and "re-zeroed from 00_poses_test" in page
+
+
+def test_b_gives_the_wholebodydynamics_affine_map_beside_the_deployed_model(stage: dict[str, Any]) -> None:
+    """Test B scores the group's affine map (what wholeBodyDynamics runs from the export's configuration)
+    on the same walking samples; with the affine map deployed (the exact export) both columns agree."""
+    for name in ("trained", "exact"):
+        result = json.loads(
+            (stage[f"{name}_reports"] / "deployment" / "groups" / LEG / "result.json").read_text()
+        )
+        for b in (result["days"]["later"]["test_b"][LEG], result["rezeroed"]["later"]["test_b"][LEG]):
+            assert b["fallback"]["truth"]["rmse"] > 0 and b["fallback"]["labels"]["samples"] > 100
+        if name == "exact":  # the affine map deployed: its fallback is itself, run causally or on the table
+            calibrated, fallback = b["truth"]["calibrated"]["rmse"], b["fallback"]["truth"]["rmse"]
+            assert abs(calibrated - fallback) < 0.02 * calibrated, (calibrated, fallback)
+    page = (stage["trained_reports"] / "deployment.html").read_text()
+    assert "wholeBodyDynamics affine" in page

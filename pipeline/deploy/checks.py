@@ -94,27 +94,40 @@ def _pair_sums(robot: RobotModel, params: Any, data: dict[str, np.ndarray]) -> d
 
 
 def walking_errors(
-    log: DeployLog, robot: RobotModel, params: Any, calibrated: dict[str, np.ndarray]
+    log: DeployLog,
+    robot: RobotModel,
+    params: Any,
+    calibrated: dict[str, np.ndarray],
+    fallback: dict[str, np.ndarray] | None = None,
 ) -> dict[str, Any]:
     """Test B on a walking log: per calibrated sensor and foot sum, scores of raw and calibrated against the
-    labels (where exact) and the truth."""
+    labels (where exact) and the truth; with `fallback` (sensor -> (N, 6): the affine map wholeBodyDynamics
+    would run, `pipeline.export.wbd`), its scores too, under ``fallback``."""
     table = pd.read_parquet(log.labelled)
     truth = pd.read_parquet(log.truth) if log.truth is not None else None
     raw = {s: _wrench(table, S.FT, s) for s in calibrated}
     true = {s: _wrench(truth, S.TRUE, s) for s in calibrated} if truth is not None else {}
-    names = {**{s: (raw[s], calibrated[s]) for s in calibrated}}
+    linear = {s: w for s, w in (fallback or {}).items() if s in calibrated}
+    names = {s: (raw[s], calibrated[s], linear.get(s)) for s in calibrated}
     raw_sums, cal_sums = _pair_sums(robot, params, raw), _pair_sums(robot, params, calibrated)
+    linear_sums = _pair_sums(robot, params, linear) if len(linear) == len(calibrated) else {}
     true_sums = _pair_sums(robot, params, true) if true else {}
-    names.update({p: (raw_sums[p], cal_sums[p]) for p in cal_sums})
+    names.update({p: (raw_sums[p], cal_sums[p], linear_sums.get(p)) for p in cal_sums})
     true.update(true_sums)
     out: dict[str, Any] = {}
-    for name, (r, c) in names.items():
+    for name, (r, c, f) in names.items():
         label = _wrench(table, S.EXPECTED, name)
         switch = table[S.switch_col(name)].to_numpy(bool)
-        entry = {"labels": {"raw": score(r, label, switch), "calibrated": score(c, label, switch)}}
+        entry: dict[str, Any] = {
+            "labels": {"raw": score(r, label, switch), "calibrated": score(c, label, switch)}
+        }
         if name in true:
             entry["truth"] = {"raw": score(r, true[name]), "calibrated": score(c, true[name])}
             entry["ratio_truth"] = entry["truth"]["raw"]["rmse"] / entry["truth"]["calibrated"]["rmse"]
+        if f is not None:
+            entry["fallback"] = {"labels": score(f, label, switch)}
+            if name in true:
+                entry["fallback"]["truth"] = score(f, true[name])
         out[name] = entry
     return out
 

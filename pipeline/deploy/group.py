@@ -79,11 +79,29 @@ def b_walking(ctx: GroupDay, log: DeployLog) -> TestResult:
     calibrated = ctx.calibrated(log, table)
     if not calibrated:
         return {}, {}
-    result = walking_errors(log, ctx.robot, ctx.params, calibrated)
+    result = walking_errors(log, ctx.robot, ctx.params, calibrated, _affine_fallback(ctx, table))
     truth = pd.read_parquet(log.truth) if log.truth is not None else None
     shown = [s for s in ctx.dp.torque_limbs if s in calibrated] or sorted(calibrated)
     plot_walking(table, truth, calibrated, shown, ctx.figure("walking"))
     return result, {"walking": ctx.figure("walking").name}
+
+
+def _affine_fallback(ctx: GroupDay, table: Any) -> dict[str, np.ndarray]:
+    """Sensor -> (N, 6) the group's affine map (what wholeBodyDynamics runs, `pipeline.export.wbd`) on the
+    table's raw inputs less the day's offsets, N and Nm; {} if the group has none."""
+    from pipeline.core.errors import DataError
+    from pipeline.export.trained import read_group
+
+    try:
+        affine = read_group(ctx.models, "affine", ctx.group)
+    except DataError:
+        return {}
+    x = table[affine.input_columns].to_numpy(np.float64, copy=True)
+    for s, sensor in enumerate(affine.sensors):
+        if sensor in ctx.offsets.values:
+            x[:, s * affine.n_inputs : s * affine.n_inputs + 6] -= ctx.offsets.values[sensor]
+    y = affine.reference(x)
+    return {sensor: y[:, 6 * s : 6 * s + 6] for s, sensor in enumerate(affine.sensors)}
 
 
 def c_torques(ctx: GroupDay, log: DeployLog) -> TestResult:

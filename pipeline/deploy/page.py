@@ -100,7 +100,8 @@ _NOTES = {
     "deployed model must not be.",
     "test_b": "RMSE (N and Nm pooled; per axis in deployment/details.json) of the calibrated sensors and "
     "foot sums while walking, against the labels (where exact) and the truth, beside raw; raw / "
-    "calibrated against truth is judged.",
+    "calibrated against truth is judged. The last column: the group's affine map, the calibration "
+    "wholeBodyDynamics runs from exported/wholebodydynamics.xml, on the same samples (not judged).",
     "test_c": "Leg joint torques estimated from each leg sensor, raw and calibrated, against the true "
     "torques during the pushes (Nm); the RMSE ratio of the judged joint is judged, the max error reported.",
     "test_d": "Pushes of 10-40 N at every sensor's site (hands, ankles, front and rear of the soles) in "
@@ -139,9 +140,12 @@ def _test_b(b: Mapping[str, Any], target: float) -> str:
             row += cell(tru["raw"]["rmse"]) + cell(tru["calibrated"]["rmse"]) + cell(ratio, ratio >= target)
         else:
             row += "<td>n/a</td>" * 3
+        fallback = e.get("fallback") or {}
+        row += cell((fallback.get("truth") or fallback.get("labels") or {}).get("rmse"))
         rows.append(row + "</tr>")
     header = ["sensor / sum", "raw vs labels", "calibrated vs labels", "raw vs truth", "cal. vs truth"]
-    head = "".join(f"<th>{h}</th>" for h in [*header, f"raw / cal. (>= {target:g})"])
+    header += [f"raw / cal. (>= {target:g})", "wholeBodyDynamics affine (truth, else labels)"]
+    head = "".join(f"<th>{h}</th>" for h in header)
     return f'<table class="num"><thead><tr>{head}</tr></thead><tbody>{"".join(rows)}</tbody></table>'
 
 
