@@ -15,7 +15,7 @@ Conventions verified by ``tests/test_idyntree_ref.py`` (iDynTree 15.1.0, iCubGen
 * Which link it acts on: iDynTree's ``getAppliedWrenchLink()`` is the *parent* link for
   ``child_to_parent`` (legs, arms: wrench exerted by the child side Q on the parent side P) and the *child*
   link for ``parent_to_child`` (feet: wrench exerted by the parent side P on the child side Q).  This
-  matches ARCHITECTURE.md "Physics".
+  matches docs/labels.md, "The physics: expected wrenches".
 * Signs, checked with static poses (zero velocity and acceleration) and gravity ``g`` pointing down:
     - root_link fixed, l_leg_ft (child_to_parent): the force, rotated to the world frame, is
       ``(0, 0, -m_leg * g)`` with ``m_leg`` the summed URDF masses of the links below the sensor: the
@@ -29,7 +29,7 @@ Conventions verified by ``tests/test_idyntree_ref.py`` (iDynTree 15.1.0, iCubGen
   subtree's Newton-Euler wrench (sum of m (a_c - g) and I alpha + omega x I omega, Pinocchio kinematics)
   to 1e-6 relative, forces and moments, on both robots.
 * Under-determined contacts (several unknown 6D wrenches, e.g. both feet) are resolved by iDynTree with a
-  least-squares / minimum-norm split; such labels are not physically exact (see ARCHITECTURE.md).
+  least-squares / minimum-norm split; such labels are not physically exact (docs/labels.md).
 
 iDynTree API notes (things that are easy to get wrong)
 ------------------------------------------------------

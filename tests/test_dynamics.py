@@ -176,7 +176,7 @@ def test_pair_sum_is_sum_of_parts_where_parts_are_exact(robot: RobotModel) -> No
 
 
 # Thesis switches: eq. 5.5 (legs), 5.11 (foot parts); the pair switch is the graph-cut rule of the sum
-# (ARCHITECTURE.md), which eq. 5.12 applies where the parts alone are not exact.
+# (docs/labels.md), which eq. 5.12 applies where the parts alone are not exact.
 SWITCH_TABLE = {
     #                       l_leg r_leg lff lfr rff rfr l_arm r_arm | l_foot r_foot
     "l_single_support": ((1, 1, 0, 0, 1, 1, 1, 1), (1, 1)),

@@ -4,6 +4,7 @@ every module a stage imports, and a command line that imports no heavy library t
 from __future__ import annotations
 
 import ast
+import re
 import subprocess
 import sys
 from pathlib import Path
@@ -157,3 +158,50 @@ def test_ruff_check_and_format_are_clean() -> None:
             cwd=ROOT,
         )
         assert out.returncode == 0, out.stdout + out.stderr
+
+
+_NAMED_PATH = re.compile(r"(?<![\w/.])((?:pipeline|tests|benchmarks|docs)/[\w/.-]*\w\.(?:py|md|c|h|yaml))")
+_NAMED_MODULE = re.compile(r"(?<![\w/.])(pipeline(?:\.\w+)+)")
+
+
+def _sources() -> list[Path]:
+    """Every file whose comments and docstrings name the product's files and modules."""
+    files = [*ROOT.glob("pipeline/**/*.py"), *ROOT.glob("benchmarks/*.py"), *ROOT.glob("benchmarks/*.c")]
+    return [
+        *files,
+        *ROOT.glob("tests/*.py"),
+        *ROOT.glob("docs/*.md"),
+        *(ROOT / f for f in ("dvc.yaml", "params.yaml", "README.md")),
+    ]
+
+
+def _defines(module: Path, name: str) -> bool:
+    text = module.read_text(encoding="utf-8")
+    return bool(
+        re.search(rf"^\s*(def|class|async def) {name}\b|^{name}\b\s*[:=]|import .*\b{name}\b", text, re.M)
+    )
+
+
+def test_every_file_and_module_a_comment_names_exists() -> None:
+    """Paths (``pipeline/export/wbd.py``, ``docs/labels.md``) and dotted names (``pipeline.export.wbd``,
+    ``pipeline.calib.split.split_logs``) in code, params, dvc.yaml and docs: each one exists, and nothing
+    sends a reader outside the clone (a design document a clone does not have)."""
+    missing = []
+    for source in _sources():
+        text = source.read_text(encoding="utf-8")
+        missing += [f"{source.name}: {p}" for p in _NAMED_PATH.findall(text) if not (ROOT / p).exists()]
+        outside = "ARCHITECTURE" + ".md"  # the design document beside a developer's checkout, not in a clone
+        missing += [f"{source.name}: {outside}" for _ in range(text.count(outside))]
+        for dotted in _NAMED_MODULE.findall(text):
+            parts = dotted.split(".")
+            k = len(parts)
+            while k > 1 and not (
+                ROOT.joinpath(*parts[:k]).with_suffix(".py").is_file()
+                or ROOT.joinpath(*parts[:k], "__init__.py").is_file()
+            ):
+                k -= 1
+            module = ROOT.joinpath(*parts[:k]).with_suffix(".py")
+            module = module if module.is_file() else ROOT.joinpath(*parts[:k], "__init__.py")
+            if k == 1 or (k < len(parts) and not _defines(module, parts[k])):
+                missing.append(f"{source.name}: {dotted}")
+    assert not missing, sorted(set(missing))

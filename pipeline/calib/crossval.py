@@ -1,6 +1,6 @@
 """Cross-validation by whole training logs: every model of a group scored on every fold.
 
-Fold 0 is the train/validation split the Optuna search uses (`pipeline.calib.data.split_logs`); on each
+Fold 0 is the train/validation split the Optuna search uses (`pipeline.calib.split.split_logs`); on each
 other fold the baselines are fitted again and each network is trained again with its search's best
 hyperparameters and seed (the windowed network with its params, on that fold's play model), its epoch chosen
 on that fold's validation logs. A model's fold scores are its

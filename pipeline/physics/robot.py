@@ -1,6 +1,6 @@
 """Robot model: the URDF, its 6-axis force/torque sensors, and Pinocchio models of it.
 
-Conventions (they follow the URDF and iDynTree, see ARCHITECTURE.md "Physics"):
+Conventions (they follow the URDF and iDynTree; docs/labels.md, "The physics: expected wrenches"):
 
 - A link's frame is the frame of the joint that has it as child. A joint's `<origin>` is the pose
   of the joint frame in the parent link frame; a revolute joint then rotates about `<axis>`
