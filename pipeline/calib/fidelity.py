@@ -21,11 +21,12 @@ column c on raw axis c mod 6) is pushed twice. Held: the push has been there lon
 carry it (the state moves with the push; a play operator's state then moves with its input, z unchanged),
 so the slopes above are those of its static part, judged as any model's. At its onset (``instant``: the
 state held): the slopes of the same pushes the moment they start, where the memory answers too. A sensor's
-hysteresis makes its reading of a fresh push larger (smaller) than of a held one by its minor-loop gain
-(h / width: up to 0.15 on the simulated sensors); a memory model undoes that, and the gap between its two
-slopes is what its memory adds to the present wrench, which must stay small (`pipeline.evaluation
-.fidelity`): a memory that stands in for the present wrench (a play of a width near the noise, cancelling
-the reading) answers a fresh push with a slope far from its held one.
+hysteresis makes its reading of a fresh push larger (smaller) than of a held one by its minor-loop gain g
+(h / width: 0.4-0.5 for 0.5 % of full scale spread over widths of 0.2-10 % of it); a memory model undoes that
+with a gap g / (1 + g) between its two slopes, what its memory adds to the present wrench, which must stay
+below half of it (`pipeline.evaluation.fidelity`, ``evaluate.memory_tolerance``): a memory that stands in
+for the present wrench (a play of a width near the noise, cancelling the reading) answers a fresh push with
+a slope near 0.
 """
 
 from __future__ import annotations
