@@ -453,6 +453,10 @@ def test_the_real_2016_run_goes_through_dvc_repro_and_says_why_no_sensor_is_cali
     manifest = json.loads((tmp_path / "exported" / "manifest.json").read_text())
     assert manifest["graphs"] == {} and set(manifest["not_calibrated"]) == set(GROUPS)
     assert not list((tmp_path / "exported" / "groups").rglob("*.onnx"))
+    # no C calibrator and no wholeBodyDynamics group, each saying why
+    assert [p.name for p in (tmp_path / "exported" / "c").iterdir()] == ["not_calibrated.txt"]
+    fragment = (tmp_path / "exported" / "wholebodydynamics.xml").read_text()
+    assert fragment.startswith("<!-- ftcal: nothing calibrated: ") and "<group" not in fragment
     for dtype in ("float32", "float64"):  # the fused graph: no sensor, zero columns in and out
         graph = onnx.load(tmp_path / "exported" / f"all.{dtype}.onnx").graph
         assert [d.dim_value for d in graph.output[0].type.tensor_type.shape.dim][1:] == [0]

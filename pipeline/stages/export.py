@@ -37,6 +37,7 @@ from pipeline.core.errors import ConfigError, DataError
 STAGE = "export"
 GROUPS_DIR = "groups"  # OUT/groups/<group>: each group's export
 C_DIR = "c"  # beside each graph: its C calibrator (pipeline.export.csource)
+C_NOTHING = "not_calibrated.txt"  # in the fused graph's C_DIR when no group is calibrated: why
 
 
 @dataclass
@@ -111,6 +112,7 @@ def _c_calibrator(directory: Path, models: list[Any], entry: dict[str, Any], mea
 
     for name, text in csource.generate(models, entry).items():
         write_text(directory / name, text)
+    (directory / C_NOTHING).unlink(missing_ok=True)  # an earlier export's note that nothing was calibrated
     if cbuild.compiler() is None:
         return {"skipped": "no C compiler (cc) here to build it"}
     n_state = int(entry["state"]["shape"][0]) if "state" in entry else 0
@@ -359,18 +361,24 @@ def _write_wbd(out: Path, robot: str, models: dict[str, str]) -> dict[str, Any]:
 
 def _fuse_nothing(params: Any, out: Path, uncalibrated: dict[str, str], t0: float) -> ExportResult:
     """No group is calibrated: manifest.json says why per group (and sensor), and the fused graph's files
-    are graphs of no sensor (`pipeline.export.graph.empty`: zero columns in and out), so that nothing
-    stale is deployed and the stage's outputs exist."""
+    are graphs of no sensor (`pipeline.export.graph.empty`: zero columns in and out), the C calibrator's
+    folder and the wholeBodyDynamics configuration say so, so that nothing stale is deployed and the
+    stage's outputs exist."""
     import json
 
     from pipeline.calib.exact import NOT_CALIBRATED
-    from pipeline.core.io import write_json
-    from pipeline.export import graph, manifest
+    from pipeline.core.io import write_json, write_text
+    from pipeline.export import csource, graph, manifest, wbd
 
     why = {"ftcal.robot": params.robot.urdf, NOT_CALIBRATED: json.dumps(uncalibrated)}
     for dtype in graph.DTYPES:
         model = graph.empty(dtype, why, f"ftcal_{manifest.FUSED}_nothing_calibrated")
         manifest.write_graphs(out, manifest.FUSED, {}, {dtype: model})
+    note = "ftcal: nothing calibrated: " + "; ".join(f"{g}: {w}" for g, w in uncalibrated.items())
+    for stale in (csource.HEADER, csource.SOURCE):  # no C calibrator of an earlier export left to deploy
+        (out / C_DIR / stale).unlink(missing_ok=True)
+    write_text(out / C_DIR / C_NOTHING, note + "\n")
+    write_text(out / wbd.FILE, wbd.fragment({}, note))
     doc = {**manifest.document(params.robot.urdf, {}, fused=None), NOT_CALIBRATED: uncalibrated}
     write_json(out / manifest.MANIFEST_FILE, doc)
     files = sorted(p.name for p in out.iterdir() if p.is_file())
