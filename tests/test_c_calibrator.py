@@ -41,7 +41,7 @@ def _built(model, tmp_path: Path) -> tuple[cbuild.CSession, Path]:
     )
     assert done.returncode == 0, done.stderr
     n_state = sum(getattr(p, "state_size", 0) for p in model.parts)
-    library = cbuild.compile_calibrator(tmp_path)
+    library = cbuild.compile_calibrator(tmp_path, tmp_path)
     return cbuild.CSession(library, len(model.input_columns), 6 * len(model.sensors), n_state), library
 
 

@@ -1,7 +1,8 @@
 """The generated C calibrator (`pipeline.export.csource`) compiled with the system's C compiler and run.
 
-`compile_calibrator(dir)` builds ``dir``'s ``ftcal_calibrator.c`` into a shared library with ``cc`` (C99,
--O2, libm), in a temporary directory; `CSession` runs it behind the few methods of an onnxruntime session
+`compile_calibrator(dir, work)` builds ``dir``'s ``ftcal_calibrator.c`` into a shared library in ``work``
+with ``cc`` (C99, -O3, no fast-math, libm); `load_calibrator` compiles and loads it, leaving no file
+behind; `CSession` runs it behind the few methods of an onnxruntime session
 that ftcal calls (`pipeline.export.check.run_state`): ``get_inputs``, ``get_outputs`` and ``run`` with the
 ``inputs``, ``offsets`` and ``state`` feeds of a float32 graph, so that the checks, `ftcal calibrate` and
 the deployment tests judge the very code a robot runs. `compiler()` is the compiler found (None: none).
@@ -48,8 +49,8 @@ class _Arg:
 class CSession:
     """A compiled calibrator with the interface of an onnxruntime session of a float32 graph."""
 
-    def __init__(self, library: Path, n_inputs: int, n_outputs: int, n_state: int) -> None:
-        self._lib = ctypes.CDLL(str(library))
+    def __init__(self, library: Path | ctypes.CDLL, n_inputs: int, n_outputs: int, n_state: int) -> None:
+        self._lib = library if isinstance(library, ctypes.CDLL) else ctypes.CDLL(str(library))
         self.n_inputs, self.n_outputs, self.n_state = n_inputs, n_outputs, n_state
         self._state = (ctypes.c_double * max(n_state, 1))()
         f = self._lib.ftcal_calibrate_rows
@@ -87,17 +88,16 @@ class CSession:
         return [out, last] if self.n_state else [out]
 
 
-def compile_calibrator(directory: Path, work: Path | None = None) -> Path:
-    """The shared library built from `directory`'s generated calibrator (into `work`, default a new
-    temporary directory). DataError naming the file if there is no compiler or it fails."""
+def compile_calibrator(directory: Path, work: Path) -> Path:
+    """The shared library built from `directory`'s generated calibrator into `work`. DataError naming the
+    file if there is no compiler or it fails."""
     cc = compiler()
     if cc is None:
         raise DataError(f"{directory / SOURCE}: no C compiler (cc, gcc or $CC) to build the C calibrator")
     for name in (HEADER, SOURCE):
         if not (directory / name).is_file():
             raise DataError(f"{directory / name}: not found (re-export with `ftcal export`)")
-    work = Path(work) if work is not None else Path(tempfile.mkdtemp(prefix="ftcal-c-"))
-    library = work / "libftcal_calibrator.so"
+    library = Path(work) / "libftcal_calibrator.so"
     cmd = [cc, *FLAGS, "-I", str(directory), str(directory / SOURCE), "-o", str(library), "-lm"]
     done = subprocess.run(cmd, capture_output=True, text=True)
     if done.returncode != 0:
@@ -106,13 +106,19 @@ def compile_calibrator(directory: Path, work: Path | None = None) -> Path:
     return library
 
 
+def load_calibrator(directory: Path) -> ctypes.CDLL:
+    """`directory`'s calibrator compiled and loaded; its library file is removed once loaded."""
+    with tempfile.TemporaryDirectory(prefix="ftcal-c-") as work:
+        return ctypes.CDLL(str(compile_calibrator(directory, Path(work))))
+
+
 def c_session(directory: Path, n_inputs: int, n_outputs: int, n_state: int) -> CSession:
     """`CSession` of `directory`'s calibrator, compiled afresh."""
-    return CSession(compile_calibrator(directory), n_inputs, n_outputs, n_state)
+    return CSession(load_calibrator(directory), n_inputs, n_outputs, n_state)
 
 
 _RUNTIME = ["onnxruntime"]
-_BUILT: dict[str, Any] = {}  # the C calibrators compiled in this process, by their source's sha256
+_BUILT: dict[str, ctypes.CDLL] = {}  # the C calibrators loaded in this process, by their source's sha256
 
 
 def default_runtime() -> str:
@@ -142,6 +148,6 @@ def c_runtime(directory: Path, entry: Mapping[str, Any]) -> Any:
         raise DataError(f"{folder / SOURCE}: not found (an export without its C calibrator: re-export)")
     key = sha256_file(folder / SOURCE)
     if key not in _BUILT:
-        _BUILT[key] = compile_calibrator(folder)
+        _BUILT[key] = load_calibrator(folder)
     n_state = int(entry["state"]["shape"][0]) if "state" in entry else 0
     return CSession(_BUILT[key], len(entry["inputs"]), len(entry["outputs"]), n_state)

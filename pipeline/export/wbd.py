@@ -37,6 +37,7 @@ FILE = "wholebodydynamics.xml"
 KEY = "wholebodydynamics"  # the manifests' entry
 SECONDARY, TEMPERATURE, OFFSET = "FT_SECONDARY_CALIBRATION", "FT_TEMPERATURE_COEFFICIENTS", "FT_OFFSET"
 WRENCH = 6
+AFFINE_NAME = "affine"  # the family whose map the configuration holds
 
 
 def sensor_terms(part: LinearPart) -> dict[str, Any]:
@@ -122,6 +123,3 @@ def fallback_cost(report: Mapping[str, Any], deployed: str) -> dict[str, dict[st
                 "affine_rmse": float(rows[AFFINE_NAME]["rmse"]),
             }
     return out
-
-
-AFFINE_NAME = "affine"
