@@ -343,7 +343,10 @@ def test_stage_registers_the_export(exported: dict, trained_models: dict) -> Non
     (version,) = client.search_model_versions(f"name = '{REGISTERED_MODEL}'")
     assert version.tags[f"model.{LEG}"] == "nn13" and version.source.endswith("/onnx")
     files = client.list_artifacts(version.run_id, "onnx")
-    assert {Path(f.path).name for f in files} >= {"manifest.json", "all.float32.onnx", "groups"}
+    assert {Path(f.path).name for f in files} >= {"manifest.json", "all.float32.onnx", "groups", "c"}
+    assert {Path(f.path).name for f in files} >= {"wholebodydynamics.xml"}
+    c_files = {Path(f.path).name for f in client.list_artifacts(version.run_id, "onnx/c")}
+    assert c_files == {"ftcal_calibrator.h", "ftcal_calibrator.c"}
     # the registered training version of the exported network points at its ONNX graphs (the group's run)
     run = exported["manifest"]["graphs"][LEG]["training"][LEG]["mlflow_run"]
     (trained,) = client.search_model_versions(f"name = 'ftcal-{LEG}-13' and run_id = '{run}'")

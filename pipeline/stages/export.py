@@ -332,6 +332,7 @@ def run_fused(
         for name in (*entries[manifest.FUSED]["files"].values(), wbd.FILE, manifest.MANIFEST_FILE):
             mlflow.log_artifact(str(out / name), ARTIFACT_DIR)
         mlflow.log_artifacts(str(out / GROUPS_DIR), f"{ARTIFACT_DIR}/{GROUPS_DIR}")
+        mlflow.log_artifacts(str(out / C_DIR), f"{ARTIFACT_DIR}/{C_DIR}")  # the fused C calibrator
         registered = register_export(mlflow.MlflowClient(), active, doc)
         run_id = active.info.run_id
     files = sorted(p.name for p in out.iterdir())
