@@ -218,17 +218,21 @@ def wbd_section(results: Sequence[GroupReport]) -> str:
     """What wholeBodyDynamics' own linear calibration (the export's ``wholebodydynamics.xml``: each group's
     affine map) costs beside the deployed model, per headline: both test RMSEs (N/Nm pooled), against the
     truth where the logs have it, else the held-out labels."""
+    from pipeline.export.wbd import fallback_cost
+
     rows = []
     for r in results:
-        for name in r.headlines or [r.headline]:
-            against = TRUTH if (r.tables.get(name) or {}).get(TRUTH) else LABELS
-            errors = (r.tables.get(name) or {}).get(against) or {}
-            deployed, affine = errors.get(r.recommended or ""), errors.get("affine")
-            if deployed is None or affine is None:
-                continue
-            ratio = affine["rmse"] / deployed["rmse"] if deployed["rmse"] else math.nan
+        for name, c in fallback_cost(r.tables, r.recommended or "", r.headlines or [r.headline]).items():
+            ratio = c["affine_rmse"] / c["deployed_rmse"] if c["deployed_rmse"] else math.nan
             rows.append(
-                [name, r.recommended, fmt(deployed["rmse"]), fmt(affine["rmse"]), fmt(ratio), against]
+                [
+                    name,
+                    c["deployed"],
+                    fmt(c["deployed_rmse"]),
+                    fmt(c["affine_rmse"]),
+                    fmt(ratio),
+                    c["against"],
+                ]
             )
     if not rows:
         return ""

@@ -108,11 +108,16 @@ def about(robot: str, models: Mapping[str, str]) -> str:
     )
 
 
-def fallback_cost(report: Mapping[str, Any], deployed: str) -> dict[str, dict[str, Any]]:
-    """Per headline of a group's evaluation (``report.json``): the affine map's test RMSE beside the
-    deployed model's (pooled, N/Nm), against the truth where the logs have it, else the held-out labels."""
+def fallback_cost(
+    tables: Mapping[str, Any], deployed: str, names: list[str] | None = None
+) -> dict[str, dict[str, Any]]:
+    """Per headline of a group's evaluation tables (``report.json`` ``tables``: name -> reference -> model
+    -> errors; `names`, default every name): the affine map's test RMSE beside the deployed model's (pooled,
+    N/Nm), against the truth where the logs have it, else the held-out labels. A name without both is left
+    out."""
     out = {}
-    for headline, table in (report.get("tables") or {}).items():
+    for headline in tables if names is None else names:
+        table = tables.get(headline) or {}
         against = "truth" if table.get("truth") else "labels"
         rows = table.get(against) or {}
         if AFFINE_NAME in rows and deployed in rows:

@@ -253,7 +253,8 @@ def _wbd_terms(model_dir: Path, group: str, deployed: str, report: Path) -> dict
     entry: dict[str, Any] = {"model": wbd.AFFINE_NAME, "sensors": wbd.group_terms(affine)}
     evaluated = report.parent / "groups" / group / GROUP_REPORT
     if evaluated.is_file():
-        entry["fallback"] = wbd.fallback_cost(read_json(evaluated, "an evaluation report"), deployed)
+        tables = read_json(evaluated, "an evaluation report").get("tables") or {}
+        entry["fallback"] = wbd.fallback_cost(tables, deployed)
     return entry
 
 

@@ -130,18 +130,17 @@ def run(
 
     target = Path(out) if out is not None else Path(models) / FILE
     write_json(target, doc)
-    fragment = _rezero_wbd(Path(models), target.parent, result.rezeroed().values)
+    fragment = _rezero_wbd(deployment.manifest, target.parent, result.rezeroed().values)
     return doc | {"written": str(target), "wholebodydynamics": fragment, "warnings": warnings}
 
 
-def _rezero_wbd(models: Path, out: Path, deltas: dict[str, Any]) -> str | None:
-    """The export's wholeBodyDynamics fragment (`pipeline.export.wbd`) with each re-zeroed sensor's
-    FT_OFFSET moved by its offset change (N, Nm), written beside the offsets file: its path (None: the
-    export has no fragment)."""
-    from pipeline.core.io import read_json, write_text
-    from pipeline.export import manifest, wbd
+def _rezero_wbd(doc: dict[str, Any], out: Path, deltas: dict[str, Any]) -> str | None:
+    """The wholeBodyDynamics fragment (`pipeline.export.wbd`) of the export whose manifest is `doc`, with
+    each re-zeroed sensor's FT_OFFSET moved by its offset change (N, Nm), written into `out` beside the
+    offsets file: its path (None: the export has no fragment)."""
+    from pipeline.core.io import write_text
+    from pipeline.export import wbd
 
-    doc = read_json(models / manifest.MANIFEST_FILE, "an export manifest")
     entry = doc.get(wbd.KEY) or {}
     if not entry.get("sensors"):
         return None
