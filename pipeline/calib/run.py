@@ -15,6 +15,7 @@ import numpy as np
 import torch
 
 from pipeline.calib.crossval import cross_validate
+from pipeline.calib.data import concat
 from pipeline.calib.exact import NOT_CALIBRATED, NotCalibrated, not_calibrated_record
 from pipeline.calib.excitation import group_excitation
 from pipeline.calib.fidelity import group_fidelity
@@ -120,7 +121,8 @@ def fit_models(params: Params, prep: Prepared, studies: Path, ui: ProgressLog) -
     fitted.cv = cross_validate(prep, fitted.preds["val"], fitted.nets, prep.cfg.selection_margin, ui)
     fitted.timings["cross_validation"] = time.perf_counter() - t
     if prep.recorded:  # no truth: the plain least-squares affine map beside the models, never a candidate
-        plain = fit_plain_affine(gp, group, prep.train, prep.seed)
+        every = concat([prep.train, prep.val])  # a lab's script fits on all its training data: no selection
+        plain = fit_plain_affine(gp, group, every.subset(every.labelled()), prep.seed)
         fitted.baselines[LS_AFFINE] = plain
         for k, d in data.items():
             fitted.preds[k][LS_AFFINE] = plain.predict(d.x)
