@@ -1,4 +1,5 @@
-"""Shared fixtures: the robots every physics test runs on."""
+"""Shared fixtures: the robots every physics test runs on, throwaway MLflow stores, iCub's short logs and
+tiny trained models."""
 
 from __future__ import annotations
 
@@ -55,6 +56,29 @@ def foot_pairs(robot: RobotModel) -> list:
     return [robot.foot_pair(name, *sensors) for name, sensors in FOOT_PAIRS.items()]
 
 
+@pytest.fixture(scope="module")
+def mlflow_db(tmp_path_factory: pytest.TempPathFactory) -> str:
+    """The URI of a throwaway MLflow sqlite store for one test module's ingest runs through the CLI."""
+    return f"sqlite:///{tmp_path_factory.mktemp('mlflow') / 'mlflow.db'}"
+
+
+@pytest.fixture(scope="module")
+def icub_logs(tmp_path_factory: pytest.TempPathFactory) -> tuple[Path, list[str], list[str]]:
+    """Two short good logs of iCub (its URDF's joints and FT sensors) and one truncated one."""
+    from pipeline.core.config import load_params
+    from tests.factories.logs import write_log
+
+    robot = load_robot("iCubGenova09")
+    joints, sensors = robot.joint_names, list(robot.sensors)
+    src = tmp_path_factory.mktemp("icub_src")
+    params = load_params(REPO / "params.yaml")
+    for name in ("a", "b"):
+        write_log(src / "sub" / f"{name}.mcap", joints, sensors, topics=params.topics, duration=1.0)
+    good = (src / "sub" / "a.mcap").read_bytes()
+    (src / "sub" / "c_truncated.mcap").write_bytes(good[: len(good) // 2])
+    return src, joints, sensors
+
+
 @pytest.fixture(scope="session")
 def trained_models(tmp_path_factory: pytest.TempPathFactory) -> dict:
     """Tiny trained models of r_leg_ft and the r_foot pair (every family: raw, affine, poly1-2, nn7, nn13)
@@ -67,8 +91,8 @@ def trained_models(tmp_path_factory: pytest.TempPathFactory) -> dict:
 
     from pipeline.core.config import load_params
     from pipeline.stages import train as T
-    from tests.factories import LEG, PAIR, write_labelled_logs
-    from tests.test_train import write_params
+    from tests.factories.labelled import LEG, PAIR, write_labelled_logs
+    from tests.factories.params import write_params
 
     root = tmp_path_factory.mktemp("trained")
     labelled = write_labelled_logs(root / "labelled", n=400)

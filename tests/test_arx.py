@@ -14,7 +14,6 @@ import pytest
 
 from pipeline.calib.fidelity import model_fidelity
 from pipeline.calib.linear import LinearBaseline, fit_linear_baseline
-from pipeline.calib.pushes import PushPrior
 from pipeline.core.lowpass import (
     alphas,
     lowpass_memory,
@@ -29,13 +28,9 @@ from pipeline.export import graph, manifest
 from pipeline.export.check import run_logs, run_state, session
 from pipeline.export.linear import state_layout
 from pipeline.export.trained import read_group
+from tests.factories.sensors import CREEP, DT, NOISE, PUSH, TAU, creep_log
 
-DT = 0.01  # s, the simulated logs' rate
-TAU = 1.5  # s, the creep's time constant
-CREEP = np.r_[0.03, -0.02, 0.025, 0.02, 0.03, -0.015]  # overshoot of a load change, fraction of it
-NOISE = np.r_[np.full(3, 0.6), np.full(3, 0.03)]
 TIME_CONSTANTS = np.array([0.5, 1.5, 5.0])
-PUSH = PushPrior(0.1, 20.0, 0.2)
 
 
 def test_filter_follows_its_analytic_step_response() -> None:
@@ -75,23 +70,8 @@ def test_filter_memory_skips_missing_readings_and_starts_afresh() -> None:
     np.testing.assert_array_equal(scale, np.r_[np.ones(6), np.ones(18)])
 
 
-def _log(seed: int, n: int = 4000) -> tuple[np.ndarray, np.ndarray]:
-    """(raw inputs (n, 1, 7), true wrench (n, 1, 6)) of one log: steps and ramps of a few 100 N read through
-    gain, offset, creep (``c (w - lowpass_TAU(w))``) and white noise."""
-    rng = np.random.default_rng(seed)
-    scale = np.r_[np.full(3, 150.0), np.full(3, 8.0)]
-    levels = rng.uniform(-1, 1, (n // 200 + 1, 6)) * scale
-    w = np.repeat(levels, 200, axis=0)[:n]
-    w = np.apply_along_axis(lambda c: np.convolve(c, np.ones(20) / 20, mode="same"), 0, w)  # 0.2 s ramps
-    lagged = lowpass_outputs(w, np.full(6, alphas(np.array([TAU]), DT)[0]))
-    raw = 1.02 * w + np.r_[30.0, -20.0, 25.0, 2.0, -1.0, 1.5] + CREEP * (w - lagged)
-    raw += rng.normal(size=raw.shape) * NOISE
-    x = np.concatenate([raw, np.full((n, 1), 30.0)], axis=1)
-    return x[:, None, :], w[:, None, :]
-
-
 def _fit(name: str) -> LinearBaseline:
-    logs = [_log(seed) for seed in range(3)]
+    logs = [creep_log(seed) for seed in range(3)]
     x = np.concatenate([g[0] for g in logs])
     labels = np.concatenate([g[1] for g in logs])
     spec = {
@@ -112,7 +92,7 @@ def models() -> dict[str, LinearBaseline]:
 
 
 def _rmse(model: LinearBaseline, seed: int = 7) -> float:
-    x, w = _log(seed)
+    x, w = creep_log(seed)
     return float(np.sqrt(np.mean((model.predict_log(x) - w) ** 2)))
 
 
@@ -122,7 +102,7 @@ def test_arx_model_calibrates_a_creeping_sensor_down_to_its_noise(models: dict[s
     assert arx < 1.15 * floor, (arx, floor)
     assert affine > 2.0 * arx and play > 1.5 * arx, (affine, play, arx)  # the creep is rate-dependent
     # held long after its onset, a push is read through the static inverse alone
-    x, _ = _log(8)
+    x, _ = creep_log(8)
     entry = model_fidelity(models["arx"].predict, x, PUSH, 7, memory_of(x, None, TIME_CONSTANTS, DT))[0]
     np.testing.assert_allclose(entry["slopes"], 1 / 1.02, atol=0.02)
     # at its onset the reading overshoots by the creep, which the model takes off
@@ -131,7 +111,7 @@ def test_arx_model_calibrates_a_creeping_sensor_down_to_its_noise(models: dict[s
 
 
 def test_arx_memory_is_causal_and_reads_the_period(models: dict[str, LinearBaseline]) -> None:
-    x, _ = _log(9, n=800)
+    x, _ = creep_log(9, n=800)
     y = models["arx"].predict_log(x)
     changed = x.copy()
     changed[500, 0, 0] += 80.0
@@ -150,7 +130,7 @@ def test_graph_carries_the_filters_state_and_says_the_rate(
     (tmp_path / "metrics.json").write_text(json.dumps({"group": "g", "sensors": ["s"], "test": {}}))
     group = read_group(tmp_path, "arx", "g")
     assert group.memory and group.parts[0].state_size == 18
-    x = _log(10, n=1200)[0][:, 0]
+    x = creep_log(10, n=1200)[0][:, 0]
     reference = models["arx"].predict_log(x[:, None, :])[:, 0]
     for dtype, atol in (("float64", 1e-9), ("float32", 1e-3)):
         sess = session(graph.build([group], dtype, {}, "g"))

@@ -15,7 +15,7 @@ from functools import cache
 import pytest
 
 from pipeline.tools import db
-from tests.test_readme import DOCS, ROOT, commands
+from tests.factories.docs import DOCS, ROOT, commands
 
 ELSEWHERE = {  # run on the outputs of a pipeline, in the test that runs one
     "benchmarks/calibrate_agreement.py": "tests/test_e2e.py",

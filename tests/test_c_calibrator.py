@@ -21,7 +21,7 @@ from pipeline.export import cbuild, csource, graph
 from pipeline.export.check import load_samples, max_ulps, run_state, session
 from pipeline.export.linear import state_layout
 from pipeline.export.trained import read_group
-from tests.factories import LEG, PAIR
+from tests.factories.labelled import LEG, PAIR
 
 FAMILIES = ["raw", "affine", "poly1", "poly2", "play", "arx", "nn7", "nn13", "win"]
 TOLERANCE_ULPS = 8  # params.yaml export.tolerance_float32_ulps

@@ -18,8 +18,9 @@ from pipeline.cli import main
 from pipeline.core.config import load_params
 from pipeline.export.trained import read_group
 from pipeline.stages import export as E
+from tests.factories.labelled import FRONT, LEG, PAIR, REAR
+from tests.factories.readback import mcap_records, ros2_messages, stamp_ns, xyz
 from tests.mcap_factory import write_log
-from tests.test_train import FRONT, LEG, PAIR, REAR
 
 pytestmark = pytest.mark.slow  # trains and exports a group first
 
@@ -81,54 +82,25 @@ def _cli(setup: dict, src: Path, out: Path, *extra: str, models: Path | None = N
     ]
 
 
-def _messages(path: Path) -> list[tuple[str, int, int, int, bytes]]:
-    from mcap.reader import make_reader
-
-    with path.open("rb") as f:
-        reader = make_reader(f, validate_crcs=True)
-        return [
-            (c.topic, m.log_time, m.publish_time, m.sequence, bytes(m.data))
-            for _, c, m in reader.iter_messages(log_time_order=False)
-        ]
-
-
-def _decoded(path: Path) -> dict[str, list[Any]]:
-    """Every message decoded by mcap_ros2 (the standard decoder, independent of ours), per topic."""
-    from mcap_ros2.reader import read_ros2_messages
-
-    out: dict[str, list[Any]] = {}
-    for m in read_ros2_messages(str(path)):
-        out.setdefault(m.channel.topic, []).append(m)
-    return out
-
-
-def _stamp(msg: Any) -> int:
-    return msg.header.stamp.sec * 1_000_000_000 + msg.header.stamp.nanosec
-
-
-def _vec(v: Any) -> list[float]:
-    return [v.x, v.y, v.z]
-
-
 def _expected(
     decoded: dict[str, list[Any]], sensor: str, n_inputs: int
 ) -> list[tuple[int, np.ndarray] | None]:
     """Per raw wrench message of `sensor`: (stamp, inputs) with the latest temperature/IMU stamped at or
     before it (None where there is none yet)."""
-    temps = sorted((_stamp(m.ros_msg), m.ros_msg.temperature) for m in decoded[f"/ft/{sensor}/temperature"])
+    temps = sorted((stamp_ns(m.ros_msg), m.ros_msg.temperature) for m in decoded[f"/ft/{sensor}/temperature"])
     imus = sorted(
-        (_stamp(m.ros_msg), _vec(m.ros_msg.linear_acceleration) + _vec(m.ros_msg.angular_velocity))
+        (stamp_ns(m.ros_msg), xyz(m.ros_msg.linear_acceleration) + xyz(m.ros_msg.angular_velocity))
         for m in decoded[f"/ft/{sensor}/imu"]
     )
     out = []
     for m in decoded[f"/ft/{sensor}/wrench"]:
-        stamp = _stamp(m.ros_msg)
+        stamp = stamp_ns(m.ros_msg)
         k = bisect.bisect_right([t for t, _ in temps], stamp) - 1
         j = bisect.bisect_right([t for t, _ in imus], stamp) - 1
         if k < 0 or (n_inputs == 13 and j < 0):
             out.append(None)
             continue
-        x = _vec(m.ros_msg.wrench.force) + _vec(m.ros_msg.wrench.torque) + [temps[k][1]]
+        x = xyz(m.ros_msg.wrench.force) + xyz(m.ros_msg.wrench.torque) + [temps[k][1]]
         out.append((stamp, np.array(x + (imus[j][1] if n_inputs == 13 else []))))
     return out
 
@@ -141,9 +113,9 @@ def test_calibrate_copies_every_message_and_adds_causal_calibration(
     captured = capsys.readouterr()
     assert f"no model for {OTHER}" in captured.err and "calibrated wrenches added" in captured.out
 
-    original, copied = _messages(setup["log"]), _messages(out)
+    original, copied = mcap_records(setup["log"]), mcap_records(out)
     assert [m for m in copied if not m[0].endswith("_calibrated")] == original  # byte for byte, same order
-    decoded_in, decoded_out = _decoded(setup["log"]), _decoded(out)
+    decoded_in, decoded_out = ros2_messages(setup["log"]), ros2_messages(out)
     assert f"/ft/{OTHER}/wrench_calibrated" not in decoded_out
     for sensor, group in ((LEG, LEG), (FRONT, PAIR), (REAR, PAIR)):
         model = read_group(setup["models"] / group, RECOMMENDED[group])
@@ -155,11 +127,11 @@ def test_calibrate_copies_every_message_and_adds_causal_calibration(
         assert len(calibrated) == len(kept) >= len(raw) - 2  # at most the messages before the first inputs
         x = np.stack([e[1] for _, e in kept])
         y = model.reference(np.tile(x, (1, len(model.sensors))))[:, slot * 6 : (slot + 1) * 6]
-        got = np.array([_vec(m.ros_msg.wrench.force) + _vec(m.ros_msg.wrench.torque) for m in calibrated])
+        got = np.array([xyz(m.ros_msg.wrench.force) + xyz(m.ros_msg.wrench.torque) for m in calibrated])
         np.testing.assert_allclose(got, y, rtol=0, atol=1e-9)
         assert np.abs(got - x[:, :6]).max() > 0.1  # the calibration changes the wrench
         for (m_raw, _), m_cal in zip(kept, calibrated, strict=True):
-            assert _stamp(m_cal.ros_msg) == _stamp(m_raw.ros_msg)
+            assert stamp_ns(m_cal.ros_msg) == stamp_ns(m_raw.ros_msg)
             assert m_cal.ros_msg.header.frame_id == m_raw.ros_msg.header.frame_id
             assert (m_cal.log_time_ns, m_cal.publish_time_ns) == (m_raw.log_time_ns, m_raw.publish_time_ns)
     # the experiment metadata is kept
@@ -328,8 +300,8 @@ def test_attachments_metadata_and_foreign_records_survive(setup: dict, tmp_path:
     finally:
         patch.undo()
     assert main(_cli(setup, src, out, models=models)) == 0
-    assert [m for m in _messages(out) if not m[0].endswith("_calibrated")] == _messages(src)
-    assert sum(m[0].endswith("_calibrated") for m in _messages(out)) == 30
+    assert [m for m in mcap_records(out) if not m[0].endswith("_calibrated")] == mcap_records(src)
+    assert sum(m[0].endswith("_calibrated") for m in mcap_records(out)) == 30
     with out.open("rb") as f:
         reader = make_reader(f, validate_crcs=True)
         (attachment,) = list(reader.iter_attachments())
@@ -345,7 +317,7 @@ def test_logs_without_chunk_index_are_scanned_as_ingest_reads_them(
     ingest` reads by scanning: calibrated to the same messages as the indexed log, every original record
     kept in order, and the copy read back by mcap's reader and by ours."""
     from pipeline.logs.mcap_read import LogReader
-    from tests.test_ingest_layouts import LAYOUTS, copy_log
+    from tests.factories.logs import LAYOUTS, copy_log
 
     src = copy_log(setup["log"], tmp_path / f"{layout}.mcap", **LAYOUTS[layout])
     with LogReader(src) as reader:
@@ -354,11 +326,11 @@ def test_logs_without_chunk_index_are_scanned_as_ingest_reads_them(
     assert main(_cli(setup, setup["log"], indexed)) == 0
     out = tmp_path / "calibrated.mcap"
     assert main(_cli(setup, src, out)) == 0
-    copied = _messages(out)
-    assert [m for m in copied if not m[0].endswith("_calibrated")] == _messages(src)
+    copied = mcap_records(out)
+    assert [m for m in copied if not m[0].endswith("_calibrated")] == mcap_records(src)
 
     def calibrated(path: Path) -> list[tuple[str, int, int, bytes]]:
-        return sorted((m[0], m[1], m[2], m[4]) for m in _messages(path) if m[0].endswith("_calibrated"))
+        return sorted((m[0], m[1], m[2], m[4]) for m in mcap_records(path) if m[0].endswith("_calibrated"))
 
     expected = calibrated(indexed)
     assert len(expected) > 1000 and calibrated(out) == expected
@@ -423,22 +395,24 @@ def test_calibrate_with_memory_is_causal_and_carries_the_state(
     for name, log in logs.items():
         out = tmp_path / f"{name}_calibrated.mcap"
         assert main(_cli(setup, log, out, models=memory_export[1])) == 0
-        got[name] = _decoded(out)
-    decoded = _decoded(setup["log"])
+        got[name] = ros2_messages(out)
+    decoded = ros2_messages(setup["log"])
     for sensor, group in ((LEG, LEG), (FRONT, PAIR)):
         model = read_group(setup["models"] / group, memory_export[0])
         slot = model.sensors.index(sensor)
         expected = _expected(decoded, sensor, model.n_inputs)  # in log-time order: sorted by stamp here
-        raw = [(_stamp(m.ros_msg), _vec(m.ros_msg.wrench.force) + _vec(m.ros_msg.wrench.torque), e)
+        raw = [(stamp_ns(m.ros_msg), xyz(m.ros_msg.wrench.force) + xyz(m.ros_msg.wrench.torque), e)
                for m, e in zip(decoded[f"/ft/{sensor}/wrench"], expected, strict=True)]  # fmt: skip
         raw.sort(key=lambda r: r[0])
         x = np.array([r[2][1] if r[2] is not None else [*r[1], np.nan] for r in raw])
         y = model.reference(np.tile(x, (1, len(model.sensors))))[:, slot * 6 : (slot + 1) * 6]
-        calibrated = sorted(got["plain"][f"/ft/{sensor}/wrench_calibrated"], key=lambda m: _stamp(m.ros_msg))
+        calibrated = sorted(
+            got["plain"][f"/ft/{sensor}/wrench_calibrated"], key=lambda m: stamp_ns(m.ros_msg)
+        )
         np.testing.assert_allclose(_wrenches(calibrated), y[np.isfinite(y).all(axis=1)], rtol=0, atol=1e-9)
-    plain, spiked = (sorted(got[k][f"/ft/{LEG}/wrench_calibrated"], key=lambda m: _stamp(m.ros_msg))
+    plain, spiked = (sorted(got[k][f"/ft/{LEG}/wrench_calibrated"], key=lambda m: stamp_ns(m.ros_msg))
                      for k in ("plain", "spiked"))  # fmt: skip
-    stamps = np.array([_stamp(m.ros_msg) for m in plain])
+    stamps = np.array([stamp_ns(m.ros_msg) for m in plain])
     diff = np.abs(_wrenches(spiked) - _wrenches(plain)).max(axis=1)
     first = int(np.flatnonzero(diff > 0)[0])
     assert 5.9 < (stamps[first] - stamps[0]) / 1e9 < 6.1  # nothing before the changed message moved
@@ -446,7 +420,7 @@ def test_calibrate_with_memory_is_causal_and_carries_the_state(
 
 
 def _wrenches(messages: list[Any]) -> np.ndarray:
-    return np.array([_vec(m.ros_msg.wrench.force) + _vec(m.ros_msg.wrench.torque) for m in messages])
+    return np.array([xyz(m.ros_msg.wrench.force) + xyz(m.ros_msg.wrench.torque) for m in messages])
 
 
 def test_filters_refuse_a_log_at_another_rate(

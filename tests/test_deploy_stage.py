@@ -31,8 +31,8 @@ from pipeline.deploy import checks
 from pipeline.deploy.prepare import read_day
 from pipeline.evaluation.params import EvaluateParams
 from pipeline.logs import schema as S
-from tests.factories import FRONT, LEG, PAIR, REAR, TRAINED
-from tests.test_export import _report
+from tests.factories.labelled import FRONT, LEG, PAIR, REAR, TRAINED
+from tests.factories.reports import write_recommended
 
 pytestmark = pytest.mark.slow  # the deployment stages on trained groups
 
@@ -143,7 +143,12 @@ def stage(trained_models: dict, tmp_path_factory: pytest.TempPathFactory) -> dic
             data["export"]["models"] = deployed if name != "trained" else {}
             variant_params = root / f"params_{name}.yaml"
             variant_params.write_text(yaml.safe_dump(data, sort_keys=False))
-            args = [str(models), str(_report(root, DEPLOYED)), str(trained_models["labelled"]), str(exported)]
+            args = [
+                str(models),
+                str(write_recommended(root, DEPLOYED)),
+                str(trained_models["labelled"]),
+                str(exported),
+            ]
             assert main(["export", *args, "--params", str(variant_params)]) == 0
             _deploy(root, variant_params, models, exported, tables, reports)
             out[name] = json.loads((reports / "deployment" / "details.json").read_text())

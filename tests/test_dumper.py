@@ -27,13 +27,11 @@ from pipeline.logs.mcap_table import ingest_log
 from pipeline.logs.params import DumperParams, IngestParams
 from pipeline.tools.convert_dumper import write_mcap
 from tests import dumperfile
-from tests.test_ingest import CFG, JOINTS, SENSORS, TOPICS, write_log
+from tests.factories.dumper import HALF_PRINTED, REAL_RUN, STAMP_TOL_NS, interpolated_bound
+from tests.factories.logs import CFG, JOINTS, SENSORS, TOPICS, write_log
 
 REPO = Path(__file__).resolve().parents[1]
-REAL_RUN = REPO.parent / "shared" / "data" / "icub02-yoga-right-foot"
 EXCERPT = Path(__file__).resolve().parent / "data" / "icub02-yoga-excerpt"
-STAMP_TOL_NS = 620
-HALF_PRINTED = 0.5e-6
 FT_PORTS = {"leg": "s_one", "arm": "s_two"}
 JOINT_MAP = {"leg": ["j_a", "j_b"], "torso": [None, "j_c"]}  # an axis the URDF does not have, then j_c
 DUMPER = DumperParams("analog:o", ("stateExt:o", "state:o"), FT_PORTS, JOINT_MAP, ("leg", "torso"))
@@ -60,11 +58,6 @@ def test_numbers_print_as_yarp_does() -> None:
         "23.101776",
         "-0.0",
     ]
-
-
-def _bound(ref: pd.DataFrame, column: str, printed: float, spacing_s: float) -> float:
-    step = np.nanmax(np.abs(np.diff(ref[column].to_numpy())))
-    return printed + 3 * STAMP_TOL_NS * 1e-9 / spacing_s * 2 * step + 1e-12
 
 
 @pytest.mark.parametrize("two_times", [False, True])
@@ -98,7 +91,7 @@ def test_run_ingests_like_its_mcap(tmp_path: Path, mcap_log, two_times: bool) ->
         np.testing.assert_array_equal(got[ok], ref[ok], err_msg=ok)
         for c in S.wrench_cols(S.FT, s):
             np.testing.assert_allclose(
-                got[c], ref[c], atol=_bound(ref, c, HALF_PRINTED, 0.005), rtol=0, err_msg=c
+                got[c], ref[c], atol=interpolated_bound(ref, c, HALF_PRINTED, 0.005), rtol=0, err_msg=c
             )
         for stream in (S.IMU_STREAM, S.TEMPERATURE_STREAM):  # not in a dataDumper run of these boards
             assert not got[S.ok_col(stream, s)].any()
@@ -421,7 +414,7 @@ def test_frozen_runs_of_identical_readings() -> None:
 def _frozen_wrench(w) -> None:
     """s_one's wrench (200 Hz) repeating one reading from 19.5 s to 22.5 s, and for 1.5 s from 5 s
     (shorter than the test's ingest.max_frozen_s, 2 s: not frozen)."""
-    from tests.test_ingest import T0, linear_wrench, stamps
+    from tests.factories.logs import T0, linear_wrench, stamps
 
     ft = stamps(30.0, 200.0, offset_ns=1_000_000)
     t = (ft - T0) / 1e9
@@ -435,7 +428,7 @@ def _frozen_wrench(w) -> None:
 def test_frozen_board_flagged_alike_in_mcap_mat_and_dumper_run(tmp_path: Path, monkeypatch) -> None:
     from pipeline.logs import mcap_table
     from tests import matfile
-    from tests.test_matlog import CFG_MAT
+    from tests.factories.logs import CFG_MAT
 
     monkeypatch.setattr(mcap_table, "_EMIT_ROWS", 37)  # rows written while the frozen run is being read
 

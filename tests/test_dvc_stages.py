@@ -16,7 +16,7 @@ from pathlib import Path
 import pytest
 import yaml
 
-from tests.test_readme import stages, tracked
+from tests.factories.docs import stages, tracked
 
 pytestmark = pytest.mark.slow  # clones the repository and runs DVC on it
 

@@ -13,75 +13,9 @@ import pytest
 
 from pipeline.core.errors import RobotModelError
 from pipeline.physics.dynamics import ContactCase, expected_wrenches, pair_switch, sensor_switch
-from pipeline.physics.robot import RobotModel, wrench_transform
+from pipeline.physics.robot import RobotModel
 from tests.conftest import GRAVITY, foot_pairs
-
-G = (0.0, 0.0, -GRAVITY)
-L_FOOT, R_FOOT = {"l_foot_front", "l_foot_rear"}, {"r_foot_front", "r_foot_rear"}
-
-
-def random_states(robot: RobotModel, n: int, seed: int, moving: bool = True) -> tuple[np.ndarray, ...]:
-    rng = np.random.default_rng(seed)
-    lower = np.array([robot.joints[j].lower for j in robot.joint_names])
-    upper = np.array([robot.joints[j].upper for j in robot.joint_names])
-    q = rng.uniform(lower, upper, (n, len(lower)))
-    scale = 1.0 if moving else 0.0
-    return q, scale * rng.uniform(-1, 1, q.shape), scale * rng.uniform(-5, 5, q.shape)
-
-
-class LinkNewtonEuler:
-    """Per-link Newton-Euler on the model rooted at the fixed link (its frame is the world frame)."""
-
-    def __init__(self, robot: RobotModel, root: str, gravity_root: np.ndarray) -> None:
-        self.robot, self.rooted = robot, robot.rooted(root)
-        self.model = self.rooted.model
-        self.data = self.model.createData()
-        self.gravity = gravity_root
-
-    def set_state(self, q: np.ndarray, dq: np.ndarray, ddq: np.ndarray) -> None:
-        r = self.rooted
-        qs, vs, accs = pin.neutral(self.model), np.zeros(self.model.nv), np.zeros(self.model.nv)
-        qs[r.q_index], vs[r.v_index], accs[r.v_index] = q * r.sign, dq * r.sign, ddq * r.sign
-        pin.forwardKinematics(self.model, self.data, qs, vs, accs)
-        pin.updateFramePlacements(self.model, self.data)
-
-    def pose(self, link: str) -> pin.SE3:
-        """Pose of `link` in the world (= root) frame."""
-        return self.data.oMf[self.model.getFrameId(link)]
-
-    def required_wrench(self, links: set[str] | frozenset[str], frame: pin.SE3) -> np.ndarray:
-        """sum over `links` of (dh/dt - m g) as a wrench in `frame` (a world pose), [f; tau about origin]."""
-        total = np.zeros(6)
-        for link in links:
-            inertial = self.robot.links[link]
-            if inertial is None or inertial.mass == 0.0:
-                continue
-            fid = self.model.getFrameId(link)
-            world_T_link = self.data.oMf[fid]
-            v = pin.getFrameVelocity(self.model, self.data, fid, pin.LOCAL)
-            a = pin.getFrameAcceleration(self.model, self.data, fid, pin.LOCAL)
-            g_link = pin.Motion(world_T_link.rotation.T @ self.gravity, np.zeros(3))
-            inertia = inertial.to_pinocchio()
-            f_link = inertia * (a - g_link) + v.cross(inertia * v)
-            total += wrench_transform(frame.inverse() * world_T_link) @ f_link.vector
-        return total
-
-    def sensor_frame(self, sensor: str) -> pin.SE3:
-        ft = self.robot.sensors[sensor]
-        return self.pose(ft.child_link) * ft.child_T_sensor
-
-
-def reference_reading(ne: LinkNewtonEuler, sensor: str, contacts: set[str]) -> np.ndarray:
-    """The sensor's reading from the free side of its cut: F(P on Q) = w(Q) if Q is free, else -w(P)."""
-    parent_side, child_side = ne.robot.sensor_sides(sensor)
-    frame = ne.sensor_frame(sensor)
-    p_on_q = (
-        ne.required_wrench(child_side, frame)
-        if not contacts & child_side
-        else -ne.required_wrench(parent_side, frame)
-    )
-    return p_on_q if ne.robot.sensors[sensor].direction == "parent_to_child" else -p_on_q
-
+from tests.factories.physics import L_FOOT, R_FOOT, G, LinkNewtonEuler, random_states, reference_reading
 
 CASES = {
     "pole": ({"root_link"}, "root_link"),

@@ -10,8 +10,9 @@ from pipeline.physics.cuts import CutSet, cut_poses, cut_sums, find_cut_sets, se
 from pipeline.physics.dynamics import ContactCase, expected_wrenches
 from pipeline.physics.robot import RobotModel
 from tests.conftest import GRAVITY, foot_pairs
+from tests.factories.oracles import oracle
+from tests.factories.physics import DOUBLE, wrench_X
 from tests.idyntree_ref import random_in_limits
-from tests.test_dynamics_idyntree import oracle
 
 LEGS = frozenset({"l_leg_ft", "r_leg_ft"})
 FEET = frozenset({"l_foot_front_ft", "l_foot_rear_ft", "r_foot_front_ft", "r_foot_rear_ft"})
@@ -19,7 +20,6 @@ L_SHANK = frozenset({"l_leg_ft", "l_foot_front_ft", "l_foot_rear_ft"})
 R_SHANK = frozenset({"r_leg_ft", "r_foot_front_ft", "r_foot_rear_ft"})
 L_FOOT = frozenset({"l_foot_front_ft", "l_foot_rear_ft"})
 R_FOOT = frozenset({"r_foot_front_ft", "r_foot_rear_ft"})
-DOUBLE = ["l_foot_front", "l_foot_rear", "r_foot_front", "r_foot_rear"]
 
 
 def cuts_by_members(robot: RobotModel, max_sensors: int = 4) -> dict[frozenset[str], CutSet]:
@@ -48,13 +48,6 @@ def test_cut_sets_from_the_urdf_graph(robot: RobotModel) -> None:
     assert cuts[L_SHANK].switch(DOUBLE + ["root_link", "l_foot_front"])  # the shank never touches
 
 
-def _wrench_X(h: np.ndarray) -> np.ndarray:
-    """Wrench transform [[R, 0], [p^ R, R]] of a 4x4 pose, written out independently of the package."""
-    rot, p = h[:3, :3], h[:3, 3]
-    skew = np.array([[0, -p[2], p[1]], [p[2], 0, -p[0]], [-p[1], p[0], 0]])
-    return np.block([[rot, np.zeros((3, 3))], [skew @ rot, rot]])
-
-
 CASES = {
     "double_support": (DOUBLE, "l_sole"),
     "double_support_r": (DOUBLE, "r_sole"),
@@ -80,7 +73,7 @@ def test_cut_sums_match_idyntree(robot: RobotModel, name: str) -> None:
         theirs = np.zeros((n, 6))
         for sensor, sign in zip(cut.sensors, cut.signs, strict=True):
             poses = oracle(robot).sensor_poses(q, cut.frame, sensor)
-            theirs += sign * np.einsum("nij,nj->ni", np.array([_wrench_X(h) for h in poses]), ref[sensor])
+            theirs += sign * np.einsum("nij,nj->ni", np.array([wrench_X(h) for h in poses]), ref[sensor])
         np.testing.assert_allclose(mine, theirs, rtol=0, atol=1e-6, err_msg=f"{cut.name} in {name}")
         if not any(ours.switch[s][0] for s in members):
             compared.add(members)

@@ -2,12 +2,11 @@
 
 For every contact case, >= 200 random in-limit (q, dq, ddq): every sensor agrees within 1e-6 N / Nm
 wherever our switch is 1, and our switch is 0 exactly where the contact set leaves both sides of the
-sensor's cut touching (sides computed here from the URDF, independently of pipeline.physics.robot).
+sensor's cut touching (sides computed from the URDF by tests/factories/oracles.py, independently of
+pipeline.physics.robot).
 """
 
 from __future__ import annotations
-
-import xml.etree.ElementTree as ET
 
 import numpy as np
 import pytest
@@ -15,7 +14,8 @@ import pytest
 from pipeline.physics.dynamics import ContactCase, expected_wrenches
 from pipeline.physics.robot import RobotModel
 from tests.conftest import GRAVITY, foot_pairs
-from tests.idyntree_ref import IDynTreeFT, random_in_limits
+from tests.factories.oracles import both_sides_touch, oracle
+from tests.idyntree_ref import random_in_limits
 
 N_SAMPLES = 200
 CASES = {
@@ -26,36 +26,6 @@ CASES = {
     "only_r_foot_rear": (["r_foot_rear"], "r_sole"),
     "double_support": (["l_foot_front", "l_foot_rear", "r_foot_front", "r_foot_rear"], "l_sole"),
 }
-
-_ORACLES: dict[str, IDynTreeFT] = {}
-
-
-def oracle(robot: RobotModel) -> IDynTreeFT:
-    key = str(robot.urdf_path)
-    if key not in _ORACLES:
-        _ORACLES[key] = IDynTreeFT(robot.urdf_path, robot.joint_names)
-    return _ORACLES[key]
-
-
-def both_sides_touch(urdf: str, sensor: str, contacts: list[str]) -> bool:
-    """Cut the URDF graph at the sensor's joint; do contacts lie in both connected components?"""
-    root = ET.parse(urdf).getroot()
-    joint = next(s.find("parent").get("joint") for s in root.findall("sensor") if s.get("name") == sensor)
-    edges = [
-        (j.find("parent").get("link"), j.find("child").get("link"))
-        for j in root.findall("joint")
-        if j.get("name") != joint
-    ]
-    start = next(j.find("child").get("link") for j in root.findall("joint") if j.get("name") == joint)
-    side, grew = {start}, True
-    while grew:
-        grew = False
-        for a, b in edges:
-            if (a in side) != (b in side):
-                side |= {a, b}
-                grew = True
-    inside = [c in side for c in contacts]
-    return any(inside) and not all(inside)
 
 
 @pytest.mark.parametrize("name", list(CASES))

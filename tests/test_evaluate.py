@@ -4,7 +4,6 @@ files, real MLflow sqlite store): metrics.json, plot data, report page, MLflow r
 
 from __future__ import annotations
 
-import copy
 import html
 import json
 import math
@@ -13,7 +12,6 @@ from typing import Any
 
 import numpy as np
 import pandas as pd
-import pyarrow as pa
 import pyarrow.parquet as pq
 import pytest
 import yaml
@@ -27,16 +25,13 @@ from pipeline.evaluation.inputs import load_group
 from pipeline.evaluation.params import EvaluateParams
 from pipeline.logs import schema as S
 from pipeline.logs.schema import prediction_cols
-from pipeline.stages import evaluate as E
-from pipeline.stages import report as REPORT
-from tests.factories import FRONT, LEG, PAIR, REAR, labelled_metadata, write_table
-from tests.test_models import TRANSFORMS
+from tests.factories.labelled import FRONT, LEG, PAIR, REAR, TRANSFORMS
+from tests.factories.params import write_evaluate_params
+from tests.factories.reports import CV, FS, LOGS, NOISE, NOTE, N, build_fixture, evaluate_both
 
 pytestmark = pytest.mark.slow  # trains the groups it evaluates
 
 ROOT = Path(__file__).resolve().parents[1]
-FS = 100.0  # Hz
-NOISE = np.array([0.5, 0.5, 0.5, 0.03, 0.03, 0.03])  # raw white noise std per axis, N and Nm
 
 
 def flat(d: Any, prefix: str = "") -> dict[str, Any]:
@@ -166,161 +161,6 @@ def test_repo_params_are_valid() -> None:
 
 # --- end to end ----------------------------------------------------------------------------------
 
-NOTE = f"{LEG}: no 13-input network: {LEG}: the IMU's axes are (x, y, z) = (-y, -x, z) of the sensor frame"
-# Test logs: (name, experiment type, FT boards' angular speed rad/s, contacts alternate every n samples)
-LOGS = [("08_pole_test", "pole", 0.01, None), ("11_walking_test", "walking", 0.8, 80)]
-N = 600
-
-
-CV = {
-    "folds": [
-        {"val": ["01_walking_train"], "train": ["00_pole_train"]},
-        {"val": ["00_pole_train"], "train": []},
-    ],
-    "scores": {"nn7": [0.51, 0.73], "nn13": [0.42, 0.97]},
-    "mean": {"nn7": 0.62, "nn13": 0.695},
-    "spread": {"nn7": 0.11, "nn13": 0.275},
-    "rule": "the lowest mean unless within the spread",
-    "chosen": "nn7",
-}
-
-
-def _metadata(kind: str, log: str) -> dict[bytes, Any]:
-    """The factories' labelled metadata (the r_foot pair) with a left foot (sole only) for the phases."""
-    meta = labelled_metadata(kind, "test", log)
-    meta[S.META_LABEL]["pairs"]["l_foot"] = {"sole": "l_sole"}
-    return meta
-
-
-def build_fixture(root: Path) -> dict[str, Path]:
-    """labelled/, ingested/ (truth) and models/<group>/ for a leg sensor and a foot pair.
-
-    Per sensor: true wrench w (slow sines), raw = w + offset + white noise, labels = w (NaN where the
-    switch is 0), oracle = w + the same noise. Models: raw; affine = raw - offset (ratio 1); nn7 = affine
-    + 0.1 N bias; nn13 = nn7 + white noise 3x raw's (ratio ~3.2: flagged). nn13 is best on validation,
-    so the recommendation must fall back to nn7.
-    """
-    rng = np.random.default_rng(7)
-    dirs = {k: root / k for k in ("labelled", "ingested", "models")}
-    sensors = (LEG, FRONT, REAR)
-    offsets = {s: rng.uniform(-30, 30, 6) * np.r_[1, 1, 1, 0.1, 0.1, 0.1] for s in sensors}
-    preds: dict[str, list[dict[str, Any]]] = {LEG: [], PAIR: []}
-    for li, (log, kind, speed, period) in enumerate(LOGS):
-        keep = np.ones(N, dtype=bool)
-        keep[N // 2] = False  # a sample without ok inputs: not in the predictions
-        t = np.arange(N) / FS
-        stamp = (1_700_000_000_000_000_000 + li * 10**12 + np.arange(N) * 10_000_000).astype(np.int64)
-        lab: dict[str, Any] = {S.STAMP: stamp, S.TIME: t}
-        tru: dict[str, Any] = {S.STAMP: stamp, S.TIME: t}
-        true, raw, oracle = {}, {}, {}
-        for k, s in enumerate(sensors):
-            w = np.column_stack(
-                [(40 if a < 3 else 3) * np.sin(2 * np.pi * (0.2 + 0.05 * a) * t + k + a) for a in range(6)]
-            )
-            noise = rng.normal(size=(N, 6)) * NOISE
-            true[s], raw[s], oracle[s] = w, w + offsets[s] + noise, w + noise
-            g = rng.normal(size=(N, 3)) * 0.005 + speed / math.sqrt(3)
-            for c, v in zip(S.vector_cols(S.GYR, s), g.T, strict=True):
-                lab[c] = v
-            for quantity, value in ((S.TRUE, w), (S.DISTORTED, w + offsets[s]), (S.ORACLE, oracle[s])):
-                for c, v in zip(S.wrench_cols(quantity, s), value.T, strict=True):
-                    tru[c] = v
-                tru[S.ok_col(quantity, s)] = np.ones(N, dtype=bool)
-        if period is None:  # on the pole
-            contacts = np.full(N, "root_link", dtype=object)
-        else:  # single support on the right foot, double support
-            contacts = np.where((np.arange(N) // period) % 2 == 0, "r_sole", "l_sole,r_sole").astype(object)
-        changed = np.r_[False, contacts[1:] != contacts[:-1]]
-        guard = changed | np.r_[changed[1:], False]  # the samples on either side of a contact change
-        lab[S.CONTACTS] = contacts
-        lab[S.GUARD] = guard
-        tru[S.CONTACTS] = contacts
-        switch = (contacts != "l_sole,r_sole") & ~guard
-        lab[S.switch_col(LEG)] = switch.astype(np.uint8)
-        lab[S.switch_col(PAIR)] = np.ones(N, dtype=np.uint8)
-        write_table(dirs["labelled"] / f"{log}.parquet", lab, S.KIND_LABELLED, _metadata(kind, log))
-        write_table(dirs["ingested"] / f"{log}{S.TRUTH_SUFFIX}.parquet", tru, S.KIND_TRUTH, {})
-        extra = rng.normal(size=(N, 6)) * 3 * NOISE
-        for group, names in ((LEG, (LEG,)), (PAIR, (PAIR, FRONT, REAR))):
-            cols: dict[str, Any] = {
-                "log": np.full(keep.sum(), log, dtype=object),
-                S.STAMP: stamp[keep],
-                S.TIME: t[keep],
-            }
-            per = {}
-            for s in sensors:
-                affine = raw[s] - offsets[s]
-                per[s] = {"raw": raw[s], "affine": affine, "nn7": affine + 0.1, "nn13": affine + 0.1 + extra}
-            per[PAIR] = {
-                m: per[FRONT][m] @ TRANSFORMS[0].T + per[REAR][m] @ TRANSFORMS[1].T for m in per[LEG]
-            }
-            label_of = {
-                LEG: true[LEG],
-                FRONT: true[FRONT],
-                REAR: true[REAR],
-                PAIR: true[FRONT] @ TRANSFORMS[0].T + true[REAR] @ TRANSFORMS[1].T,
-            }
-            for name in names:
-                sw = lab[S.switch_col(LEG)] if name != PAIR else lab[S.switch_col(PAIR)]
-                for c, v in zip(
-                    S.wrench_cols(S.EXPECTED, name),
-                    np.where(sw[:, None] == 1, label_of[name], np.nan).T,
-                    strict=True,
-                ):
-                    cols[c] = v[keep]
-                cols[S.switch_col(name)] = sw[keep]
-                for m, value in per[name].items():
-                    for c, v in zip(prediction_cols(m, name), value.T, strict=True):
-                        cols[c] = v[keep]
-            preds[group].append(cols)
-    for group, sensors_of, pair in ((LEG, [LEG], None), (PAIR, [FRONT, REAR], PAIR)):
-        out = dirs["models"] / group
-        out.mkdir(parents=True)
-        frame = pd.concat([pd.DataFrame(c) for c in preds[group]], ignore_index=True)
-        table = pa.Table.from_pandas(frame, preserve_index=False).replace_schema_metadata(
-            {
-                b"ftcal.train": json.dumps(
-                    {"group": group, "models": ["raw", "affine", "nn7", "nn13"]}
-                ).encode()
-            }
-        )
-        pq.write_table(table, out / "predictions.parquet")
-        networks: dict[str, Any] = {
-            "nn7": {"trial": 1, "val_rmse_labelled": 0.5},
-            "nn13": {"trial": 2, "val_rmse_labelled": 0.4},
-        }
-        networks["nn7"]["history"] = [
-            {"epoch": e, "loss": 10.0 / (e + 1), "val_rmse": 2.0 / (e + 1)} for e in range(5)
-        ]
-        networks["nn13"]["history"] = [
-            {"epoch": e, "loss": 8.0 / (e + 1), "val_rmse": 1.6 / (e + 1)} for e in range(3)
-        ]
-        metrics = {
-            "group": group,
-            "sensors": sensors_of,
-            "pair": pair,
-            "headline": pair or group,
-            "best_on_validation": "nn13",
-            "validation_ranking": ["nn13", "nn7", "affine", "raw"],
-            "networks": networks,
-        }
-        if group == PAIR:  # train's cross-validation record (the leg group has none)
-            metrics["cv"] = CV
-        else:  # train's notes: a network it did not train, and why
-            metrics["notes"] = [NOTE]
-        (out / "metrics.json").write_text(json.dumps(metrics))
-    return dirs
-
-
-def write_params(tmp_path: Path, **evaluate: Any) -> Path:
-    data = yaml.safe_load((ROOT / "params.yaml").read_text())
-    data["train"] = copy.deepcopy(data["train"])
-    data["train"]["groups"] = {LEG: {"sensor": LEG}, PAIR: {"pair": PAIR}}
-    data["evaluate"].update(evaluate, zoom_s=2.0)
-    path = tmp_path / "params.yaml"
-    path.write_text(yaml.safe_dump(data, sort_keys=False))
-    return path
-
 
 @pytest.fixture(scope="module")
 def evaluated(tmp_path_factory: pytest.TempPathFactory) -> dict[str, Any]:
@@ -329,24 +169,6 @@ def evaluated(tmp_path_factory: pytest.TempPathFactory) -> dict[str, Any]:
     dirs = build_fixture(root)
     results, out = evaluate_both(root, dirs)
     return {"results": results, "out": out, "dirs": dirs, "root": root}
-
-
-def evaluate_both(root: Path, dirs: dict[str, Path]) -> tuple[dict[str, Any], Path]:
-    """evaluate@<group> of both fixture groups and the report into root/reports, in a real MLflow store
-    under `root`; (results by group, the reports directory)."""
-    mp = pytest.MonkeyPatch()
-    mp.setenv("MLFLOW_TRACKING_URI", f"sqlite:///{root / 'mlflow.db'}")
-    try:
-        params = load_params(write_params(root))
-        out = root / "reports"
-        results = {
-            g: E.run(params, g, dirs["models"] / g, dirs["labelled"], out, dirs["ingested"], progress=False)
-            for g in (LEG, PAIR)
-        }
-        REPORT.run(params, out, dirs["labelled"])
-    finally:
-        mp.undo()
-    return results, out
 
 
 def _report(evaluated: dict[str, Any], group: str) -> dict[str, Any]:
@@ -466,7 +288,7 @@ def test_mlflow_run_has_metrics_tags_and_artifacts(evaluated: dict[str, Any]) ->
 
 
 def test_cli_missing_models_dir_is_one_line(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
-    params = write_params(tmp_path)
+    params = write_evaluate_params(tmp_path)
     args = [LEG, str(tmp_path / "nope"), str(tmp_path), str(tmp_path / "out"), "--params", str(params)]
     code = main(["evaluate", *args])
     err = capsys.readouterr().err.strip()
@@ -481,7 +303,7 @@ def test_group_without_predictions_is_a_data_error(
 ) -> None:
     dirs = build_fixture(tmp_path)
     (dirs["models"] / PAIR / "predictions.parquet").unlink()
-    params = write_params(tmp_path)
+    params = write_evaluate_params(tmp_path)
     cfg = stage_section(load_params(params), "evaluate", EvaluateParams)
     with pytest.raises(DataError, match=r"r_foot/predictions\.parquet: group r_foot has no test predictions"):
         load_group(PAIR, dirs["models"] / PAIR, dirs["labelled"], dirs["ingested"], cfg)
@@ -504,7 +326,7 @@ def test_group_without_predictions_is_a_data_error(
 def test_missing_labelled_test_log_is_a_data_error(tmp_path: Path) -> None:
     dirs = build_fixture(tmp_path)
     (dirs["labelled"] / "11_walking_test.parquet").unlink()
-    cfg = stage_section(load_params(write_params(tmp_path)), "evaluate", EvaluateParams)
+    cfg = stage_section(load_params(write_evaluate_params(tmp_path)), "evaluate", EvaluateParams)
     with pytest.raises(
         DataError, match=r"11_walking_test\.parquet: labelled table of test log 11_walking_test not found"
     ):

@@ -1,9 +1,9 @@
 """evaluate: the fidelity flag, the fallback it causes and how the page explains it; the excitation section.
 
-On the synthetic groups of tests/test_evaluate.py, train's metrics get a `fidelity` record in which nn7 reads
-the front sensor's fx at a slope of 0.40 (nn13 is noise-flagged there already): the recommendation must
-fall back to the affine map, and the page must say why each preferred model was passed over and what the
-fallback costs.
+On the synthetic groups of tests/factories/reports.py (those of the evaluate tests), train's metrics get a
+`fidelity` record in which nn7 reads the front sensor's fx at a slope of 0.40 (nn13 is noise-flagged there
+already): the recommendation must fall back to the affine map, and the page must say why each preferred
+model was passed over and what the fallback costs.
 """
 
 from __future__ import annotations
@@ -17,7 +17,8 @@ import pytest
 
 from pipeline.calib.excitation import excitation
 from pipeline.evaluation.fidelity import unfaithful
-from tests.test_evaluate import FRONT, PAIR, REAR, build_fixture, evaluate_both
+from tests.factories.labelled import FRONT, PAIR, REAR
+from tests.factories.reports import build_fixture, evaluate_both
 
 pytestmark = pytest.mark.slow  # trains the groups it evaluates
 

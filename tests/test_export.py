@@ -25,7 +25,8 @@ from pipeline.export.check import run, session
 from pipeline.export.registry import REGISTERED_MODEL
 from pipeline.export.trained import read_group
 from pipeline.stages import export as E
-from tests.test_train import LEG, PAIR
+from tests.factories.labelled import LEG, PAIR
+from tests.factories.reports import write_recommended
 
 MODELS = ("raw", "affine", "poly1", "poly2", "play", "arx", "nn7", "nn13", "win")
 SCALE = np.array([60.0, 60.0, 200.0, 4.0, 4.0, 1.5, 4.0, 1, 1, 1, 1, 1, 1])  # per input: N, Nm, degC, ...
@@ -259,16 +260,6 @@ def _params(trained: dict, tmp_path: Path, **export: Any) -> Path:
     return path
 
 
-def _report(tmp_path: Path, recommended: dict[str, Any]) -> Path:
-    """evaluate's reports/metrics: <group>/<headline>.json with the recommended model ("none": flagged)."""
-    path = tmp_path / "metrics"
-    path.mkdir(exist_ok=True)
-    for group, model in recommended.items():
-        (path / group).mkdir(exist_ok=True)
-        (path / group / f"{group}.json").write_text(json.dumps({"recommended": model or "none", "rmse": {}}))
-    return path
-
-
 @pytest.fixture(scope="module")
 def exported(trained_models: dict, tmp_path_factory: pytest.TempPathFactory) -> dict:
     """The stage run once through the CLI: nn13 recommended for the leg, poly2 for the foot."""
@@ -279,7 +270,7 @@ def exported(trained_models: dict, tmp_path_factory: pytest.TempPathFactory) -> 
         args = [
             "export",
             str(trained_models["models"]),
-            str(_report(tmp, {LEG: "nn13", PAIR: "poly2"})),
+            str(write_recommended(tmp, {LEG: "nn13", PAIR: "poly2"})),
             str(trained_models["labelled"]),
             str(tmp / "exported"),
             "--params",
@@ -364,7 +355,7 @@ def test_failed_check_writes_nothing(
     out.mkdir()
     (out / "old.txt").write_text("previous export")
     params = load_params(_params(trained_models, tmp_path, tolerance_float32_ulps=1e-12))
-    report = _report(tmp_path, {LEG: "nn7", PAIR: "nn7"})
+    report = write_recommended(tmp_path, {LEG: "nn7", PAIR: "nn7"})
     with pytest.raises(
         DataError,
         match=r"export check failed: r_leg_ft float32 .* float32 steps .* > export.tolerance_float32_ulps",
@@ -394,7 +385,7 @@ def test_bad_input_is_one_line(
     args = [
         "export",
         str(trained_models["models"]),
-        str(_report(tmp_path, recommended)),
+        str(write_recommended(tmp_path, recommended)),
         str(trained_models["labelled"]),
         str(tmp_path / "out"),
         "--params",
@@ -408,7 +399,7 @@ def test_bad_input_is_one_line(
 
 def test_missing_inputs_are_data_errors(trained_models: dict, tmp_path: Path) -> None:
     params = load_params(trained_models["params"])
-    report = _report(tmp_path, {LEG: "nn7", PAIR: "nn7"})
+    report = write_recommended(tmp_path, {LEG: "nn7", PAIR: "nn7"})
     with pytest.raises(DataError, match="models directory not found"):
         E.run(params, tmp_path / "none", report, trained_models["labelled"], tmp_path / "o")
     with pytest.raises(

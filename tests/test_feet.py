@@ -12,8 +12,8 @@ from pipeline.physics.dynamics import ContactCase, expected_wrenches
 from pipeline.physics.feet import box_length, derive_feet
 from pipeline.physics.robot import RobotModel, load_robot
 from tests.conftest import FOOT_PAIRS, GRAVITY
+from tests.factories.oracles import both_sides_touch, oracle
 from tests.idyntree_ref import random_in_limits
-from tests.test_dynamics_idyntree import both_sides_touch, oracle
 
 ICUB2 = ["iCubGenova02", "iCubGenova04"]
 
@@ -151,7 +151,7 @@ def test_icub2_simulated_truth_balances_momentum(tmp_path: Path, kind: str) -> N
     from pipeline.sim.params import LogSpec, simulate_params
     from pipeline.sim.truth import TruthComputer
     from pipeline.sim.world import build_world, stream_rng
-    from tests.test_sim_truth import assert_momentum_balance
+    from tests.factories.physics import assert_momentum_balance
 
     data = yaml.safe_load((Path(__file__).resolve().parents[1] / "params.yaml").read_text())
     data["robot"]["urdf"] = "iCubGenova02"

@@ -19,7 +19,7 @@ from pipeline.physics.dynamics import ContactCase, expected_wrenches
 from pipeline.physics.robot import load_robot, resolve_urdf
 from pipeline.physics.urdf import checked_inertial
 from tests.conftest import GRAVITY
-from tests.test_robot import check_pinocchio_joint_torques, random_state, to_pin
+from tests.factories.physics import check_pinocchio_joint_torques, random_state, to_pin
 
 ROBOTS = sorted(icub_models.get_robot_names())
 # iCubNancy01's ankles: ixx 4.77 kg m^2 on a 0.643 kg link (1000x its other moments and its siblings'

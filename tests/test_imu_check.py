@@ -37,7 +37,7 @@ from pipeline.logs.tables import read_table_metadata
 from pipeline.physics.dynamics import ContactCase
 from pipeline.physics.imu import sensor_motion
 from pipeline.physics.robot import RobotModel
-from tests.test_train import TRAIN_PARAMS
+from tests.factories.params import TRAIN_PARAMS
 
 pytestmark = pytest.mark.slow  # trains the groups it checks
 

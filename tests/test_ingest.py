@@ -2,131 +2,38 @@
 
 from __future__ import annotations
 
-from collections.abc import Callable, Sequence
 from pathlib import Path
 
 import numpy as np
 import pandas as pd
 import pyarrow.parquet as pq
 import pytest
-import yaml
 
 from pipeline.cli import main
-from pipeline.core.config import TopicParams, load_params, stage_section
+from pipeline.core.config import load_params, stage_section
 from pipeline.core.errors import ConfigError, DataError
 from pipeline.logs import mcap_table, tables
 from pipeline.logs import schema as S
 from pipeline.logs.align import align_continuous, align_latest, sort_unique, stamp_steps_back
-from pipeline.logs.mcap_table import ingest_log
 from pipeline.logs.rosmsg import LogWriter
-from pipeline.logs.tables import LogReport, read_table_metadata
+from pipeline.logs.tables import read_table_metadata
 from pipeline.stages.ingest import IngestParams
+from tests.factories.logs import (
+    CFG,
+    EXPERIMENT,
+    JOINTS,
+    MS,
+    SENSORS,
+    T0,
+    joint_position,
+    linear_wrench,
+    run_one,
+    stamps,
+    write_log,
+)
+from tests.factories.params import write_ingest_params
 
 ROOT = Path(__file__).resolve().parent.parent
-T0 = 1_700_000_000 * 10**9  # ns
-MS = 1_000_000  # ns
-TOPICS = TopicParams(
-    joint_states="/joint_states",
-    ft_wrench="/ft/{sensor}/wrench",
-    ft_imu="/ft/{sensor}/imu",
-    ft_temperature="/ft/{sensor}/temperature",
-    sim_wrench_true="/sim/ft/{sensor}/wrench_true",
-    sim_wrench_distorted="/sim/ft/{sensor}/wrench_distorted",
-    sim_wrench_oracle="/sim/ft/{sensor}/wrench_oracle",
-    sim_contacts="/sim/contacts",
-)
-JOINTS = ["j_a", "j_b", "j_c"]
-SENSORS = ["s_one", "s_two"]
-CFG = IngestParams(
-    source="data/sim",
-    max_gap_s=0.025,
-    max_gap_temperature_s=0.5,
-    max_reorder_s=0.5,
-    max_nonfinite_fraction=0.0,
-    skip_bad_logs=False,
-)
-EXPERIMENT = {
-    "type": "walking",
-    "robot": "iCubGenova09",
-    "role": "train",
-    "contacts": "",
-    "fixed_link": "",
-    "gravity": "0 0 -9.80665",
-    "seed": "3",
-    "duration_s": "2",
-    "sim": "true",
-}
-
-
-# --- signals and the log factory (also used by test_smooth) ---
-
-
-def joint_position(t: np.ndarray, k: int) -> np.ndarray:
-    """rad: a smooth, distinct motion per joint."""
-    return 0.1 * k + 0.5 * np.sin(2 * np.pi * 0.5 * t + k)
-
-
-def linear_wrench(t: np.ndarray, k: int) -> np.ndarray:
-    """(N, 6): linear in time, so that linear interpolation is exact."""
-    return 10.0 * k + np.arange(6) + 3.0 * t[:, None]
-
-
-def stamps(duration: float, rate: float, offset_ns: int = 0) -> np.ndarray:
-    return T0 + offset_ns + np.round(np.arange(int(round(duration * rate))) * 1e9 / rate).astype(np.int64)
-
-
-def write_log(
-    path: Path,
-    joints: Sequence[str] = JOINTS,
-    sensors: Sequence[str] = SENSORS,
-    *,
-    topics: TopicParams = TOPICS,
-    duration: float = 2.0,
-    experiment: dict | None = None,
-    skip: Sequence[str] = (),
-    extra: Callable[[LogWriter], None] | None = None,
-    truth: bool = True,
-    chunk_size: int = 4 * 2**20,
-) -> Path:
-    """A valid log: joint states at 100 Hz, wrenches at 200 Hz, IMU at 100 Hz (delayed), temperature
-    at 10 Hz, simulated truth and contacts; `skip` leaves topics out, `extra` writes more messages."""
-    js = stamps(duration, 100.0)
-    t_js = (js - T0) / 1e9
-    meta = {"experiment": experiment if experiment is not None else EXPERIMENT}
-    with LogWriter(path, meta, chunk_size=chunk_size) as w:
-        if topics.joint_states not in skip:
-            q = np.column_stack([joint_position(t_js, k) for k in range(len(joints))])
-            w.joint_states(topics.joint_states, js, list(joints), q, np.gradient(q, t_js, axis=0))
-        for k, s in enumerate(sensors):
-            ft = stamps(duration, 200.0, offset_ns=1 * MS)
-            t_ft = (ft - T0) / 1e9
-            topic = topics.sensor_topic
-            if topic("ft_wrench", s) not in skip:
-                w.wrenches(topic("ft_wrench", s), ft, s, linear_wrench(t_ft, k), log_times_ns=ft + 3 * MS)
-            if topic("ft_imu", s) not in skip:
-                acc = np.column_stack([t_js, -t_js, 9.81 + 0 * t_js])
-                w.imus(topic("ft_imu", s), js, s, acc, 0.1 * acc, log_times_ns=js + 7 * MS)
-            if topic("ft_temperature", s) not in skip:
-                tt = stamps(duration, 10.0)
-                w.temperatures(topic("ft_temperature", s), tt, s, 30.0 + (tt - T0) / 1e9)
-            if truth:
-                for m, kind in enumerate(("sim_wrench_true", "sim_wrench_distorted", "sim_wrench_oracle")):
-                    if topic(kind, s) not in skip:
-                        w.wrenches(topic(kind, s), js, s, linear_wrench(t_js, k) + 100 * m)
-        if truth and topics.sim_contacts not in skip:
-            switch = js[::50]
-            w.strings(
-                topics.sim_contacts,
-                switch,
-                [("l_sole" if i % 2 else "l_sole,r_sole") for i in range(len(switch))],
-            )
-        if extra is not None:
-            extra(w)
-    return path
-
-
-def run_one(path: Path, out: Path, cfg: IngestParams = CFG, joints: Sequence[str] = JOINTS) -> LogReport:
-    return ingest_log(path, out, path.stem, cfg, TOPICS, joints, SENSORS, ["iCubGenova09"])
 
 
 # --- pure functions ---
@@ -412,35 +319,6 @@ def test_small_reorders_are_fine_but_joint_names_must_cover_the_urdf(tmp_path: P
 # --- the stage through the CLI: exit codes, skip_bad_logs, MLflow ---
 
 
-@pytest.fixture(scope="module")
-def mlflow_db(tmp_path_factory: pytest.TempPathFactory) -> str:
-    return f"sqlite:///{tmp_path_factory.mktemp('mlflow') / 'mlflow.db'}"
-
-
-def _params(tmp_path: Path, **ingest_values: object) -> Path:
-    data = yaml.safe_load((ROOT / "params.yaml").read_text())
-    data["ingest"].update(ingest_values)
-    path = tmp_path / "params.yaml"
-    path.write_text(yaml.safe_dump(data))
-    return path
-
-
-@pytest.fixture(scope="module")
-def icub_logs(tmp_path_factory: pytest.TempPathFactory) -> tuple[Path, list[str], list[str]]:
-    """Two short good logs of iCub (its URDF's joints and FT sensors) and one truncated one."""
-    from pipeline.physics.robot import load_robot
-
-    robot = load_robot("iCubGenova09")
-    joints, sensors = robot.joint_names, list(robot.sensors)
-    src = tmp_path_factory.mktemp("icub_src")
-    params = load_params(ROOT / "params.yaml")
-    for name in ("a", "b"):
-        write_log(src / "sub" / f"{name}.mcap", joints, sensors, topics=params.topics, duration=1.0)
-    good = (src / "sub" / "a.mcap").read_bytes()
-    (src / "sub" / "c_truncated.mcap").write_bytes(good[: len(good) // 2])
-    return src, joints, sensors
-
-
 def test_cli_bad_log_exits_2_with_one_line(
     tmp_path: Path,
     icub_logs: tuple,
@@ -451,7 +329,7 @@ def test_cli_bad_log_exits_2_with_one_line(
     monkeypatch.setenv("MLFLOW_TRACKING_URI", mlflow_db)
     src = icub_logs[0]
     out = tmp_path / "out"
-    assert main(["ingest", str(src), str(out), "--params", str(_params(tmp_path))]) == 2
+    assert main(["ingest", str(src), str(out), "--params", str(write_ingest_params(tmp_path))]) == 2
     err = capsys.readouterr().err
     lines = [line for line in err.splitlines() if line.startswith("ftcal: error:")]
     assert len(lines) == 1
@@ -471,7 +349,8 @@ def test_cli_skip_bad_logs_processes_the_others(
     monkeypatch.setenv("MLFLOW_TRACKING_URI", mlflow_db)
     src, joints, sensors = icub_logs
     out = tmp_path / "out"
-    assert main(["ingest", str(src), str(out), "--params", str(_params(tmp_path, skip_bad_logs=True))]) == 0
+    params = write_ingest_params(tmp_path, skip_bad_logs=True)
+    assert main(["ingest", str(src), str(out), "--params", str(params)]) == 0
     captured = capsys.readouterr()
     assert "warning: skipping" in captured.err and "c_truncated.mcap" in captured.err
     assert sorted(p.name for p in out.iterdir()) == [
@@ -493,6 +372,6 @@ def test_cli_skip_bad_logs_processes_the_others(
 
 
 def test_cli_config_error(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
-    params = _params(tmp_path, max_gap_s=-1)
+    params = write_ingest_params(tmp_path, max_gap_s=-1)
     assert main(["ingest", str(tmp_path), str(tmp_path / "out"), "--params", str(params)]) == 2
     assert "ingest.max_gap_s must be a positive number" in capsys.readouterr().err

@@ -15,28 +15,25 @@ from pathlib import Path
 import numpy as np
 import pandas as pd
 import pytest
-from mcap.reader import make_reader
-from mcap.writer import IndexType, Writer
 
 from pipeline.cli import main
 from pipeline.core.errors import DataError
 from pipeline.logs import schema as S
-from pipeline.logs.cdr import TEMPERATURE
 from pipeline.logs.mcap_read import LogReader
 from pipeline.logs.rosmsg import LogWriter
-from tests.test_ingest import (  # noqa: F401 (icub_logs, mlflow_db: fixtures used through `request`)
+from tests.factories.logs import (
     CFG,
     JOINTS,
+    LAYOUTS,
     MS,
     TOPICS,
-    _params,
-    icub_logs,
+    copy_log,
     joint_position,
-    mlflow_db,
     run_one,
     stamps,
     write_log,
 )
+from tests.factories.params import write_ingest_params
 
 TEMPERATURE_IDL = """\
 // generated from rosidl_adapter/resource/msg.idl.em
@@ -69,45 +66,6 @@ module std_msgs {
   };
 };
 """
-LAYOUTS = {
-    "no_chunks": {"use_chunking": False},
-    "chunks_without_chunk_index": {"index_types": IndexType.NONE},
-    "no_statistics": {"use_statistics": False},
-    "no_summary": {
-        "index_types": IndexType.NONE,
-        "use_statistics": False,
-        "repeat_channels": False,
-        "repeat_schemas": False,
-        "use_summary_offsets": False,
-    },
-}
-
-
-def copy_log(src: Path, dst: Path, *, idl_temperature: str | None = None, **writer_options: object) -> Path:
-    """Every record of `src` rewritten by the mcap package's Writer with `writer_options`."""
-    with open(src, "rb") as f_in, open(dst, "wb") as f_out:
-        reader = make_reader(f_in)
-        writer = Writer(f_out, chunk_size=4096, **writer_options)
-        writer.start(profile="ros2", library="test")
-        for record in reader.iter_metadata():
-            writer.add_metadata(record.name, record.metadata)
-        schemas: dict[int, int] = {}
-        channels: dict[int, int] = {}
-        for schema, channel, message in reader.iter_messages(log_time_order=False):
-            if schema.id not in schemas:
-                encoding, data = schema.encoding, schema.data
-                if schema.name == TEMPERATURE and idl_temperature is not None:
-                    encoding, data = "ros2idl", idl_temperature.encode()
-                schemas[schema.id] = writer.register_schema(schema.name, encoding, data)
-            if channel.id not in channels:
-                channels[channel.id] = writer.register_channel(
-                    channel.topic, channel.message_encoding, schemas[schema.id]
-                )
-            writer.add_message(
-                channels[channel.id], message.log_time, message.data, message.publish_time, message.sequence
-            )
-        writer.finish()
-    return dst
 
 
 @pytest.fixture(scope="module")
@@ -205,7 +163,7 @@ def test_bad_output_paths_are_one_line_errors(
 ) -> None:
     monkeypatch.setenv("MLFLOW_TRACKING_URI", request.getfixturevalue("mlflow_db"))
     logs = request.getfixturevalue("icub_logs")
-    src, params = logs[0], _params(tmp_path, skip_bad_logs=True)
+    src, params = logs[0], write_ingest_params(tmp_path, skip_bad_logs=True)
     a_file = tmp_path / "file"
     a_file.write_text("not a directory")
     assert _run_cli(src, a_file, params) == 2
@@ -248,11 +206,11 @@ def test_one_bad_log_among_several_is_all_or_nothing(
     dead = tmp_path / ".ingested.999999999.ingest-tmp"  # a killed run's staging directory
     dead.mkdir()
     (dead / "half.parquet").write_text("half")
-    assert _run_cli(src, out, _params(tmp_path)) == 2
+    assert _run_cli(src, out, write_ingest_params(tmp_path)) == 2
     assert "c_truncated.mcap" in _one_error_line(capsys.readouterr().err)
     assert [p.name for p in out.iterdir()] == ["previous.parquet"]  # untouched: no half-made output
     assert sorted(p.name for p in tmp_path.iterdir()) == ["ingested", "params.yaml"]
-    assert _run_cli(src, out, _params(tmp_path, skip_bad_logs=True)) == 0
+    assert _run_cli(src, out, write_ingest_params(tmp_path, skip_bad_logs=True)) == 0
     assert sorted(p.name for p in out.iterdir()) == [
         "sub__a.parquet",
         "sub__a.truth.parquet",

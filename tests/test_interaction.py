@@ -23,7 +23,7 @@ from pipeline.sim.push import LOAD, PUSH, add_interaction, interaction_events
 from pipeline.sim.sites import KIND_ANKLE, KIND_FOOT, KIND_HAND, free_side, interaction_sites
 from pipeline.sim.truth import TruthComputer
 from tests.conftest import FOOT_PAIRS, GRAVITY, foot_pairs
-from tests.test_sim_truth import FEET
+from tests.factories.physics import FEET
 
 SOLES = {s: sole for front, rear, sole in FOOT_PAIRS.values() for s in (front, rear)}
 INTERACTION = InteractionParams(

@@ -25,7 +25,7 @@ from pipeline.cli import main
 from pipeline.core.errors import DataError, JobError
 from pipeline.core.parallel import forked_map
 from tests.conftest import REPO
-from tests.factories import LEG
+from tests.factories.labelled import LEG
 
 
 def scipy_error(*_: object, **__: object) -> None:

@@ -237,9 +237,9 @@ def test_label_stage_on_ergocub(tmp_path: Path, mlflow_store: None, monkeypatch:
     table names its URDF relative to the working directory, so clones in other places label alike."""
     from pipeline.physics.robot import load_robot
     from tests.conftest import robot_source
+    from tests.factories.oracles import oracle
+    from tests.factories.physics import DOUBLE, wrench_X
     from tests.idyntree_ref import random_in_limits
-    from tests.test_dynamics_cuts import DOUBLE, _wrench_X
-    from tests.test_dynamics_idyntree import oracle
 
     robot = load_robot(robot_source("ergoCubSN001"))
     n, joints, sensors = 40, robot.joint_names, list(robot.sensors)
@@ -270,7 +270,7 @@ def test_label_stage_on_ergocub(tmp_path: Path, mlflow_store: None, monkeypatch:
         assert (table[S.cut_switch_col(name)] == 1).all(), name
         theirs = np.zeros((n, 6))
         for s in cut["sensors"]:
-            xs = np.array([_wrench_X(h) for h in oracle(robot).sensor_poses(q, cut["frame"], s)])
+            xs = np.array([wrench_X(h) for h in oracle(robot).sensor_poses(q, cut["frame"], s)])
             theirs += cut["signs"][s] * np.einsum("nij,nj->ni", xs, ref[s])
         np.testing.assert_allclose(table[S.cut_sum_cols(name)].to_numpy(), theirs, rtol=0, atol=1e-6)
         np.testing.assert_allclose(map_sum(table, cut, ref), theirs, rtol=0, atol=1e-6)

@@ -15,7 +15,7 @@ import numpy as np
 from pipeline.calib.linear import fit_linear_baseline
 from pipeline.calib.pushes import PushPrior
 from pipeline.core.play import play_memory
-from tests.test_pushes import NOISE, on_relation
+from tests.factories.sensors import NOISE, on_relation
 
 D = np.array([0.004, -0.006, 0.003])  # m: the displaced torque reference point
 HELD = PushPrior(0.1, 20.0, 0.2, free_lever=False)

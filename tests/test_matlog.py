@@ -23,21 +23,18 @@ import pytest
 import yaml
 
 from pipeline.cli import main
-from pipeline.core.config import MatParams, load_params, mat_section
+from pipeline.core.config import MatParams, load_params
 from pipeline.core.errors import DataError
 from pipeline.logs import schema as S
 from pipeline.logs.matlog import MatLog, ns_to_seconds, seconds_to_ns
 from pipeline.logs.mcap_table import ingest_log
-from pipeline.stages.ingest import IngestParams
 from tests import matfile
-from tests.test_ingest import CFG, JOINTS, SENSORS, TOPICS, write_log
+from tests.factories.logs import CFG_MAT, JOINTS, MAT, SENSORS, TOPICS, write_log
 
 pytestmark = pytest.mark.slow  # writes and ingests whole logger files
 
 REPO = Path(__file__).resolve().parents[1]
 STAMP_TOL_NS = 120
-MAT = mat_section(load_params(REPO / "params.yaml"))
-CFG_MAT = IngestParams(**{**CFG.__dict__, "mat": MAT})
 
 
 def ingest(path: Path, out: Path, joints=JOINTS, sensors=SENSORS) -> pd.DataFrame:

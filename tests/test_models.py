@@ -14,32 +14,9 @@ from pipeline.calib.losses import sum_in_sole, switched_loss
 from pipeline.calib.models import GroupNet, NetConfig, load_model, normalisation_constants, save_model
 from pipeline.calib.scores import wrench_errors
 from pipeline.core.errors import DataError
+from tests.factories.labelled import TRANSFORMS
 
 NAN = float("nan")
-
-
-def wrench_transform(rotation: np.ndarray, position: np.ndarray) -> np.ndarray:
-    """6x6 sole_X_sensor for a sensor frame at `position` with orientation `rotation` in the sole frame."""
-    px, py, pz = position
-    skew = np.array([[0, -pz, py], [pz, 0, -px], [-py, px, 0]])
-    out = np.zeros((6, 6))
-    out[:3, :3] = rotation
-    out[3:, 3:] = rotation
-    out[3:, :3] = skew @ rotation
-    return out
-
-
-def rot_z(angle: float) -> np.ndarray:
-    c, s = math.cos(angle), math.sin(angle)
-    return np.array([[c, -s, 0], [s, c, 0], [0, 0, 1]])
-
-
-TRANSFORMS = np.stack(
-    [
-        wrench_transform(rot_z(0.3), np.array([0.06, 0.01, 0.02])),
-        wrench_transform(rot_z(-0.2), np.array([-0.05, -0.01, 0.02])),
-    ]
-)
 
 
 # --- losses --------------------------------------------------------------------------------------

@@ -1,9 +1,10 @@
 """Virtual pushes (calib.pushes), excitation (calib.excitation) and truth-free fidelity (calib.fidelity).
 
-The synthetic sensor here is a free arm's: its true wrench lies on torque = c x force (c = 0.15 m along z),
-its raw reading adds white noise to a slightly distorted copy, and its labels are exact. Least squares can
-then rebuild a force from the less noisy torque channel; the checks below show that it does without the
-virtual pushes and that with them every axis keeps about the factory map's gain.
+The synthetic sensor here is a free arm's (tests/factories/sensors.py): its true wrench lies on
+torque = c x force (c = 0.15 m along z), its raw reading adds white noise to a slightly distorted copy, and
+its labels are exact. Least squares can then rebuild a force from the less noisy torque channel; the checks
+below show that it does without the virtual pushes and that with them every axis keeps about the factory
+map's gain.
 """
 
 from __future__ import annotations
@@ -26,25 +27,7 @@ from pipeline.calib.pushes import (
     push_gram,
     push_penalty,
 )
-
-LEVER = np.array([0.0, 0.0, 0.15])  # m
-NOISE = np.array([0.6, 0.6, 0.6, 0.03, 0.03, 0.03])  # N, Nm
-PUSH = PushPrior(0.1, 20.0, 0.2)
-
-
-def on_relation(n: int, seed: int = 0) -> tuple[np.ndarray, np.ndarray]:
-    """(raw inputs (n, 1, 13), exact labels (n, 1, 6)) of a free arm: torque = LEVER x force."""
-    rng = np.random.default_rng(seed)
-    t = np.arange(n) / 100.0
-    force = np.stack(
-        [15 * np.sin(0.7 * (k + 1) * t) + 5 * np.sin(2.3 * (k + 1) * t + k) for k in range(3)], 1
-    )
-    true = np.c_[force, np.cross(LEVER, force)]
-    distortion = np.eye(6) + rng.uniform(-0.02, 0.02, (6, 6))
-    raw = true @ distortion.T + np.r_[25.0, -30, 40, 2, -1, 3] + rng.standard_normal((n, 6)) * NOISE
-    x = np.zeros((n, 1, 13))
-    x[:, 0, :6], x[:, 0, 6] = raw, 30.0 + 0.1 * rng.standard_normal(n)
-    return x, true[:, None, :]
+from tests.factories.sensors import LEVER, NOISE, PUSH, on_relation
 
 
 def affine_gains(x: np.ndarray, labels: np.ndarray, push: PushPrior | None) -> np.ndarray:

@@ -32,8 +32,8 @@ from pipeline.stages import (
 )
 from tests import dumperfile
 from tests.conftest import REPO
+from tests.factories.dumper import REAL_RUN
 from tests.relabel import relabel_with_idyntree
-from tests.test_dumper import REAL_RUN
 
 pytestmark = pytest.mark.slow  # each test's fixture runs the pipeline's stages on recorded runs
 
@@ -308,7 +308,7 @@ def test_a_simulated_log_written_as_a_run_ingests_like_its_mcap(simulated, recor
     from pipeline.logs import schema as S
     from pipeline.physics.robot import load_robot
     from pipeline.stages.ingest import RobotLogSpec, ingest_one
-    from tests.test_dumper import HALF_PRINTED, STAMP_TOL_NS, _bound
+    from tests.factories.dumper import HALF_PRINTED, STAMP_TOL_NS, interpolated_bound
 
     d, sim, params = recorded_run["dirs"], simulated["sim"], simulated["params"]
     robot = load_robot("iCubGenova02")
@@ -330,7 +330,7 @@ def test_a_simulated_log_written_as_a_run_ingests_like_its_mcap(simulated, recor
         np.testing.assert_array_equal(got[S.ok_col(S.WRENCH_STREAM, s)], ref[S.ok_col(S.WRENCH_STREAM, s)])
         for c in S.wrench_cols(S.FT, s):
             np.testing.assert_allclose(
-                got[c], ref[c], atol=_bound(ref, c, HALF_PRINTED, 0.005), rtol=0, err_msg=c
+                got[c], ref[c], atol=interpolated_bound(ref, c, HALF_PRINTED, 0.005), rtol=0, err_msg=c
             )
         assert not got[S.ok_col(S.TEMPERATURE_STREAM, s)].any() and not got[S.ok_col(S.IMU_STREAM, s)].any()
 

@@ -25,7 +25,7 @@ from pipeline.physics.regressor import (
     placement_map,
 )
 from pipeline.physics.robot import LinkInertial, RobotModel
-from tests.test_dynamics import L_FOOT, G, LinkNewtonEuler, random_states, reference_reading
+from tests.factories.physics import L_FOOT, G, LinkNewtonEuler, random_states, reference_reading
 
 TILT = pin.rpy.rpyToMatrix(0.3, -0.2, 0.5)
 CASES = {

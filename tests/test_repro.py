@@ -31,9 +31,9 @@ from pipeline.calib.params import select_by_folds, selection_steps
 from pipeline.calib.pruning import SlotPruner
 from pipeline.core import kernels
 from pipeline.logs import schema as S
-from tests.factories import LEG, write_labelled_logs
+from tests.factories.labelled import LEG, write_labelled_logs
+from tests.factories.params import TRAIN_PARAMS, write_params
 from tests.searchrun import decisions
-from tests.test_train import TRAIN_PARAMS, write_params
 
 pytestmark = pytest.mark.slow  # trains the same search in several fresh processes
 

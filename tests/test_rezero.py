@@ -24,8 +24,8 @@ from pipeline.cli import main
 from pipeline.core.config import load_params
 from pipeline.logs import schema as S
 from pipeline.stages import export as E
-from tests.test_export import _report
-from tests.test_train import FRONT, LEG, PAIR, REAR
+from tests.factories.labelled import FRONT, LEG, PAIR, REAR
+from tests.factories.reports import write_recommended
 
 pytestmark = pytest.mark.slow  # trains and exports a group first
 
@@ -83,7 +83,7 @@ def day(trained_models: dict, tmp_path_factory: pytest.TempPathFactory) -> dict[
             data["export"]["models"] = deployed
             variant = root / f"params_{name}.yaml"
             variant.write_text(yaml.safe_dump(data, sort_keys=False))
-            report = _report(root, {LEG: "nn13", PAIR: "nn7"})
+            report = write_recommended(root, {LEG: "nn13", PAIR: "nn7"})
             E.run(load_params(variant), trained_models["models"], report, trained_models["labelled"],
                   root / name)  # fmt: skip
             exports[name] = root / name
@@ -170,19 +170,19 @@ def test_calibrate_runs_the_offsets_beside_the_export(day: dict[str, Any], tmp_p
     assert (
         main(["calibrate", str(log), str(out), "--models", str(export), "--params", str(day["params"])]) == 0
     )
-    from tests.test_calibrate import _decoded, _messages, _stamp, _vec
+    from tests.factories.readback import mcap_records, ros2_messages, stamp_ns, xyz
 
-    assert [m for m in _messages(out) if not m[0].endswith("_calibrated")] == _messages(log)
+    assert [m for m in mcap_records(out) if not m[0].endswith("_calibrated")] == mcap_records(log)
     params = load_params(day["params"])
     with LogReader(log) as reader:
         delivered = calibrated_messages(Deployment.load(export, offsets=False), reader, params.topics)
-    decoded = _decoded(out)
-    t0 = min(_stamp(m.ros_msg) for m in decoded[f"/ft/{LEG}/wrench"])
+    decoded = ros2_messages(out)
+    t0 = min(stamp_ns(m.ros_msg) for m in decoded[f"/ft/{LEG}/wrench"])
     stretch, full = doc["stretches"][0], []
     for sensor in SENSORS:
         messages = decoded[f"/ft/{sensor}/wrench_calibrated"]
-        stamps = np.array([_stamp(m.ros_msg) for m in messages])
-        got = np.array([_vec(m.ros_msg.wrench.force) + _vec(m.ros_msg.wrench.torque) for m in messages])
+        stamps = np.array([stamp_ns(m.ros_msg) for m in messages])
+        got = np.array([xyz(m.ros_msg.wrench.force) + xyz(m.ros_msg.wrench.torque) for m in messages])
         assert not np.allclose(got, delivered[sensor][1])  # the offsets are applied
         keep = (stamps - t0 >= stretch["t0"] * 1e9) & (stamps - t0 <= stretch["t1"] * 1e9)
         rows = day["poses"].iloc[stretch["start"] : stretch["stop"]]
@@ -213,17 +213,17 @@ def test_calibrate_runs_the_offsets_beside_the_export(day: dict[str, Any], tmp_p
     out_c = tmp_path / "calibrated_c.mcap"
     args = [str(log), str(out_c), "--models", str(export), "--runtime", "c", "--params", str(day["params"])]
     assert main(["calibrate", *args]) == 0
-    decoded_c = _decoded(out_c)
+    decoded_c = ros2_messages(out_c)
     for sensor in SENSORS:
         ours = np.array(
             [
-                _vec(m.ros_msg.wrench.force) + _vec(m.ros_msg.wrench.torque)
+                xyz(m.ros_msg.wrench.force) + xyz(m.ros_msg.wrench.torque)
                 for m in decoded_c[f"/ft/{sensor}/wrench_calibrated"]
             ]
         )
         theirs = np.array(
             [
-                _vec(m.ros_msg.wrench.force) + _vec(m.ros_msg.wrench.torque)
+                xyz(m.ros_msg.wrench.force) + xyz(m.ros_msg.wrench.torque)
                 for m in decoded[f"/ft/{sensor}/wrench_calibrated"]
             ]
         )

@@ -8,6 +8,7 @@ import pytest
 
 from pipeline.core.errors import RobotModelError
 from pipeline.physics.robot import RobotModel, load_robot, wrench_transform
+from tests.factories.physics import check_pinocchio_joint_torques, random_state, to_pin
 
 EXPECTED_SENSORS = {
     "l_arm_ft": "child_to_parent",
@@ -36,46 +37,9 @@ def test_joints_match_pinocchio(robot: RobotModel) -> None:
     assert robot.total_mass() == pytest.approx(sum(i.mass for i in model.inertias), rel=1e-12)
 
 
-def random_state(robot: RobotModel, rng: np.random.Generator, n: int) -> tuple[np.ndarray, ...]:
-    lower = np.array([robot.joints[j].lower for j in robot.joint_names])
-    upper = np.array([robot.joints[j].upper for j in robot.joint_names])
-    q = rng.uniform(lower, upper, (n, len(lower)))
-    return q, rng.uniform(-1, 1, q.shape), rng.uniform(-5, 5, q.shape)
-
-
-def to_pin(robot: RobotModel, x: np.ndarray) -> np.ndarray:
-    """Robot joint order -> Pinocchio's own model order."""
-    model = robot.pinocchio_model
-    out = np.zeros(model.nq)
-    for k, name in enumerate(robot.joint_names):
-        out[model.idx_qs[model.getJointId(name)]] = x[k]
-    return out
-
-
 def test_rooted_at_root_link_has_pinocchio_joint_torques(robot: RobotModel) -> None:
     """Same fixed base, two model builders: the joint torques of RNEA must agree."""
     check_pinocchio_joint_torques(robot, np.random.default_rng(1), 20)
-
-
-def check_pinocchio_joint_torques(robot: RobotModel, rng: np.random.Generator, n: int) -> None:
-    """RNEA's joint torques of the model rooted at root_link equal those of Pinocchio's own URDF model,
-    in `n` random states."""
-    rooted = robot.rooted(robot.root_link)
-    ref_model = robot.pinocchio_model
-    ref_data, data = ref_model.createData(), rooted.model.createData()
-    for q, dq, ddq in zip(*random_state(robot, rng, n), strict=True):
-        tau_ref = pin.rnea(ref_model, ref_data, to_pin(robot, q), to_pin(robot, dq), to_pin(robot, ddq))
-        qs = pin.neutral(rooted.model)
-        vs, accs = np.zeros(rooted.model.nv), np.zeros(rooted.model.nv)
-        qs[rooted.q_index], vs[rooted.v_index], accs[rooted.v_index] = (
-            q * rooted.sign,
-            dq * rooted.sign,
-            ddq * rooted.sign,
-        )
-        tau = pin.rnea(rooted.model, data, qs, vs, accs)[rooted.v_index] * rooted.sign
-        np.testing.assert_allclose(
-            tau, [tau_ref[ref_model.idx_vs[ref_model.getJointId(n)]] for n in robot.joint_names], atol=1e-9
-        )
 
 
 @pytest.mark.parametrize("root", ["l_sole", "r_foot_front", "l_forearm"])

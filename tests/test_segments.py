@@ -13,8 +13,7 @@ import yaml
 from pipeline.logs import schema as S
 from pipeline.logs.mcap_table import ingest_log
 from tests import matfile
-from tests.test_ingest import JOINTS, SENSORS, TOPICS, write_log
-from tests.test_matlog import CFG_MAT
+from tests.factories.logs import CFG_MAT, JOINTS, SENSORS, TOPICS, write_log
 
 REPO = Path(__file__).resolve().parents[1]
 SEGMENTS = [
@@ -60,7 +59,7 @@ def test_mcap_experiment_record_segments_split_the_truth_alike(tmp_path: Path) -
     are split on the same rows as the tables."""
     import json
 
-    from tests.test_ingest import CFG, EXPERIMENT
+    from tests.factories.logs import CFG, EXPERIMENT
 
     experiment = {**EXPERIMENT, "segments": json.dumps(SEGMENTS)}
     mcap = write_log(tmp_path / "log.mcap", duration=4.0, experiment=experiment)

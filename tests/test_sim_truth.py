@@ -7,16 +7,11 @@ import dataclasses
 import numpy as np
 import pytest
 
-from pipeline.physics.robot import RobotModel, wrench_transform
-from pipeline.sim.motion import Foot, MotionGenerator, MotionParams
+from pipeline.physics.robot import RobotModel
+from pipeline.sim.motion import MotionGenerator, MotionParams
 from pipeline.sim.truth import TruthComputer, split_front_rear
 from tests.conftest import GRAVITY, foot_pairs
-from tests.test_dynamics import LinkNewtonEuler
-
-FEET = [
-    Foot("l_foot", "l_sole", "l_foot_front", "l_foot_rear"),
-    Foot("r_foot", "r_sole", "r_foot_front", "r_foot_rear"),
-]
+from tests.factories.physics import FEET, assert_momentum_balance
 
 
 @pytest.fixture(scope="module")
@@ -38,34 +33,6 @@ def test_every_cut_balances_momentum(icub: RobotModel, motions: dict, kind: str)
     motion = motions[kind]
     truth = TruthComputer(icub, foot_pairs(icub), GRAVITY).compute(motion)
     assert_momentum_balance(icub, motion, truth)
-
-
-def assert_momentum_balance(robot: RobotModel, motion, truth) -> None:
-    """Every sensor's true reading and the contact wrenches against Newton-Euler link by link (25 samples)."""
-    icub = robot
-    samples = np.linspace(0, motion.n - 1, 25).astype(int)
-    for k in samples:
-        fixed = motion.fixed_links[k]
-        contacts = motion.contact_sets[motion.contact_index[k]]
-        ne = LinkNewtonEuler(icub, fixed, np.array([0.0, 0.0, -GRAVITY]))
-        ne.set_state(motion.q[k], motion.dq[k], motion.ddq[k])
-        world = ne.pose(fixed)
-        ground = {c: truth.contact_wrench[c][k] for c in contacts}
-        if not any(np.isnan(g).any() for g in ground.values()):
-            total = ne.required_wrench(frozenset(icub.links), world)
-            np.testing.assert_allclose(sum(ground.values()), total, atol=1e-7)
-            assert all(g[2] >= -1e-9 for g in ground.values()), "the floor only pushes"
-        for s, ft in icub.sensors.items():
-            _, child_side = icub.sensor_sides(s)
-            frame = ne.sensor_frame(s)
-            on_child = [c for c in contacts if c in child_side]
-            if on_child and any(np.isnan(ground[c]).any() for c in on_child):
-                continue  # single contact: checked in test_dynamics through expected_wrenches
-            p_on_q = ne.required_wrench(child_side, frame)
-            for c in on_child:
-                p_on_q = p_on_q - wrench_transform(frame.inverse()) @ ground[c]
-            expected = p_on_q if ft.direction == "parent_to_child" else -p_on_q
-            np.testing.assert_allclose(truth.wrench[s][k], expected, atol=1e-7, err_msg=f"{s} {k}")
 
 
 def test_lever_split_is_exact_and_follows_cop() -> None:

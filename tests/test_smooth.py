@@ -15,8 +15,9 @@ from pipeline.core.errors import ConfigError
 from pipeline.logs import schema as S
 from pipeline.logs.smoothing import STILL_WINDOW_S, SmoothParams, segments, smooth_kinematics
 from pipeline.logs.tables import read_table_metadata
-from tests.test_ingest import JOINTS, ROOT, SENSORS, T0, joint_position, run_one, write_log
+from tests.factories.logs import JOINTS, SENSORS, T0, joint_position, run_one, write_log
 
+ROOT = Path(__file__).resolve().parents[1]
 RATE = 100.0  # Hz
 
 

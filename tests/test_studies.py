@@ -22,9 +22,9 @@ from pipeline.calib import studies
 from pipeline.calib.pruning import SlotPruner
 from pipeline.core.config import load_params
 from pipeline.core.errors import ConfigError
-from tests.factories import LEG, LOGS, write_labelled_log
+from tests.factories.labelled import LEG, LOGS, write_labelled_log
+from tests.factories.params import TRAIN_PARAMS, write_params
 from tests.pgserver import create_database
-from tests.test_train import TRAIN_PARAMS, write_params
 
 pytestmark = pytest.mark.slow  # several processes share one Optuna study
 

@@ -15,7 +15,6 @@ import pyarrow as pa
 import pyarrow.parquet as pq
 import pytest
 import torch
-import yaml
 
 from pipeline.calib import search as calib_search
 from pipeline.calib.cuts import CutTerm, cut_sums_np
@@ -32,8 +31,18 @@ from pipeline.logs import schema as S
 from pipeline.logs.schema import LOG, prediction_cols
 from pipeline.physics.cuts import map_wrenches, pose_wrench_transforms
 from pipeline.stages.train import train_group  # the stage entry (default studies dir)
-from tests.factories import FRONT, LEG, PAIR, REAR, SHANK, TRAINED, write_labelled_log, write_labelled_logs
-from tests.test_models import TRANSFORMS
+from tests.factories.labelled import (
+    FRONT,
+    LEG,
+    PAIR,
+    REAR,
+    SHANK,
+    TRAINED,
+    TRANSFORMS,
+    write_labelled_log,
+    write_labelled_logs,
+)
+from tests.factories.params import TRAIN_PARAMS, write_params
 
 ROOT = Path(__file__).resolve().parents[1]
 
@@ -41,64 +50,6 @@ ROOT = Path(__file__).resolve().parents[1]
 @pytest.fixture(scope="module")
 def labelled(tmp_path_factory: pytest.TempPathFactory) -> Path:
     return write_labelled_logs(tmp_path_factory.mktemp("labelled"), n=500)
-
-
-TRAIN_PARAMS = {
-    "val_logs": 1,
-    "folds": 2,
-    "storage": None,
-    "heartbeat": 10,
-    "selection_margin": 0.1,
-    "defaults": {
-        "inputs": [7, 13],
-        "hidden": 16,
-        "activations": ["leaky_relu", "relu"],
-        "normalisation": "max",
-        "batch_size": 128,
-        "epochs": 3,
-        "lr": 0.01,
-        "average_epochs": 1.0,
-        "weight_decay": 0.0,
-        "lambda_expected": 1.0,
-        "lambda_front": 1.0,
-        "lambda_rear": 1.0,
-        "lambda_sum": 1.0,
-        "lambda_cut": 1.0,
-        "lambda_prior": 0.1,
-        "lambda_push": 0.1,
-        "push_force_n": 20.0,
-        "push_lever_m": 0.2,
-        "free_lever": True,
-        "residual_slope": 0.05,
-        "n_trials": 3,
-        "search": {"lr": {"low": 0.001, "high": 0.03, "log": True}, "hidden": [16, 32]},
-        "tpe_startup_trials": 1,
-        "prune_startup_trials": 1,
-        "prune_warmup_epochs": 1,
-        "prune_margin": 0.1,
-        "poly_orders": [1, 2],
-        "ridge": 1.0e-6,
-        "play_width_fractions": [0.05, 0.2],
-        "arx_time_constants_s": [0.5, 5.0],
-        "window_time_constants_s": [0.05, 0.5],
-        "window_hidden": 8,
-        "window_activations": ["relu"],
-        "window_epochs": 2,
-        "window_lr": 0.003,
-        "window_batch_size": 128,
-    },
-    "groups": {LEG: {"sensor": LEG}, PAIR: {"pair": PAIR, "normalisation": "standard"}},
-}
-
-
-def write_params(tmp_path: Path, train: dict[str, Any] | None = None, **defaults: Any) -> Path:
-    """The repo's params.yaml with a small `train` section (and `defaults` overrides)."""
-    data = yaml.safe_load((ROOT / "params.yaml").read_text())
-    data["train"] = copy.deepcopy(train or TRAIN_PARAMS)
-    data["train"]["defaults"].update(defaults)
-    path = tmp_path / "params.yaml"
-    path.write_text(yaml.safe_dump(data, sort_keys=False))
-    return path
 
 
 @pytest.fixture

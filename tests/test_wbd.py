@@ -23,7 +23,7 @@ import pytest
 from pipeline.cli import main
 from pipeline.export import wbd
 from pipeline.export.trained import read_group
-from tests.factories import LEG, PAIR
+from tests.factories.labelled import LEG, PAIR
 
 
 def _parse(text: str) -> dict[str, dict[str, np.ndarray]]:

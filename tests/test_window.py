@@ -20,9 +20,9 @@ from pipeline.calib.pushes import PushPrior
 from pipeline.calib.window import WindowModel, WindowSetting, train_window, window_memory
 from pipeline.core.config import load_params
 from pipeline.core.errors import ConfigError
-from pipeline.core.lowpass import alphas, lowpass_memory, lowpass_outputs
+from pipeline.core.lowpass import alphas, lowpass_memory
 from pipeline.core.play import play_memory
-from tests.test_arx import CREEP, DT, NOISE, PUSH, TAU
+from tests.factories.sensors import DT, NOISE, PUSH, creep_log
 
 TAUS = (0.05, 0.2, 1.0)
 WIDTHS = np.array([np.r_[np.full(3, w), np.full(3, w / 20)] for w in (10.0, 30.0, 90.0)])
@@ -31,7 +31,7 @@ SLOPE = 0.05
 
 def test_windows_are_the_filters_after_each_sample_from_a_fresh_start(trained: dict) -> None:
     model = trained["model"]
-    x, _ = _log(11, n=300)
+    x, _ = creep_log(11, n=300)
     z = model.inputs(x[:, 0], model.memory_of(x)[:, 0, WIDTHS.size :])
     gains = alphas(np.array(TAUS), DT)
     y = np.tile(x[0, 0, :6], (len(TAUS), 1))  # a fresh start: every window at the first reading
@@ -48,22 +48,8 @@ def test_bad_time_constants_are_one_config_error(bad: object) -> None:
                                  "window_time_constants_s": bad})  # fmt: skip
 
 
-def _log(seed: int, n: int = 4000) -> tuple[np.ndarray, np.ndarray]:
-    """(raw inputs (n, 1, 7), true wrench (n, 1, 6)): steps and ramps read through gain, offset, a creep of
-    time constant TAU and white noise (the arx tests' sensor)."""
-    rng = np.random.default_rng(seed)
-    scale = np.r_[np.full(3, 150.0), np.full(3, 8.0)]
-    levels = rng.uniform(-1, 1, (n // 200 + 1, 6)) * scale
-    w = np.repeat(levels, 200, axis=0)[:n]
-    w = np.apply_along_axis(lambda c: np.convolve(c, np.ones(20) / 20, mode="same"), 0, w)
-    lagged = lowpass_outputs(w, np.full(6, alphas(np.array([TAU]), DT)[0]))
-    raw = 1.02 * w + np.r_[30.0, -20.0, 25.0, 2.0, -1.0, 1.5] + CREEP * (w - lagged)
-    raw += rng.normal(size=raw.shape) * NOISE
-    return np.concatenate([raw, np.full((n, 1), 30.0)], axis=1)[:, None, :], w[:, None, :]
-
-
 def _data(seeds: range, start: int = 0) -> GroupData:
-    logs = [_log(seed) for seed in seeds]
+    logs = [creep_log(seed) for seed in seeds]
     x = np.concatenate([g[0] for g in logs])
     n = len(x)
     return GroupData(
@@ -112,7 +98,7 @@ def trained() -> dict:
 
 
 def _rmse(predict_log, seed: int = 7) -> float:
-    x, w = _log(seed)
+    x, w = creep_log(seed)
     return float(np.sqrt(np.mean((predict_log(x) - w) ** 2)))
 
 
@@ -124,7 +110,7 @@ def test_windowed_network_calibrates_a_creeping_sensor_better_than_play(trained:
 
 
 def test_a_push_is_reported_within_the_bound_of_the_play_models_slope(trained: dict) -> None:
-    x, _ = _log(8)
+    x, _ = creep_log(8)
     model, play = trained["model"], trained["play"]
     memory = model.memory_of(x)
     win = model_fidelity(model.predict, x, PUSH, 7, memory)[0]
@@ -139,7 +125,7 @@ def test_a_push_is_reported_within_the_bound_of_the_play_models_slope(trained: d
 
 def test_output_is_causal_and_starts_afresh_at_each_log(trained: dict) -> None:
     model = trained["model"]
-    x, _ = _log(9, n=600)
+    x, _ = creep_log(9, n=600)
     y = model.predict_log(x)
     moved = x.copy()
     moved[400:, 0, 0] += 50.0
@@ -153,7 +139,7 @@ def test_output_is_causal_and_starts_afresh_at_each_log(trained: dict) -> None:
 def test_file_form_round_trips(trained: dict) -> None:
     model = trained["model"]
     again = WindowModel.from_dict(json.loads(json.dumps(model.to_dict())))
-    x, _ = _log(10, n=500)
+    x, _ = creep_log(10, n=500)
     np.testing.assert_array_equal(again.predict_log(x), model.predict_log(x))
     assert isinstance(again.base, LinearBaseline) and list(again.time_constants) == list(TAUS)
     assert again.period == pytest.approx(DT)

@@ -18,8 +18,8 @@ from pipeline.core.config import load_params
 from pipeline.core.errors import DataError
 from pipeline.logs import schema as S
 from pipeline.stages.train import train_group
-from tests.factories import LEG, LOGS, SENSORS, write_labelled_log
-from tests.test_train import write_params
+from tests.factories.labelled import LEG, LOGS, SENSORS, write_labelled_log
+from tests.factories.params import write_params
 
 pytestmark = pytest.mark.slow  # trains networks
 
@@ -97,7 +97,7 @@ def test_a_log_without_temperature_is_calibrated_by_a_wrench_only_export(
     from pipeline.export.trained import read_group
     from pipeline.logs.rosmsg import LogReader
     from pipeline.tools.calibrate import run
-    from tests.test_ingest import TOPICS, write_log
+    from tests.factories.logs import TOPICS, write_log
 
     model_dir, _ = trained
     model = read_group(model_dir, "nn6")

@@ -1,10 +1,12 @@
-"""Shared test factories: labelled tables (schema "Labelled table") of a leg sensor and a foot pair.
+"""Labelled tables (schema "Labelled table") of a leg sensor and a foot pair, and the pair's transforms.
 
-Used by the train and evaluate tests: one writer of labelled tables, with the r_foot pair's metadata.
+Used by the train, evaluate and export tests: one writer of labelled tables, with the r_foot pair's
+metadata; TRANSFORMS are the pair's sole_X_front and sole_X_rear.
 """
 
 from __future__ import annotations
 
+import math
 from pathlib import Path
 from typing import Any
 
@@ -14,8 +16,31 @@ import pyarrow.parquet as pq
 
 from pipeline.logs import schema as S
 from pipeline.physics.cuts import map_wrenches
-from tests.test_models import TRANSFORMS
 
+
+def wrench_transform(rotation: np.ndarray, position: np.ndarray) -> np.ndarray:
+    """6x6 sole_X_sensor for a sensor frame at `position` with orientation `rotation` in the sole frame."""
+    px, py, pz = position
+    skew = np.array([[0, -pz, py], [pz, 0, -px], [-py, px, 0]])
+    out = np.zeros((6, 6))
+    out[:3, :3] = rotation
+    out[3:, 3:] = rotation
+    out[3:, :3] = skew @ rotation
+    return out
+
+
+def rot_z(angle: float) -> np.ndarray:
+    c, s = math.cos(angle), math.sin(angle)
+    return np.array([[c, -s, 0], [s, c, 0], [0, 0, 1]])
+
+
+# (2, 6, 6): the r_foot pair's sole_X_front and sole_X_rear (positions in m)
+TRANSFORMS = np.stack(
+    [
+        wrench_transform(rot_z(0.3), np.array([0.06, 0.01, 0.02])),
+        wrench_transform(rot_z(-0.2), np.array([-0.05, -0.01, 0.02])),
+    ]
+)
 LEG, FRONT, REAR, PAIR = "r_leg_ft", "r_foot_front_ft", "r_foot_rear_ft", "r_foot"
 SENSORS = (LEG, FRONT, REAR)
 SHANK = S.cut_set_name(SENSORS)  # cut set: the leg with its foot's two sensors, exact at every sample
