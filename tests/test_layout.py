@@ -1,5 +1,6 @@
 """The layout rules of pipeline/: module and function sizes, no import circle, dvc.yaml deps that cover
-every module a stage imports, and a command line that imports no heavy library to list its commands."""
+every module a stage imports, and a command line that imports no heavy library to list its commands; of
+tests/: no test file imports another (shared helpers live in tests/factories/, fixtures in conftest.py)."""
 
 from __future__ import annotations
 
@@ -148,6 +149,52 @@ def test_command_line_help_imports_no_heavy_library() -> None:
     assert len(lines) == len(COMMANDS) + 1 and all(line.endswith(" []") for line in lines), out.stdout
 
 
+def _test_module(name: str) -> str | None:
+    """The test module that the dotted `name` (leading dots: relative to its package) is or lies in."""
+    dots = len(name) - len(name.lstrip("."))
+    parts = name[dots:].split(".")
+    if dots and parts[0].startswith("test_"):
+        return name[:dots] + parts[0]
+    if not dots and parts[0] == "tests" and len(parts) > 1 and parts[1].startswith("test_"):
+        return f"tests.{parts[1]}"
+    return None
+
+
+def _test_module_imports(source: str) -> list[tuple[int, str]]:
+    """(line, test module) of every import of a test module in `source`, top level or inside functions:
+    ``import tests.test_x``, ``from tests.test_x import y``, ``from tests import test_x``, ``from .test_x
+    import y``, ``from . import test_x``."""
+    out = []
+    for node in ast.walk(ast.parse(source)):
+        if isinstance(node, ast.Import):
+            names = [a.name for a in node.names]
+        elif isinstance(node, ast.ImportFrom):
+            base = "." * node.level + (node.module or "")
+            names = [base, *(base + ("" if base.endswith(".") else ".") + a.name for a in node.names)]
+        else:
+            continue
+        out += [(node.lineno, m) for m in sorted({m for m in map(_test_module, names) if m})]
+    return out
+
+
+def test_no_test_file_imports_another() -> None:
+    """A helper that test files share has one home in tests/factories/ (a shared fixture: tests/conftest.py),
+    so that no file under tests/ imports a test module (which would also import its tests and fixtures)."""
+    forms = (
+        "import tests.test_a\nfrom tests.test_b import x\nfrom .test_c import y\n"
+        "def f():\n    from tests import test_d\n    from . import test_e\n"
+    )
+    expected = ["tests.test_a", "tests.test_b", ".test_c", "tests.test_d", ".test_e"]
+    assert sorted(n for _, n in _test_module_imports(forms)) == sorted(expected)
+    assert not _test_module_imports("import tests.conftest\nfrom tests.factories.logs import write_log\n")
+    found = [
+        f"{path.relative_to(ROOT).as_posix()}:{line} imports {name}"
+        for path in sorted((ROOT / "tests").rglob("*.py"))
+        for line, name in _test_module_imports(path.read_text(encoding="utf-8"))
+    ]
+    assert not found, found
+
+
 def test_ruff_check_and_format_are_clean() -> None:
     """The lint and format rules of pyproject.toml hold (so CI, which runs the tests, enforces them)."""
     for args in (["check", "--no-cache"], ["format", "--check", "--no-cache"]):
@@ -169,7 +216,7 @@ def _sources() -> list[Path]:
     files = [*ROOT.glob("pipeline/**/*.py"), *ROOT.glob("benchmarks/*.py"), *ROOT.glob("benchmarks/*.c")]
     return [
         *files,
-        *ROOT.glob("tests/*.py"),
+        *ROOT.glob("tests/**/*.py"),  # tests/factories/ too
         *ROOT.glob("docs/*.md"),
         *(ROOT / f for f in ("dvc.yaml", "params.yaml", "README.md")),
     ]
