@@ -35,9 +35,9 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 from benchmarks import QUICK  # noqa: E402
 from pipeline.core.config import load_params, stage_section  # noqa: E402
 from pipeline.logs.mcap_table import ingest_log  # noqa: E402
+from pipeline.logs.params import IngestParams  # noqa: E402
 from pipeline.logs.rosmsg import LogReader, LogWriter  # noqa: E402
 from pipeline.physics.robot import load_robot  # noqa: E402
-from pipeline.stages.ingest import IngestParams  # noqa: E402
 
 ROOT = Path(__file__).resolve().parents[1]
 T0 = 1_700_000_000 * 10**9

@@ -30,9 +30,9 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from pipeline.core.config import load_params, resolve_urdf, stage_section  # noqa: E402
 from pipeline.logs.mcap_table import ingest_log  # noqa: E402
+from pipeline.logs.params import IngestParams  # noqa: E402
 from pipeline.logs.rosmsg import LogWriter  # noqa: E402
 from pipeline.physics.robot import load_robot  # noqa: E402
-from pipeline.stages.ingest import IngestParams  # noqa: E402
 from tests.matfile import mcap_to_mat  # noqa: E402
 
 ROOT = Path(__file__).resolve().parents[1]

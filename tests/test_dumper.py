@@ -29,6 +29,7 @@ from pipeline.tools.convert_dumper import write_mcap
 from tests import dumperfile
 from tests.factories.dumper import HALF_PRINTED, REAL_RUN, STAMP_TOL_NS, interpolated_bound
 from tests.factories.logs import CFG, JOINTS, SENSORS, TOPICS, write_log
+from tests.factories.params import repo_params
 
 REPO = Path(__file__).resolve().parents[1]
 EXCERPT = Path(__file__).resolve().parent / "data" / "icub02-yoga-excerpt"
@@ -106,7 +107,7 @@ def test_recorder_folders_with_state_ports_ingest_like_the_dumper_layout(
     port. The same table, joint positions and wrenches equal to the bit; velocities and torques, which
     state:o does not carry, NaN. The reception times are told from the info.log ``Stamp:`` line, or
     without it (older dumpers) from the first line."""
-    from pipeline.stages.ingest import find_logs
+    from pipeline.logs.logfiles import find_logs
 
     mcap, _ = mcap_log
     src = tmp_path / "raw"
@@ -152,7 +153,7 @@ def test_converted_run_ingests_exactly_like_the_run(tmp_path: Path, mcap_log) ->
 
 
 def _params(tmp_path: Path, **changes: object) -> Path:
-    data = yaml.safe_load((REPO / "params.yaml").read_text())
+    data = repo_params()
     data["robot"]["urdf"] = "iCubGenova02"
     for key, value in changes.items():
         section, field = key.split(".", 1)

@@ -15,9 +15,9 @@ from pipeline.core.errors import ConfigError, DataError
 from pipeline.logs import mcap_table, tables
 from pipeline.logs import schema as S
 from pipeline.logs.align import align_continuous, align_latest, sort_unique, stamp_steps_back
+from pipeline.logs.params import IngestParams
 from pipeline.logs.rosmsg import LogWriter
 from pipeline.logs.tables import read_table_metadata
-from pipeline.stages.ingest import IngestParams
 from tests.factories.logs import (
     CFG,
     EXPERIMENT,

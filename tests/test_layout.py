@@ -1,6 +1,7 @@
-"""The layout rules of pipeline/: module and function sizes, no import circle, dvc.yaml deps that cover
-every module a stage imports, and a command line that imports no heavy library to list its commands; of
-tests/: no test file imports another (shared helpers live in tests/factories/, fixtures in conftest.py)."""
+"""The layout rules of pipeline/: module and function sizes, no import circle and no import from a lower
+package to a higher one, dvc.yaml deps that cover every module a stage imports, and a command line that
+imports no heavy library to list its commands; of tests/: no test file imports another (shared helpers
+live in tests/factories/, fixtures in conftest.py)."""
 
 from __future__ import annotations
 
@@ -93,6 +94,41 @@ def test_no_import_circle() -> None:
         if module not in state:
             cycle = visit(module)
             assert cycle is None, " -> ".join(cycle)
+
+
+# The packages of pipeline/, lowest first: a module imports only its own package's and lower ones (one
+# layer may hold several packages that do not import each other). The per-log library (`pipeline.logs`)
+# sits under everything that reads a log; the stages and the commands on top.
+LAYERS = (
+    ("core",),
+    ("logs",),
+    ("physics",),
+    ("labels", "sim", "calib"),
+    ("export",),
+    ("evaluation",),
+    ("deploy",),
+    ("stages", "tools"),
+    ("cli",),
+)
+
+
+def _package(module: str) -> str:
+    parts = module.split(".")
+    return parts[1] if len(parts) > 1 else "__init__"
+
+
+def test_no_arrow_from_a_lower_package_to_a_higher_one() -> None:
+    # pipeline/__init__.py (the version, the kernels chosen before anything runs) sits on core
+    level = {pkg: k for k, layer in enumerate(LAYERS) for pkg in layer} | {"__init__": 0.5}
+    packages = {_package(m) for m in MODULES}
+    assert packages <= set(level), sorted(packages - set(level))  # every package has its layer
+    up = sorted(
+        f"{name} imports {dep}"
+        for name in MODULES
+        for dep in GRAPH[name]
+        if _package(dep) != _package(name) and level[_package(dep)] >= level[_package(name)]
+    )
+    assert not up, up
 
 
 def test_commands_modules_are_imported_by_the_command_line_only() -> None:

@@ -33,6 +33,7 @@ from pipeline.stages import (
 from tests import dumperfile
 from tests.conftest import REPO
 from tests.factories.dumper import REAL_RUN
+from tests.factories.params import repo_params
 from tests.relabel import relabel_with_idyntree
 
 pytestmark = pytest.mark.slow  # each test's fixture runs the pipeline's stages on recorded runs
@@ -58,7 +59,7 @@ def simulated(tmp_path_factory: pytest.TempPathFactory) -> dict[str, Any]:
     """The simulated iCub 2.x logs (MCAP, with truth) every recorded run below is written from, and the
     params of a lab running its archive: robot, wrench-only models, tiny trainings, no deployment logs."""
     tmp = tmp_path_factory.mktemp("recorded")
-    data = yaml.safe_load((REPO / "params.yaml").read_text())
+    data = repo_params()
     data["robot"]["urdf"] = "iCubGenova02"
     data["simulate"].update(logs=LOGS, workers=1, plots=False)
     data["simulate"]["motion"]["steps_per_direction"] = 2
@@ -179,8 +180,9 @@ def test_recorded_logs_train_and_results_say_they_have_no_truth(recorded_run: di
     assert LS_AFFINE not in metrics["validation_ranking"] and LS_AFFINE not in metrics["cv"]["mean"]
     (headline,) = (d["reports"] / "metrics" / "r_arm_ft").glob("*.json")
     shown = json.loads(headline.read_text())
-    assert shown["truth"] == "no truth: against labels on held-out segments"
-    assert shown["labels"]["raw"] > shown["labels"]["rec"] > 0 and shown["labels"]["affine_ls"] > 0
+    assert shown["against"] == "held-out labels" and "oracle" not in shown and "floor" not in shown
+    assert shown["raw"] > shown["rmse"] > 0 and shown["ls"] > 0
+    assert shown["verdict"] in ("<= least squares", "above least squares", "worse than raw")
     page = (d["reports"] / "index.html").read_text()
     assert "<b>No truth:</b> against labels on held-out segments" in page and LS_AFFINE in page
 
@@ -193,7 +195,7 @@ def test_every_sensor_with_exact_labels_of_its_own_is_a_headline(recorded_run: d
     assert files == {"r_arm_ft/r_arm_ft", "l_arm_ft/l_arm_ft", *(f"legs/{s}" for s in LEGS)}
     assert recorded_run["trained"]["legs"].metrics["headlines"] == LEGS
     for path in (d["reports"] / "metrics").glob("*/*.json"):
-        assert json.loads(path.read_text())["labels"]["rec"] > 0, path
+        assert json.loads(path.read_text())["rmse"] > 0, path
 
 
 def test_recorded_labels_agree_with_idyntree(recorded_run: dict[str, Any]) -> None:
@@ -258,15 +260,17 @@ def test_a_run_without_the_arms_joints_calibrates_the_legs_and_names_what_the_ar
     for arm, stream in why.items():
         reason = f"no exact label (lacks {stream})"
         assert run["trained"][arm].metrics["not_calibrated"] == reason
-        assert files[f"{arm}/{arm}"] == {"recommended": "not calibrated", "not_calibrated": reason}
+        assert files[f"{arm}/{arm}"] == {"deployed": "not calibrated", "verdict": "not calibrated"}
         assert run["results"][arm].not_calibrated == reason and run["tested"][arm]["days"] == {}
         assert not list((d["exported"] / "groups" / arm).glob("*.onnx"))
-    assert all(files[f"legs/{s}"]["labels"]["rec"] > 0 for s in LEGS)
+    assert all(files[f"legs/{s}"]["rmse"] > 0 for s in LEGS)
     manifest = run["exported"].manifest
     assert list(manifest["graphs"]) == ["legs", "all"] and manifest["graphs"]["all"]["sensors"] == LEGS
     assert manifest["not_calibrated"] == {a: f"no exact label (lacks {s})" for a, s in why.items()}
     page = (d["reports"] / "index.html").read_text()
-    assert "<b>Not calibrated:</b> <b>r_arm_ft</b>: no exact label (lacks right_arm/stateExt:o)" in page
+    line = page.split("<b>Not calibrated:</b> ", 1)[1].split("</summary>", 1)[0]
+    assert sorted(line.split(", ")) == ["l_arm_ft", "r_arm_ft"], line
+    assert "<b>r_arm_ft</b>: no exact label (lacks right_arm/stateExt:o)" in page
     for table in sorted(d["labelled"].glob("*.parquet")):
         assert relabel_with_idyntree(table, d["smoothed"] / table.name, "iCubGenova02", samples=150) < 1e-6
 
@@ -286,10 +290,10 @@ def test_a_run_without_one_legs_joints_leaves_that_leg_out_and_trains_the_rest(
     assert (
         files["legs/l_leg_ft"]
         == files["legs/l_foot_ft"]
-        == {"recommended": "not calibrated", "not_calibrated": reason}
+        == {"deployed": "not calibrated", "verdict": "not calibrated"}
     )
-    assert files["legs/r_leg_ft"]["labels"]["rec"] > 0 and files["legs/r_foot_ft"]["labels"]["rec"] > 0
-    assert files["r_arm_ft/r_arm_ft"]["labels"]["rec"] > 0 and files["l_arm_ft/l_arm_ft"]["labels"]["rec"] > 0
+    assert files["legs/r_leg_ft"]["rmse"] > 0 and files["legs/r_foot_ft"]["rmse"] > 0
+    assert files["r_arm_ft/r_arm_ft"]["rmse"] > 0 and files["l_arm_ft/l_arm_ft"]["rmse"] > 0
     manifest = run["exported"].manifest
     assert manifest["graphs"]["all"]["sensors"] == ["r_arm_ft", "l_arm_ft", "r_leg_ft", "r_foot_ft"]
     assert manifest["not_calibrated"] == {"l_leg_ft": reason, "l_foot_ft": reason}
@@ -306,8 +310,8 @@ def test_a_simulated_log_written_as_a_run_ingests_like_its_mcap(simulated, recor
     import pandas as pd
 
     from pipeline.logs import schema as S
+    from pipeline.logs.logfiles import RobotLogSpec, ingest_one
     from pipeline.physics.robot import load_robot
-    from pipeline.stages.ingest import RobotLogSpec, ingest_one
     from tests.factories.dumper import HALF_PRINTED, STAMP_TOL_NS, interpolated_bound
 
     d, sim, params = recorded_run["dirs"], simulated["sim"], simulated["params"]
@@ -410,7 +414,7 @@ def test_the_real_2016_run_goes_through_dvc_repro_and_says_why_no_sensor_is_cali
     shutil.copytree(REAL_RUN / "icub", raw / "yoga" / "icub")
     side = {"type": "balancing", "robot": "iCubGenova02", "role": "train", "contacts": ["r_sole"]}
     (raw / "yoga.yaml").write_text(yaml.safe_dump({**side, "window": [14.34, 68.04]}))  # params.m
-    data = yaml.safe_load((REPO / "params.yaml").read_text())
+    data = repo_params()
     data["robot"]["urdf"] = "iCubGenova02"
     data["ingest"]["source"] = "data/raw"
     data["train"]["defaults"]["inputs"] = [6]
@@ -466,6 +470,5 @@ def test_the_real_2016_run_goes_through_dvc_repro_and_says_why_no_sensor_is_cali
     lines = shown.stdout.splitlines()[1:]
     rows = {line.split()[0]: line for line in lines if line.startswith("reports/metrics/")}
     assert set(rows) == {f"reports/metrics/{g}/{g}.json" for g in GROUPS}, shown.stdout
-    assert all(
-        "no exact label (" in row and row.rstrip().endswith("not calibrated") for row in rows.values()
-    ), shown.stdout
+    assert all(row.split()[1:] == ["not", "calibrated"] * 2 for row in rows.values()), shown.stdout
+    assert max(map(len, shown.stdout.splitlines())) <= 160, shown.stdout  # a terminal's width

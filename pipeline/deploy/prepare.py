@@ -1,9 +1,9 @@
 """Deployment logs through the pipeline's own steps: ingest, smooth, label (truth kept where simulated).
 
-The same library functions as the stages (`ingest_one`, `smooth_table`, `label_table`), into a day's
-tables directory (``ingested/``, ``smoothed/``, ``labelled/`` and ``logs.json``, the list of its logs:
-`write_day`, `read_day`), so a deployment log is read exactly as a training log was. Real logs (no truth)
-too.
+The same library functions as the stages (`pipeline.logs.logfiles.ingest_one`, `smooth_table`,
+`label_table`), into a day's tables directory (``ingested/``, ``smoothed/``, ``labelled/`` and
+``logs.json``, the list of its logs: `write_day`, `read_day`), so a deployment log is read exactly as a
+training log was. Real logs (no truth) too.
 """
 
 from __future__ import annotations
@@ -21,7 +21,7 @@ from pipeline.physics.robot import RobotModel, load_robot
 
 if TYPE_CHECKING:
     from pipeline.labels.table import Labeller
-    from pipeline.stages.ingest import RobotLogSpec
+    from pipeline.logs.logfiles import RobotLogSpec
 
 
 @dataclass(frozen=True)
@@ -60,7 +60,8 @@ def prepare_logs(
     """Ingest, smooth and label every log of `logs` (under `source_dir`) into `work`/<step>/."""
     from pipeline.core.parallel import forked_map
     from pipeline.labels.table import Labeller
-    from pipeline.stages.ingest import IngestParams, RobotLogSpec, log_size, output_name
+    from pipeline.logs.logfiles import RobotLogSpec, log_size, output_name
+    from pipeline.logs.params import IngestParams
 
     spec = RobotLogSpec(
         stage_section(params, "ingest", IngestParams),
@@ -92,7 +93,7 @@ def _prepare_one(
 ) -> DeployLog:
     """Ingest, smooth and label one log as `name` into `dirs` (``ingested``, ``smoothed``, ``labelled``)."""
     from pipeline.labels.table import label_table
-    from pipeline.stages.ingest import ingest_one
+    from pipeline.logs.logfiles import ingest_one
 
     ingest_one(log, dirs["ingested"], name, spec, None)
     table = S.PARQUET_SUFFIX

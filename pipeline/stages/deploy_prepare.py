@@ -31,8 +31,8 @@ def run(params: Any, logs_dir: str | Path, out: str | Path, urdf: str | Path | N
     from pipeline.core.io import atomic_dir, write_text
     from pipeline.core.tracking import stage_run
     from pipeline.deploy.prepare import load_nominal_robot, not_simulated, prepare_logs, read_day, write_day
+    from pipeline.logs.logfiles import find_logs
     from pipeline.logs.schema import NOT_SIMULATED
-    from pipeline.stages.ingest import find_logs
 
     t0 = time.perf_counter()
     logs_dir, out = Path(logs_dir), Path(out)

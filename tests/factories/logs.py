@@ -17,9 +17,9 @@ from mcap.writer import IndexType, Writer
 from pipeline.core.config import TopicParams, load_params, mat_section
 from pipeline.logs.cdr import TEMPERATURE
 from pipeline.logs.mcap_table import ingest_log
+from pipeline.logs.params import IngestParams
 from pipeline.logs.rosmsg import LogWriter
 from pipeline.logs.tables import LogReport
-from pipeline.stages.ingest import IngestParams
 
 ROOT = Path(__file__).resolve().parents[2]
 T0 = 1_700_000_000 * 10**9  # ns
