@@ -36,7 +36,7 @@ def _metrics_dir(tmp: Path, recommended: dict[str, str]) -> Path:
     path.mkdir(exist_ok=True)
     for group, model in recommended.items():
         (path / group).mkdir(exist_ok=True)
-        (path / group / f"{group}.json").write_text(json.dumps({"recommended": model}))
+        (path / group / f"{group}.json").write_text(json.dumps({"deployed": model}))
     return path
 
 

@@ -242,10 +242,11 @@ def test_below_the_oracle_the_page_says_which_floor() -> None:
     report = _Report({"oracle": 0.74, "affine": 0.54, "nn7": 0.30, "nn13": 0.9, "play": 0.45}, floor)
     notes = prior_notes([report], ["affine", "nn13", "play"])
     assert len(notes) == 3  # nn13 is above the oracle: nothing said
-    assert "<b>affine</b>" in notes[0] and "hysteresis absorbed as gain" in notes[0]
-    # memory: between the oracle and the noise floor is where it belongs
-    assert "<b>play</b>" in notes[1] and "memory undoes the sensor's hysteresis" in notes[1]
-    assert "<b>nn7</b>" in notes[2] and "below the noise floor" in notes[2] and "prior" in notes[2]
+    (look_a, _, affine), (look_p, _, play), (look_n, _, nn7) = notes
+    assert "<b>affine</b>" in affine and "hysteresis absorbed as gain" in affine and look_a
+    # memory: between the oracle and the noise floor is where it belongs (no look asked)
+    assert "<b>play</b>" in play and "memory undoes the sensor's hysteresis" in play and not look_p
+    assert "<b>nn7</b>" in nn7 and "below the noise floor" in nn7 and "prior" in nn7 and look_n
 
 
 def test_step_response_of_a_held_load() -> None:

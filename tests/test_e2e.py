@@ -27,6 +27,7 @@ from pipeline.core.config import load_params
 from pipeline.logs import schema as S
 from pipeline.stages import evaluate, export, identify, ingest, label, report, simulate, smooth, train
 from tests.conftest import REPO, robot_source
+from tests.factories.params import repo_params
 from tests.relabel import relabel_with_idyntree
 
 pytestmark = pytest.mark.slow  # every stage, one after the other, on both robots
@@ -42,7 +43,7 @@ GROUP = "r_leg_ft"
 
 
 def _params(tmp: Path, urdf: str) -> Path:
-    data = yaml.safe_load((REPO / "params.yaml").read_text())
+    data = repo_params()
     data["robot"]["urdf"] = urdf
     data["simulate"].update(logs=LOGS, workers=1, plots=False)
     data["simulate"]["motion"]["steps_per_direction"] = 2
@@ -100,7 +101,7 @@ def test_every_stage_hands_over_to_the_next(pipeline_run: dict[str, Any]) -> Non
     raw, best = (result.headline_rmse("truth", m) for m in ("raw", result.recommended))
     assert raw > 5.0 and best < raw / 3  # the simulated leg sensor is miscalibrated; the fit corrects it
     small = json.loads((d["reports"] / "metrics" / GROUP / f"{GROUP}.json").read_text())
-    assert small["recommended"] == result.recommended
+    assert small["deployed"] == result.recommended and small["rmse"] == pytest.approx(best, rel=1e-3)
     page = (d["reports"] / "index.html").read_text()
     assert GROUP in page and f"groups/{GROUP}/plots/loss.png" in page
 

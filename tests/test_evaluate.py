@@ -26,22 +26,12 @@ from pipeline.evaluation.params import EvaluateParams
 from pipeline.logs import schema as S
 from pipeline.logs.schema import prediction_cols
 from tests.factories.labelled import FRONT, LEG, PAIR, REAR, TRANSFORMS
-from tests.factories.params import write_evaluate_params
+from tests.factories.params import repo_params, write_evaluate_params
 from tests.factories.reports import CV, FS, LOGS, NOISE, NOTE, N, build_fixture, evaluate_both
 
 pytestmark = pytest.mark.slow  # trains the groups it evaluates
 
 ROOT = Path(__file__).resolve().parents[1]
-
-
-def flat(d: Any, prefix: str = "") -> dict[str, Any]:
-    """Dotted keys of nested mappings, as `dvc metrics show` flattens a metrics file."""
-    if not isinstance(d, dict):
-        return {prefix: d}
-    out: dict[str, Any] = {}
-    for k, v in d.items():
-        out.update(flat(v, f"{prefix}.{k}" if prefix else str(k)))
-    return out
 
 
 # --- errors --------------------------------------------------------------------------------------
@@ -146,7 +136,7 @@ def test_recommend_skips_flagged_models() -> None:
 
 
 def test_bad_params_name_the_key(tmp_path: Path) -> None:
-    data = yaml.safe_load((ROOT / "params.yaml").read_text())
+    data = repo_params()
     data["evaluate"]["noise_threshold"] = -1
     path = tmp_path / "params.yaml"
     path.write_text(yaml.safe_dump(data))
@@ -186,12 +176,14 @@ def test_group_report_has_every_table_and_small_metrics(evaluated: dict[str, Any
                         assert isinstance(value, float) and math.isfinite(value)
     for group in (LEG, PAIR):
         text = (evaluated["out"] / "metrics" / group / f"{group}.json").read_text()
-        keys = flat(json.loads(text))
-        assert keys["recommended"] == "nn7" and keys["flagged"] == 1
-        for ref in ("labels", "truth"):
-            for model in ("raw", "rec", "nn7", "nn13", "oracle"):
-                assert isinstance(keys[f"{ref}.{model}"], float)
-        assert len(keys) < 20  # one short row of `dvc metrics show`
+        row = json.loads(text)
+        tables = _report(evaluated, group)["tables"][group]["truth"]
+        assert row["deployed"] == "nn7" and row["against"] == "truth"  # nn13 is noise-flagged
+        for key, model in (("rmse", "nn7"), ("oracle", "oracle"), ("raw", "raw")):
+            assert row[key] == pytest.approx(tables[model]["rmse"], rel=1e-3), key
+        assert row["verdict"] in ("at noise floor", "beats oracle", "at oracle", "above oracle", "scored")
+        assert {"deployed", "against", "rmse", "oracle", "raw", "verdict"} <= set(row)
+        assert set(row) <= {"deployed", "against", "rmse", "oracle", "floor", "raw", "verdict"}
         assert "NaN" not in text  # nothing dvc could not parse
 
 
@@ -257,8 +249,12 @@ def test_report_page_and_plots(evaluated: dict[str, Any]) -> None:
             assert (plots / png).stat().st_size > 5000
     for png in ("rmse_overview.png", "noise_amplification.png"):
         assert f'src="plots/{png}"' in page and (out / "plots" / png).stat().st_size > 5000
-    assert "Noise flags" in page and f"{LEG}/nn13" in page
-    assert f"<b>Not trained:</b> {html.escape(NOTE)}" in page  # train's note, at the top of the page
+    assert "<b>Noise flags:</b> " in page and f"{LEG}/nn13" in page
+    assert "<b>Not trained:</b> 1 network(s)" in page and f"<li>{html.escape(NOTE)}</li>" in page
+    answer = page.index("<table class='num answer'>")  # the answer first: one row per headline
+    assert answer < page.index("<b>Noise flags:</b>") < page.index("Every model, per headline")
+    heads = sum(len(_report(evaluated, g).get("headlines") or [g]) for g in (LEG, PAIR))
+    assert page[answer : page.index("</table>", answer)].count("<tr>") == 1 + heads  # a row per headline
     assert page.count("<table") >= 2 + 4 * (2 * 3 + 2)  # summary, noise; per name: refs x metrics + per type
     loss = (out / "plots_data" / "loss" / LEG / "nn7.csv").read_text().splitlines()
     assert loss[0] == "epoch,train_loss,val_rmse" and len(loss) == 6

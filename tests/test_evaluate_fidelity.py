@@ -60,12 +60,12 @@ def test_an_unfaithful_network_is_passed_over(evaluated: dict[str, Any]) -> None
     assert r.noise.flagged == ["nn13"] and set(r.unfaithful) == {"nn7"}
     assert r.best_on_validation == "nn13" and r.recommended == "affine"
     metrics = json.loads((evaluated["out"] / "metrics" / PAIR / f"{PAIR}.json").read_text())
-    assert metrics["recommended"] == "affine" and metrics["flagged"] == 2
+    assert metrics["deployed"] == "affine"
 
 
 def test_the_page_says_why_and_what_it_costs(evaluated: dict[str, Any]) -> None:
     page = evaluated["page"]
-    assert "Fidelity flags:</b> <b>" in page and f"{PAIR}/nn7" in page
+    assert f"<b>Fidelity flags:</b> {PAIR}/nn7: not deployed" in page and f"<b>{PAIR}/nn7</b> (" in page
     for model, why in (("nn13", "output noise"), ("nn7", f"unfaithful to a push: {FRONT} fx slope 0.40")):
         assert f"<b>{model}</b>, preferred by cross-validation, was passed over: {why}" in page
     assert "Deployed instead: <b>affine</b> (mean fold error" in page

@@ -55,7 +55,7 @@ def exported(trained_models: dict, tmp_path_factory: pytest.TempPathFactory) -> 
     metrics = tmp / "metrics"
     for group, model in ((LEG, "poly2"), (PAIR, "nn7")):
         (metrics / group).mkdir(parents=True)
-        (metrics / group / f"{group}.json").write_text(json.dumps({"recommended": model}))
+        (metrics / group / f"{group}.json").write_text(json.dumps({"deployed": model}))
     patch = pytest.MonkeyPatch()
     patch.setenv("MLFLOW_TRACKING_URI", trained_models["mlflow_uri"])
     try:

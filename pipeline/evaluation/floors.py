@@ -91,8 +91,10 @@ _GAIN = (
 _MEMORY = "its memory undoes the sensor's hysteresis, which is what the noise floor leaves to be undone"
 
 
-def prior_notes(results: Sequence[GroupReport], models: Sequence[str]) -> list[str]:
-    """One sentence per (group, headline, model among `models` or the deployed one) below the oracle."""
+def prior_notes(results: Sequence[GroupReport], models: Sequence[str]) -> list[tuple[bool, bool, str]]:
+    """Per (group, headline, model among `models` or the deployed one) below the oracle: whether it asks
+    for a look (below the noise floor, or a memoryless model between the two), whether it is the deployed
+    model, and one sentence."""
     notes = []
     for r in results:
         for name in r.headlines or [r.headline]:
@@ -101,31 +103,47 @@ def prior_notes(results: Sequence[GroupReport], models: Sequence[str]) -> list[s
                 if found is None:
                     continue
                 rmse, oracle, floor = found
+                memory = has_memory(str(model))
                 if floor is not None and rmse < floor:
-                    why = f"below the noise floor ({floor:.3g}) too: {_PRIOR}"
+                    look, why = True, f"below the noise floor ({floor:.3g}) too: {_PRIOR}"
                 else:
                     where = (
                         f"above the noise floor ({floor:.3g})" if floor is not None else "(no noise floor)"
                     )
-                    why = f"{where}: {_MEMORY if has_memory(str(model)) else _GAIN}"
+                    look, why = not memory, f"{where}: {_MEMORY if memory else _GAIN}"
                 notes.append(
-                    f"{MARK} {r.group} / {name}: <b>{model}</b> scores {rmse:.3g} against the truth on all "
-                    f"test samples, below the oracle ({oracle:.3g}), {why}."
+                    (
+                        look,
+                        model == r.recommended,
+                        f"{MARK} {r.group} / {name}: <b>{model}</b> scores {rmse:.3g} against the truth on "
+                        f"all test samples, below the oracle ({oracle:.3g}), {why}.",
+                    )
                 )
     return notes
 
 
 def prior_box(results: Sequence[GroupReport], models: Sequence[str]) -> str:
-    """The page's warning under the summary and the overview figure (empty when no model beats the oracle)."""
+    """The page's one line on the models below the oracle (empty when none is), the sentences folded below;
+    a warning only where one asks for a look (`prior_notes`), else a green line."""
+    from pipeline.evaluation.html import warning
+
     notes = prior_notes(results, models)
     if not notes:
         return ""
     head = (
-        "<b>Below the oracle:</b> the oracle inverts each simulated sensor's static distortion exactly, so a "
-        "memoryless model below it is either absorbing the hysteresis's minor-loop gain (between the oracle "
-        "and the noise floor, the white noise raw - distorted of the simulator's truth) or reading a prior "
-        "over the robot's motions, not the sensor (below the noise floor). A model with memory (play, arx) "
-        "may go down to the noise floor: it undoes the hysteresis from the reading's path; below it, it too "
-        "reads a prior (or averages the noise over time, which a push sees as lag)."
+        "The oracle inverts each simulated sensor's static distortion exactly, so a memoryless model below "
+        "it is either absorbing the hysteresis's minor-loop gain (between the oracle and the noise floor, "
+        "the white noise raw - distorted of the simulator's truth) or reading a prior over the robot's "
+        "motions, not the sensor (below the noise floor). A model with memory (play, arx) may go down to "
+        "the noise floor: it undoes the hysteresis from the reading's path; below it, it too reads a prior "
+        "(or averages the noise over time, which a push sees as lag)."
     )
-    return f"<div class='flags'>{head}<ul>{''.join(f'<li>{n}</li>' for n in notes)}</ul></div>"
+    deployed = sum(look and mine for look, mine, _ in notes)
+    others = sum(look and not mine for look, mine, _ in notes)
+    if deployed:
+        summary = f"{deployed} deployed model(s) ask for a look"
+    else:
+        summary = f"{len(notes)} model(s) below the oracle, no deployed one asking for a look"
+    summary += f" ({others} not deployed do)" if others else ""
+    items = "".join(f"<li>{n}</li>" for _, _, n in notes)
+    return warning("Below the oracle", summary, f"<p>{head}</p><ul>{items}</ul>", ok=not deployed)

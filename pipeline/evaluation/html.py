@@ -55,6 +55,18 @@ def img(src: str, alt: str) -> str:
     )
 
 
+def warning(title: str, summary: str, detail: str = "", ok: bool = False) -> str:
+    """One line of a page's warnings: `title` and `summary` (HTML, escaped by the caller) on the line, the
+    `detail` (HTML) folded below it; green where `ok` (nothing wrong: said once, in one line)."""
+    line = f"<b>{title}:</b> {summary}"
+    cls = "flags none" if ok else "flags"
+    if not detail:
+        return f"<div class='{cls} line'>{line}</div>"
+    return (
+        f"<details class='{cls} line'><summary>{line}</summary><div class='detail'>{detail}</div></details>"
+    )
+
+
 # Laid out for a laptop's window (1366-1440 px) and wider: the widest table (the summary, 24 columns) fits
 # 1366 px; a table wider than its window (a narrower one) scrolls in its own box instead of being cut off.
 CSS = """
@@ -72,6 +84,10 @@ table.num td{font-variant-numeric:tabular-nums}
 .ok{background:#e3f4e3} .bad{background:#fbe0e0}
 .flags{border:2px solid #c62828;background:#fdecea;padding:10px 16px;border-radius:6px;margin:14px 0}
 .flags.none{border-color:#2e7d32;background:#edf7ed}
+.flags.line{padding:5px 12px;margin:5px 0;font-size:13.5px;border-width:1px}
+details.flags summary{cursor:pointer} .flags .detail{margin-top:6px;font-size:13px}
+table.answer{font-size:14px} table.answer td.verdict{text-align:left;white-space:normal;min-width:16em}
+table.answer td.verdict details summary{cursor:pointer;font-weight:600}
 .tables{display:flex;flex-wrap:wrap;gap:22px;align-items:flex-start}
 figure{margin:10px 0 18px} figure img{max-width:100%;border:1px solid #ddd}
 figcaption{font-size:12px;color:#555}

@@ -11,9 +11,10 @@ from typing import TYPE_CHECKING, Any
 
 from pipeline.calib.params import LS_AFFINE
 from pipeline.core.io import write_text
+from pipeline.evaluation.answer import answer_table
 from pipeline.evaluation.floors import MARK, below_oracle, prior_box
 from pipeline.evaluation.html import cell as _cell
-from pipeline.evaluation.html import document, fmt
+from pipeline.evaluation.html import document, fmt, warning
 from pipeline.evaluation.html import esc as _e
 from pipeline.evaluation.html import img as _img
 from pipeline.evaluation.html import table as _table
@@ -167,42 +168,53 @@ def _headlines(r: GroupReport) -> list[str]:
 
 
 def _flags_box(results: Sequence[GroupReport], cfg: EvaluateParams) -> str:
+    """One line each: the noise flags, the fidelity flags (or one green line: none), the models
+    cross-validation preferred but passed over, the networks not trained; their detail folded."""
     flagged = [(r.group, m, r.noise.ratio.get(m)) for r in results for m in r.noise.flagged]
     unfaithful = [(r.group, m, why) for r in results for m, why in r.unfaithful.items()]
-    fallbacks = "".join(passed_over_html(r, cfg.noise_limit) for r in results)
-    if not flagged:
-        noise = (
-            "<div class='flags none'><b>Noise flags:</b> none (no model's output noise above "
-            f"{cfg.noise_threshold:g}x raw's on quasi-static stretches).</div>"
+    lines = []
+    if not flagged and not unfaithful:
+        lines.append(
+            warning(
+                "Noise and fidelity",
+                f"no model flagged (output noise within {cfg.noise_threshold:g}x raw's on quasi-static "
+                f"stretches; every virtual push read within {cfg.fidelity_tolerance:g} of its size)",
+                ok=True,
+            )
         )
-    else:
-        items = ", ".join(f"<b>{_e(g)}/{_e(m)}</b> (x{_e(fmt(v))})" for g, m, v in flagged)
-        noise = (
-            f"<div class='flags'><b>Noise flags:</b> {items}: output noise above "
-            f"{cfg.noise_threshold:g}x raw's on quasi-static stretches (thesis chapter 6, Test A: the "
-            "13-input network passed the IMU noise through and was unusable on the robot). "
-            "Not recommended for deployment.</div>"
+    if flagged:
+        names = ", ".join(f"{_e(g)}/{_e(m)}" for g, m, _ in flagged)
+        detail = (
+            ", ".join(f"<b>{_e(g)}/{_e(m)}</b> (x{_e(fmt(v))})" for g, m, v in flagged)
+            + f": output noise above {cfg.noise_threshold:g}x raw's on quasi-static stretches (thesis "
+            "chapter 6, Test A: the 13-input network passed the IMU noise through and was unusable on the "
+            "robot)."
         )
+        lines.append(warning("Noise flags", f"{names}: not deployed", detail))
     if unfaithful:
-        items = ", ".join(f"<b>{_e(g)}/{_e(m)}</b> ({_e(why)})" for g, m, why in unfaithful)
-        faith = (
-            f"<div class='flags'><b>Fidelity flags:</b> {items}: a virtual push on that axis (at the "
-            f"push prior's size, or at 1, 5 or 20 N) comes out more than {cfg.fidelity_tolerance:g} off its "
-            "size: the model reads the axis off other channels (its training relation) or snaps small "
-            "changes to it, and would misreport a push, a contact or a load there. Not recommended.</div>"
+        names = ", ".join(f"{_e(g)}/{_e(m)}" for g, m, _ in unfaithful)
+        detail = (
+            ", ".join(f"<b>{_e(g)}/{_e(m)}</b> ({_e(why)})" for g, m, why in unfaithful)
+            + f": a virtual push on that axis (at the push prior's size, or at 1, 5 or 20 N) comes out more "
+            f"than {cfg.fidelity_tolerance:g} off its size: the model reads the axis off other channels (its "
+            "training relation) or snaps small changes to it, and would misreport a push, a contact or a "
+            "load there."
         )
-    else:
-        faith = (
-            "<div class='flags none'><b>Fidelity flags:</b> none (every model reports a virtual push on "
-            f"every axis within {cfg.fidelity_tolerance:g} of its size, at every scale).</div>"
-        )
-    notes = "".join(f"<div class='flags'><b>Not trained:</b> {_e(n)}</div>" for r in results for n in r.notes)
-    return notes + noise + faith + fallbacks
+        lines.append(warning("Fidelity flags", f"{names}: not deployed", detail))
+    passed = [(r.group, html) for r in results if (html := passed_over_html(r, cfg.noise_limit))]
+    if passed:
+        groups = ", ".join(_e(g) for g, _ in passed)
+        summary = f"{groups}: a model cross-validation preferred is not the one deployed"
+        lines.append(warning("Passed over", summary, "".join(h for _, h in passed)))
+    notes = [f"<li>{_e(n)}</li>" for r in results for n in r.notes]
+    if notes:
+        lines.append(warning("Not trained", f"{len(notes)} network(s)", f"<ul>{''.join(notes)}</ul>"))
+    return "".join(lines)
 
 
 def _held_out_box(results: Sequence[GroupReport]) -> str:
-    """Recorded groups: one line per held-out finding (`pipeline.evaluation.residual.held_out_lines`), the
-    detail folded below it."""
+    """Recorded groups: one line saying how many held-out findings there are, each (`held_out_lines`) with
+    its own detail folded below it."""
     items = []
     for r in results:
         for line in held_out_lines(r.group, r.held_out):
@@ -211,36 +223,39 @@ def _held_out_box(results: Sequence[GroupReport]) -> str:
             items.append(f"<details><summary><b>{_e(head)}</b>: {_e(what)}</summary>{_e(why)}</details>")
     if not items:
         return ""
-    return "<div class='flags'><b>Held out (recorded, against labels):</b>" + "".join(items) + "</div>"
+    return warning("Held out (recorded, against labels)", f"{len(items)} finding(s)", "".join(items))
 
 
 def _no_truth_box(results: Sequence[GroupReport]) -> str:
     """A plain warning where the test logs are recordings: no truth, no oracle, errors against labels."""
     if not results or any(TRUTH in r.tables[h] for r in results for h in _headlines(r)):
         return ""
-    return (
-        f"<div class='flags'><b>No truth:</b> {_e(NO_TRUTH[len('no truth: ') :])}. The test logs are "
-        "recordings of a robot, not simulations. Every error on this page is against the <i>labels</i> (the "
-        "expected wrench from the URDF and the motion, exact only where one side of a sensor's cut touches "
-        "nothing, and only as good as the URDF's masses), on the labelled samples of the held-out test logs "
-        "and segments; nothing here is measured against the true wrench, and there is no oracle (noise "
-        f"floor). Beside the models, <i>{_e(LS_AFFINE)}</i> is the plain least-squares affine map fitted on "
-        "the training segments (no virtual pushes), the in-situ reference any lab can compute: it is "
-        "scored, never deployed.</div>"
+    detail = (
+        "The test logs are recordings of a robot, not simulations. Every error on this page is against "
+        "the <i>labels</i> (the expected wrench from the URDF and the motion, exact only where one side of "
+        "a sensor's cut touches nothing, and only as good as the URDF's masses), on the labelled samples of "
+        "the held-out test logs and segments; nothing here is measured against the true wrench, and there "
+        f"is no oracle (noise floor). Beside the models, <i>{_e(LS_AFFINE)}</i> is the plain least-squares "
+        "affine map fitted on the training segments (no virtual pushes), the in-situ reference any lab can "
+        "compute: it is scored, never deployed."
     )
+    return warning("No truth", _e(NO_TRUTH[len("no truth: ") :]), detail)
 
 
 def _not_calibrated_box(results: Sequence[GroupReport]) -> str:
     """The groups nothing could be calibrated for, and the sensors left out of a group, with why."""
+    names = [r.group for r in results if r.not_calibrated]
+    names += [f"{r.group}/{s}" for r in results for s in r.left_out]
+    if not names:
+        return ""
     items = [f"<b>{_e(r.group)}</b>: {_e(r.not_calibrated)}" for r in results if r.not_calibrated]
     items += [f"<b>{_e(r.group)}/{_e(s)}</b>: {_e(why)}" for r in results for s, why in r.left_out.items()]
-    if not items:
-        return ""
-    return (
-        f"<div class='flags'><b>Not calibrated:</b> {'; '.join(items)}. A label needs the joints on the path "
-        "from the link fixed in the world to the sensor and those of its free side: without them no sample "
-        "is exact, so nothing is trained, scored or exported for these.</div>"
+    detail = (
+        f"{'; '.join(items)}. A label needs the joints on the path from the link fixed in the world to the "
+        "sensor and those of its free side: without them no sample is exact, so nothing is trained, scored "
+        "or exported for these."
     )
+    return warning("Not calibrated", _e(", ".join(names)), detail)
 
 
 _SUMMARY_NOTE = (
@@ -332,6 +347,7 @@ def render_html(
     now = datetime.now(timezone.utc).strftime("%Y-%m-%d %H:%M UTC")
     groups = ", ".join(r.group for r in results)
     uncalibrated = _not_calibrated_box(results)
+    answer = answer_table(results)
     results = [r for r in results if r.not_calibrated is None]
     nav = "".join(f"<a href='#{_e(r.group)}'>{_e(r.group)}</a>" for r in results)
     models = list(dict.fromkeys(m for r in results for m in r.models))
@@ -359,6 +375,7 @@ def render_html(
         + ("<a href='#noise'>Deployment noise check</a>" if results else "")
         + f"{labels_link}{nav}<a href='{DEPLOYMENT_PAGE}'>Deployment tests (its own page)</a></nav>",
         "<h2 id='summary'>Summary and recommendation</h2>",
+        answer,
         uncalibrated,
     ]
     if not results:  # nothing calibrated: why, and where the labels are exact (nowhere, or too rarely)
@@ -367,13 +384,14 @@ def render_html(
         _no_truth_box(results),
         _held_out_box(results),
         _flags_box(results, cfg),
-        summary_table(results, cfg),
-        _SUMMARY_NOTE.format(a=cfg.target_raw_over_nn7, b=cfg.target_nn7_over_oracle),
+        prior_box(results, [m for r in results for m in (r.best_on_validation, NN7) if m]),
         _img(
             figures["overview"],
             "Headline test RMSE (6 axes pooled) of every model per group and headline, log scale",
         ),
-        prior_box(results, [m for r in results for m in (r.best_on_validation, NN7) if m]),
+        "<h3 id='every-model'>Every model, per headline</h3>",
+        summary_table(results, cfg),
+        _SUMMARY_NOTE.format(a=cfg.target_raw_over_nn7, b=cfg.target_nn7_over_oracle),
         wbd_section(results),
         "<h2 id='noise'>Deployment noise check</h2>",
         _NOISE_NOTE.format(speed=cfg.still_gyro_rad_s, min_s=cfg.still_min_s, hz=cfg.highpass_hz),

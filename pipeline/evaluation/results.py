@@ -9,9 +9,8 @@ from typing import Any
 
 import numpy as np
 
-from pipeline.calib.exact import LEFT_OUT, NOT_CALIBRATED, NOT_CALIBRATED_TEXT, not_calibrated
-from pipeline.calib.params import LS_AFFINE
-from pipeline.calib.registry import ARX, PLAY, RAW, WIN
+from pipeline.calib.exact import LEFT_OUT, NOT_CALIBRATED, not_calibrated
+from pipeline.calib.registry import RAW
 from pipeline.calib.scores import wrench_errors
 from pipeline.evaluation.fidelity import outside_stats, unfaithful
 from pipeline.evaluation.floors import noise_floor
@@ -20,10 +19,7 @@ from pipeline.evaluation.noise import highpass, noise_ratio, quasi_static_mask
 from pipeline.evaluation.params import (
     EXPERIMENT,
     LABELS,
-    NN6,
     NN7,
-    NN13,
-    NO_TRUTH,
     ORACLE,
     PHASE,
     REFERENCES,
@@ -379,56 +375,7 @@ def evaluate_group(g: GroupInputs, cfg: EvaluateParams) -> GroupResult:
     )
 
 
-# --- metrics.json --------------------------------------------------------------------------------
-
-
-def group_metrics(r: GroupReport, name: str | None = None) -> dict[str, Any]:
-    """The few numbers a user compares between runs, for one headline `name` (default: the group's first):
-    reports/metrics/<group>/<name>.json, one row of `dvc metrics show` (short keys, so the table fits).
-
-    ``labels``/``truth``: the headline's RMSE (global, N and Nm pooled) of raw, the recommended model
-    (``rec``), play, arx, NN7, NN13, win, the oracle against the labels and, on simulated logs, the truth on
-    every test sample with the noise floor (``floor``, `pipeline.evaluation.floors`); ``recommended``: the
-    group's model to deploy; ``noise``: its networks' noise ratios; ``flagged``: how many of its models are
-    flagged (noise or fidelity). A group not calibrated: `not_calibrated_row`.
-    """
-    if r.not_calibrated is not None:
-        return not_calibrated_row(r.not_calibrated)
-    shown = {
-        "raw": RAW, "rec": r.recommended, PLAY: PLAY, ARX: ARX, "nn6": NN6, "nn7": NN7, "nn13": NN13,
-        WIN: WIN, "oracle": ORACLE,
-    }  # fmt: skip
-    shown[LS_AFFINE] = LS_AFFINE  # recorded logs: the plain least-squares affine map, the lab's reference
-    out: dict[str, Any] = {"recommended": r.recommended or "none"}
-    for ref in (LABELS, TRUTH):
-        row = {k: r.headline_rmse(ref, m, name=name) for k, m in shown.items() if m is not None}
-        row = {k: round(v, 4) for k, v in row.items() if v is not None}
-        floor = r.floor.get(name or r.headline)
-        if ref == TRUTH and row and floor is not None:  # what no calibration, with memory or not, can beat
-            row["floor"] = round(floor, 4)
-        if row:
-            out[ref] = row
-    if TRUTH not in out:  # recorded test logs: said plainly in `dvc metrics show`
-        out[TRUTH] = NO_TRUTH
-    out["noise"] = {m: round(v, 3) for m in (NN6, NN7, NN13) if (v := r.noise.ratio.get(m)) is not None}
-    out["flagged"] = len(set(r.noise.flagged) | set(r.unfaithful))
-    return out
-
-
-def metrics_files(r: GroupReport) -> dict[str, dict[str, Any]]:
-    """reports/metrics/<group>/<name>.json per name (one `dvc metrics show` row each): every headline of a
-    calibrated group (`group_metrics`), each sensor left out of it with why, or the group with why not."""
-    if r.not_calibrated is not None:
-        return {r.group: group_metrics(r)}
-    out = {name: group_metrics(r, name) for name in r.headlines or [r.headline]}
-    out.update({sensor: not_calibrated_row(why) for sensor, why in r.left_out.items()})
-    return out
-
-
-def not_calibrated_row(why: str) -> dict[str, str]:
-    """The `dvc metrics show` row of a group or sensor without a calibration: "not calibrated" where the
-    others name their model to deploy, and why."""
-    return {"recommended": NOT_CALIBRATED_TEXT, NOT_CALIBRATED: why}
+# --- MLflow --------------------------------------------------------------------------------------
 
 
 def mlflow_metrics(r: GroupReport) -> dict[str, float]:

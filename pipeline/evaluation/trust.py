@@ -68,7 +68,7 @@ def passed_over_html(r: GroupReport, noise_limit: float) -> str:
             f"<li><b>{esc(p['model'])}</b>, preferred by cross-validation, was passed over: {esc(p['why'])}. "
             f"Deployed instead: <b>{esc(r.recommended)}</b> ({esc(cost)}).</li>"
         )
-    return f"<div class='flags'><b>{esc(r.group)}:</b><ul>{''.join(items)}</ul></div>"
+    return f"<p><b>{esc(r.group)}:</b></p><ul>{''.join(items)}</ul>"
 
 
 def fidelity_table(r: GroupReport, tolerance: float) -> str:

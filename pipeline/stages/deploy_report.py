@@ -5,8 +5,9 @@
 (`pipeline.deploy.verdict`), and
 writes ``REPORTS/deployment.html`` (the verdict per day as delivered and after re-zeroing, then each day's
 tables and the groups' figures, the re-zeroing and its pose dependence; linked with the report page),
-``REPORTS/deployment.json`` (per day the verdict and the smallest Test B and C ratios, as delivered and
-under ``rezeroed``: `dvc metrics show`) and ``REPORTS/deployment/details.json`` (every table). A light
+``REPORTS/metrics/deployment/<day>.json`` (one `dvc metrics show` row per day: the verdict as delivered and
+re-zeroed, the smallest Test B and C ratios), ``REPORTS/deployment.json`` (per day every test's few
+numbers, as delivered and under ``rezeroed``) and ``REPORTS/deployment/details.json`` (every table). A light
 assembly: one group's change re-runs that group's tests and this page only. Logs one MLflow run.
 """
 
@@ -23,6 +24,24 @@ from pipeline.core.cliargs import add_params_option
 STAGE = "deploy_report"
 COMMAND = "deploy-report"
 PAGE, METRICS, DETAILS = "deployment.html", "deployment.json", "deployment/details.json"
+DAY_ROWS = "metrics/deployment"  # <day>.json: one `dvc metrics show` row per deployment day
+
+
+def _write_day_rows(out: Path, headlines: dict[str, dict[str, Any]]) -> None:
+    """One short row per day into `out`/<day>.json (the rest in deployment.json): the verdict as delivered
+    and re-zeroed, and the smallest Test B and C ratios (raw / calibrated against truth)."""
+    from pipeline.core.io import write_json
+    from pipeline.deploy.verdict import REZEROED
+
+    out.mkdir(parents=True, exist_ok=True)
+    for old in out.glob("*.json"):
+        old.unlink()
+    for day, h in headlines.items():
+        row = {"verdict": "fit to deploy" if h["fit"] else "recalibrate"}
+        if REZEROED in h:
+            row[REZEROED] = "fit to deploy" if h[REZEROED]["fit"] else "recalibrate"
+        row.update({k: h[k] for k in ("b_min", "c_min") if k in h})
+        write_json(out / f"{day}.json", row)
 
 
 def _group_results(groups_dir: Path, groups: list[str]) -> dict[str, dict[str, Any]]:
@@ -89,6 +108,7 @@ def run(params: Any, groups_dir: str | Path, reports: str | Path) -> dict[str, A
                 }
             )
         write_json(reports / METRICS, headlines or {"nothing_to_test": True})
+        _write_day_rows(reports / DAY_ROWS, headlines)
         kept = {day: {k: e[k] for k in ("summary", "details", "rezero")} for day, e in rezeroed.items()}
         write_json(reports / DETAILS, {"summary": summary, "details": details, REZEROED: kept})
         write_page(reports / PAGE, details, summary, figures, targets, rezeroed)

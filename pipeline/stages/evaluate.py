@@ -60,6 +60,7 @@ def run(
     from pipeline.core.io import write_json
     from pipeline.core.tracking import stage_run
     from pipeline.evaluation import figures, links, results
+    from pipeline.evaluation.answer import answers
     from pipeline.evaluation.params import GROUP_REPORT, GROUPS_DIR, METRICS_DIR, EvaluateParams
 
     t0 = time.perf_counter()
@@ -81,8 +82,8 @@ def run(
         metrics_dir.mkdir(parents=True, exist_ok=True)
         for old in metrics_dir.glob("*.json"):
             old.unlink()
-        for name, values in results.metrics_files(result).items():
-            write_json(metrics_dir / f"{name}.json", values)
+        for answer in answers(result):
+            write_json(metrics_dir / f"{answer.name}.json", answer.metrics_row())
         tags = {"group": group, "recommended": result.recommended or "none"}
         tags["flagged"] = ",".join(result.noise.flagged) or "none"
         if result.train_run:
@@ -183,36 +184,23 @@ def _held_out(
     return held, joints
 
 
-def _fmt(v: float | None, digits: int = 3) -> str:
-    import math
-
-    return "n/a" if v is None or not math.isfinite(v) else f"{v:.{digits}g}"
-
-
 def _cmd(args: argparse.Namespace) -> int:
-    from pipeline.calib.registry import RAW
     from pipeline.core.config import load_params
-    from pipeline.evaluation.params import LABELS, NN6, NN7, NO_TRUTH, TRUTH
+    from pipeline.evaluation.answer import answers
+    from pipeline.evaluation.html import fmt
 
     params = load_params(args.params)
     r = run(params, args.group, args.models, args.labelled, args.out, args.truth, smoothed_dir=args.smoothed)
-    if r.not_calibrated is not None:
-        print(f"{r.group}: not calibrated: {r.not_calibrated}")
-        return 0
-    flags = f"; noisy: {', '.join(r.noise.flagged)}" if r.noise.flagged else ""
-    deploy = f"deploy {r.recommended}{flags} ({r.seconds:.0f} s)"
-    for name in r.headlines or [r.headline]:
-        parts = []
-        for ref in (LABELS, TRUTH):
-            shown = dict.fromkeys((RAW, NN6, NN7, r.recommended))  # the networks the group trained
-            values = [(m, v) for m in shown if (v := r.headline_rmse(ref, m, name=name)) is not None]
-            if values:
-                parts.append(f"vs {ref}: " + ", ".join(f"{m} {_fmt(v)}" for m, v in values))
-            elif ref == TRUTH:
-                parts.append(NO_TRUTH)
-        print(f"{r.group}: RMSE of {name} {'; '.join(parts)}; {deploy}")
-    for sensor, why in r.left_out.items():
-        print(f"{r.group}: {sensor} not calibrated: {why}")
+    for a in answers(r):
+        if a.against is None:
+            print(f"{a.group}: {a.name} not calibrated: {a.detail}")
+            continue
+        shown = {"oracle": a.oracle, "floor": a.floor, "ls": a.ls, "raw": a.raw}
+        beside = ", ".join(f"{k} {fmt(v)}" for k, v in shown.items() if v is not None)
+        answer = f"deploy {a.deployed}, {fmt(a.rmse)} against {a.against} ({beside})"
+        print(f"{a.group}/{a.name}: {answer}: {a.verdict}")
+    if r.noise.flagged:
+        print(f"{r.group}: noisy, not deployed: {', '.join(r.noise.flagged)} ({r.seconds:.0f} s)")
     return 0
 
 

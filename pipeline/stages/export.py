@@ -66,8 +66,11 @@ def choose_models(
     groups: list[str], report: Path, overrides: dict[str, str], only: list[str] | None = None
 ) -> dict[str, str]:
     """group -> model to export, for the groups `only` (default all): ``export.models`` where given, else
-    evaluate's recommendation (``recommended`` of the files ``<report>/<group>/*.json``, the
-    evaluate@<group> metrics; a sensor left out of its group has a ``not_calibrated`` file, skipped)."""
+    evaluate's recommendation (``deployed`` of the files ``<report>/<group>/*.json``, the evaluate@<group>
+    metrics, `pipeline.evaluation.answer`; a sensor left out of its group has a "not calibrated" file,
+    skipped)."""
+    from pipeline.calib.exact import NOT_CALIBRATED_TEXT
+
     unknown = sorted(set(overrides) - set(groups))
     if unknown:
         raise ConfigError(f"export.models.{unknown[0]}: not a group of train.groups ({', '.join(groups)})")
@@ -79,7 +82,7 @@ def choose_models(
             try:
                 for path in files:
                     row = json.loads(path.read_text(encoding="utf-8"))
-                    name = None if "not_calibrated" in row else row.get("recommended")
+                    name = None if row.get("verdict") == NOT_CALIBRATED_TEXT else row.get("deployed")
                     if name is not None:
                         break
             except FileNotFoundError:
