@@ -35,8 +35,9 @@ sys.path.insert(0, str(ROOT))
 
 from benchmarks import QUICK  # noqa: E402
 from pipeline.calib import studies  # noqa: E402
+from pipeline.core.defaults import resolve  # noqa: E402
 from pipeline.tools import db  # noqa: E402
-from tests.factories import LEG, write_labelled_logs  # noqa: E402
+from tests.factories.labelled import LEG, write_labelled_logs  # noqa: E402
 from tests.pgserver import create_database, free_port  # noqa: E402
 
 _LOAD_WORKER = """
@@ -98,7 +99,7 @@ def load(url: str, workers: int, trials: int) -> dict[str, float]:
 
 
 def _params(tmp: Path, trials: int, group: str, quick: bool) -> Path:
-    data = yaml.safe_load((ROOT / "params.yaml").read_text())
+    data = resolve(yaml.safe_load((ROOT / "params.yaml").read_text()))[0]
     data["train"]["defaults"].update(inputs=[7], n_trials=trials, tpe_startup_trials=trials)
     if quick:
         data["train"]["defaults"].update(hidden=16, epochs=2, batch_size=128, search={})

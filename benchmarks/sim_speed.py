@@ -23,6 +23,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from benchmarks import QUICK  # noqa: E402
 from pipeline.core.config import load_params  # noqa: E402
+from pipeline.core.defaults import resolve  # noqa: E402
 from pipeline.stages.simulate import run  # noqa: E402
 
 REPO = Path(__file__).resolve().parents[1]
@@ -36,7 +37,7 @@ def main() -> None:
     parser.add_argument("--quick", action="store_true", help=f"{QUICK}: one log of each type, 2 s each")
     args = parser.parse_args()
     with tempfile.TemporaryDirectory() as tmp:
-        data = yaml.safe_load((REPO / "params.yaml").read_text())
+        data = resolve(yaml.safe_load((REPO / "params.yaml").read_text()))[0]
         sim = copy.deepcopy(data["simulate"])
         if args.quick:
             sim["logs"] = list({log["type"]: log for log in reversed(sim["logs"])}.values())

@@ -35,8 +35,9 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
 from benchmarks import QUICK  # noqa: E402
+from pipeline.core.defaults import resolve  # noqa: E402
 from pipeline.logs import schema as S  # noqa: E402
-from tests.factories import LEG, write_labelled_logs  # noqa: E402
+from tests.factories.labelled import LEG, write_labelled_logs  # noqa: E402
 
 
 def perturb(src: Path, dst: Path, rel: float, seed: int) -> None:
@@ -57,7 +58,7 @@ def perturb(src: Path, dst: Path, rel: float, seed: int) -> None:
 
 def quick_params(work: Path) -> Path:
     """params.yaml with one group of `tests.factories`' leg sensor and tiny networks, in `work`."""
-    data = yaml.safe_load((ROOT / "params.yaml").read_text())
+    data = resolve(yaml.safe_load((ROOT / "params.yaml").read_text()))[0]
     data["train"]["defaults"].update(
         hidden=16, epochs=2, batch_size=128, n_trials=2, tpe_startup_trials=2, search={}
     )

@@ -63,30 +63,28 @@ MEMORY = {
 def variant_params(
     text: str, seed: int, scale: float, gait: bool = False, memory: dict[str, float] | None = None
 ) -> str:
-    """params.yaml text with `seed`, the scaled distortion ranges, (`gait`) the variant's walking and
-    (`memory`) the sensors' memory physics (comments kept: line edits)."""
-    memory = memory or {}
-    values = yaml.safe_load(text)["simulate"]["sensors"]
-    lines, section, sub = [], None, None
-    for line in text.splitlines():
-        stripped = line.strip()
-        indent = len(line) - len(line.lstrip())
-        if indent == 0 and stripped and not stripped.startswith("#"):
-            section = stripped.split(":")[0]
-        elif indent == 2 and stripped and not stripped.startswith("#"):
-            sub = stripped.split(":")[0]
-        key = stripped.split(":")[0]
-        comment = line.split("#", 1)[1].strip() if "#" in line else ""
-        if indent == 0 and key == "seed":
-            line = f"seed: {seed}  # variant of the default data (benchmarks/variant.py)"
-        elif section == "simulate" and sub == "sensors" and indent == 4 and key in memory:
-            line = f"    {key}: {memory[key]!r}  # memory variant (benchmarks/variant.py); {comment}"
-        elif section == "simulate" and sub == "sensors" and indent == 4 and key in SCALED and scale != 1.0:
-            line = f"    {key}: {values[key] * scale!r}  # x{scale:g} the default; {comment}"
-        elif section == "simulate" and sub == "motion" and indent == 4 and key in GAIT and gait:
-            line = f"    {key}: {GAIT[key]!r}  # gait variant (benchmarks/variant.py); {comment}"
-        lines.append(line)
-    return "\n".join(lines) + "\n"
+    """A lab's params.yaml text with `seed`, the scaled distortion ranges, (`gait`) the variant's walking and
+    (`memory`) the sensors' memory physics set in it (scaled from the effective values: the defaults'
+    unless the file sets them); every other key as it was."""
+    from pipeline.core.defaults import resolve
+
+    data = yaml.safe_load(text)
+    effective = resolve(data)[0]["simulate"]
+    data["seed"] = seed
+    simulate = data.setdefault("simulate", {})
+    sensors, motion = simulate.setdefault("sensors", {}), simulate.setdefault("motion", {})
+    if scale != 1.0:
+        sensors.update({k: effective["sensors"][k] * scale for k in SCALED})
+    sensors.update(memory or {})
+    if gait:
+        motion.update(GAIT)
+    for key in ("sensors", "motion"):
+        if not simulate[key]:
+            del simulate[key]
+    if not simulate:
+        del data["simulate"]
+    head = "# A variant of the default data (benchmarks/variant.py): the lab's params.yaml, its values set\n"
+    return head + yaml.safe_dump(data, sort_keys=False)
 
 
 def main() -> None:
@@ -114,7 +112,9 @@ def main() -> None:
     params = args.work / "params.yaml"
     memory = MEMORY[args.memory] if args.memory else None
     params.write_text(variant_params((ROOT / "params.yaml").read_text(), seed, scale, args.gait, memory))
-    changed = yaml.safe_load(params.read_text())
+    from pipeline.core.defaults import resolve
+
+    changed = resolve(yaml.safe_load(params.read_text()))[0]
     print(f"seed {changed['seed']}; simulate.sensors:")
     for key in (*SCALED, *(memory or {})):
         print(f"  {key}: {changed['simulate']['sensors'][key]}")

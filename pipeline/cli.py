@@ -36,6 +36,7 @@ THEN = "+"  # between two commands run one after the other, in one stage (`main`
 # ``set_defaults(func=...)``. Only the module of the command being run is imported (stages import torch,
 # pinocchio, mlflow): `ftcal --help` lists the commands from this table alone.
 COMMANDS: dict[str, tuple[str, str]] = {
+    "params": ("pipeline.tools.params", "the effective configuration and where each value came from"),
     "simulate": ("pipeline.stages.simulate", "simulate experiment logs (MCAP) of the robot with known truth"),
     "ingest": ("pipeline.stages.ingest", "decode MCAP and .mat logs into aligned Parquet tables"),
     "smooth": ("pipeline.stages.smooth", "Savitzky-Golay joint positions, velocities, accelerations"),

@@ -8,6 +8,7 @@ from pathlib import Path
 import pytest
 
 from pipeline.physics.robot import RobotModel, load_robot
+from tests.factories.params import repo_params
 from tests.pgserver import mlflow_server, pg_url  # noqa: F401 (session fixtures)
 
 REPO = Path(__file__).resolve().parents[1]
@@ -98,7 +99,7 @@ def trained_models(tmp_path_factory: pytest.TempPathFactory) -> dict:
     labelled = write_labelled_logs(root / "labelled", n=400)
     params_path = write_params(root, n_trials=1, epochs=2)
     data = yaml.safe_load(params_path.read_text())
-    data["export"] = yaml.safe_load((REPO / "params.yaml").read_text())["export"]
+    data["export"] = repo_params()["export"]
     params_path.write_text(yaml.safe_dump(data, sort_keys=False))
     uri = f"sqlite:///{root / 'mlflow.db'}"
     patch = pytest.MonkeyPatch()

@@ -19,6 +19,7 @@ from pipeline.core.config import (
     resolve_urdf,
 )
 from pipeline.core.errors import ConfigError
+from tests.factories.params import repo_params
 
 ROOT = Path(__file__).resolve().parent.parent
 REPO_PARAMS = ROOT / "params.yaml"
@@ -27,7 +28,7 @@ REPO_PARAMS = ROOT / "params.yaml"
 @pytest.fixture(scope="module")
 def real_dict() -> dict[str, Any]:
     """params.yaml with the foot pairs written out (as a user may: by default they come from the URDF)."""
-    data = yaml.safe_load((ROOT / "params.yaml").read_text())
+    data = repo_params()
     data["robot"]["foot_pairs"] = {
         side: {"front": f"{side}_front_ft", "rear": f"{side}_rear_ft", "sole": f"{side[0]}_sole"}
         for side in ("l_foot", "r_foot")
@@ -82,16 +83,24 @@ def test_repo_root_from_a_subdirectory(monkeypatch: pytest.MonkeyPatch) -> None:
 def test_every_section_is_validated_at_load(tmp_path: Path, real_dict: dict[str, Any]) -> None:
     """A typo in any stage's section (or a misspelt section) is reported when params.yaml is loaded."""
     cases = [
-        (
-            {**real_dict, "smooth": {"window": 31, "polyorder": 3, "choices": []}},
-            "missing key smooth.max_gap_s",
-        ),
+        ({**real_dict, "smooth": {"window": 31, "polyorder": 1}}, "smooth.polyorder must be an integer"),
         ({**real_dict, "evaluate": {**real_dict["evaluate"], "zoom": 1}}, "unknown key evaluate.zoom"),
         ({**real_dict, "evalute": {}}, "unknown key evalute"),
     ]
     for data, message in cases:
         with pytest.raises(ConfigError, match=rf"params.yaml: {message}"):
             load_params(write(tmp_path / "params.yaml", data))
+
+
+@pytest.mark.parametrize("key", ["seed", "robot.gravity", "smooth.max_gap_s", "train.defaults.lr"])
+def test_a_key_left_out_takes_its_default(tmp_path: Path, real_dict: dict[str, Any], key: str) -> None:
+    from pipeline.core.defaults import read_defaults
+
+    loaded = load_params(write(tmp_path / "params.yaml", set_key(real_dict, key, DELETE))).raw
+    default: Any = read_defaults()
+    for part in key.split("."):
+        loaded, default = loaded[part], default[part]
+    assert loaded == default
 
 
 @pytest.mark.parametrize(
@@ -113,9 +122,7 @@ def test_every_section_is_validated_at_load(tmp_path: Path, real_dict: dict[str,
         ("robot.foot_pairs.l_foot.sole", None, "robot.foot_pairs.l_foot.sole must be a non-empty string"),
         ("robot.colour", "red", "unknown key robot.colour"),
         ("robot.foot_pairs.l_foot.toe", "x", "unknown key robot.foot_pairs.l_foot.toe"),
-        ("robot.gravity", DELETE, "missing key robot.gravity"),
         ("robot.foot_pairs.r_foot.sole", DELETE, "missing key robot.foot_pairs.r_foot.sole"),
-        ("seed", DELETE, "missing key seed"),
     ],
 )
 def test_invalid_value_names_file_and_key(
@@ -187,7 +194,9 @@ def test_resolve_urdf() -> None:
 def test_topics_section(tmp_path: Path) -> None:
     params = load_params()
     assert params.topics.sensor_topic("ft_wrench", "l_leg_ft") == "/ft/l_leg_ft/wrench"
-    text = (REPO_PARAMS.read_text()).replace("ft_imu: /ft/{sensor}/imu", "ft_imu: /ft/imu")
+    from pipeline.core.defaults import DEFAULTS_FILE
+
+    text = DEFAULTS_FILE.read_text().replace("ft_imu: /ft/{sensor}/imu", "ft_imu: /ft/imu")
     with pytest.raises(ConfigError, match=r"topics.ft_imu must contain \{sensor\}"):
         load_params(write(tmp_path / "params.yaml", text))
 

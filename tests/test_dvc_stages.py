@@ -16,7 +16,9 @@ from pathlib import Path
 import pytest
 import yaml
 
+from pipeline.core.defaults import RESOLVED_FILE
 from tests.factories.docs import stages, tracked
+from tests.factories.params import repo_params
 
 pytestmark = pytest.mark.slow  # clones the repository and runs DVC on it
 
@@ -41,7 +43,7 @@ def _changed_deps(status: dict, stage: str) -> dict[str, str]:
 
 
 def test_adding_recorded_logs_makes_the_deployment_stages_stale(tmp_path: Path) -> None:
-    real = yaml.safe_load((ROOT / "params.yaml").read_text())["deploy"]["real_logs"].rstrip("/")
+    real = repo_params()["deploy"]["real_logs"].rstrip("/")
     assert any(f.startswith(real + "/") for f in tracked()), f"{real} is not a folder tracked in git"
     wired = stages()
     assert real in wired["deploy_days"]["deps"]
@@ -110,19 +112,28 @@ def _code_hashes(repo: Path) -> dict[str, str]:
 
 
 def _changed_params(repo: Path) -> dict[str, dict]:
-    """stage -> the params `dvc status` finds changed against dvc.lock (key -> state)."""
+    """stage -> the params `dvc status` finds changed against dvc.lock (key -> state), in the effective
+    configuration the stages track (params.resolved.yaml, as the stage `config` writes it)."""
     out: dict[str, dict] = {}
     for name, entries in _status(repo).items():
         for entry in entries:
-            if isinstance(entry, dict) and "params.yaml" in entry.get("changed deps", {}):
-                out[name] = entry["changed deps"]["params.yaml"]
+            changed = entry.get("changed deps", {}) if isinstance(entry, dict) else {}
+            if isinstance(changed.get(RESOLVED_FILE), dict):
+                out[name] = changed[RESOLVED_FILE]
     return out
+
+
+def _resolve(clone: Path, env: dict[str, str]) -> None:
+    """What `dvc repro config` does first: the clone's effective configuration written for its stages."""
+    cmd = [sys.executable, "-m", "pipeline.cli", "params", "--write", RESOLVED_FILE]
+    subprocess.run(cmd, cwd=clone, env=env, check=True, capture_output=True)
 
 
 def test_bytecode_is_not_code_and_one_groups_edit_stales_only_its_stages(tmp_path: Path) -> None:
     """With Python writing bytecode (the default on a user's machine), an `ftcal` command's ``__pycache__``
     folders leave every stage's code dependencies as DVC hashes them; then an edit of one group's params
-    makes only that group's train and evaluate stages and the report changed, and nothing else below them."""
+    makes only that group's train and evaluate stages and the report changed, and nothing else below them;
+    a default moved in pipeline/defaults.yaml (the time-series zoom) makes only the stages that read it."""
     import os
 
     clone = tmp_path / "clone"
@@ -140,6 +151,7 @@ def test_bytecode_is_not_code_and_one_groups_edit_stales_only_its_stages(tmp_pat
     group = next(iter(data["train"]["groups"]))
     data["train"]["groups"][group]["epochs"] = 3
     (clone / "params.yaml").write_text(yaml.safe_dump(data, sort_keys=False))
+    _resolve(clone, env)
     after = _changed_params(clone)
     changed = {name for name in after if after[name] != params_before.get(name)}
     assert changed == {f"train@{group}", f"evaluate@{group}", "report"}  # the report reads train.groups
@@ -159,3 +171,27 @@ def test_bytecode_is_not_code_and_one_groups_edit_stales_only_its_stages(tmp_pat
             break
         stale |= below
     assert stale == changed
+
+    defaults = clone / "pipeline" / "defaults.yaml"  # a default moved: what reads it, wherever it is set
+    text = defaults.read_text()
+    assert "  zoom_s: 8.0 " in text
+    defaults.write_text(text.replace("  zoom_s: 8.0 ", "  zoom_s: 6.0 "))
+    _resolve(clone, env)
+    moved = {name for name, keys in _changed_params(clone).items() if keys != after.get(name)}
+    assert moved == {name for name in wired if name.startswith("evaluate@")} | {"report"}, moved
+
+
+def test_dvc_metrics_show_is_a_row_per_headline_and_per_day_within_a_terminal() -> None:
+    """The committed metrics (a default `dvc repro`'s): one row per headline (the model to deploy, its error,
+    the oracle, the noise floor, raw, a verdict) and one per deployment day, within 160 columns."""
+    shown = subprocess.run(
+        [sys.executable, "-m", "dvc", "metrics", "show"], cwd=ROOT, capture_output=True, text=True, check=True
+    ).stdout
+    lines = shown.splitlines()
+    assert max(map(len, lines)) <= 160, shown
+    header, rows = lines[0].split(), {line.split()[0]: line for line in lines[1:] if line.strip()}
+    assert {"deployed", "rmse", "oracle", "floor", "raw", "verdict"} <= set(header), header
+    files = {f for f in tracked() if f.startswith("reports/metrics/") and f.endswith(".json")}
+    assert set(rows) == files, sorted(set(rows) ^ files)  # each headline's and each day's file a row
+    days = {f for f in files if f.startswith("reports/metrics/deployment/")}
+    assert days and len(files - days) >= len(repo_params()["train"]["groups"])

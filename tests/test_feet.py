@@ -13,6 +13,7 @@ from pipeline.physics.feet import box_length, derive_feet
 from pipeline.physics.robot import RobotModel, load_robot
 from tests.conftest import FOOT_PAIRS, GRAVITY
 from tests.factories.oracles import both_sides_touch, oracle
+from tests.factories.params import repo_params
 from tests.idyntree_ref import random_in_limits
 
 ICUB2 = ["iCubGenova02", "iCubGenova04"]
@@ -153,7 +154,7 @@ def test_icub2_simulated_truth_balances_momentum(tmp_path: Path, kind: str) -> N
     from pipeline.sim.world import build_world, stream_rng
     from tests.factories.physics import assert_momentum_balance
 
-    data = yaml.safe_load((Path(__file__).resolve().parents[1] / "params.yaml").read_text())
+    data = repo_params()
     data["robot"]["urdf"] = "iCubGenova02"
     (tmp_path / "params.yaml").write_text(yaml.safe_dump(data, sort_keys=False))
     params = load_params(tmp_path / "params.yaml")

@@ -16,6 +16,7 @@ from pipeline.labels.inertials import FREE, Posterior, link_basis, with_change
 from pipeline.physics.regressor import link_params
 from pipeline.physics.robot import RobotModel
 from pipeline.physics.urdf_write import write_inertials
+from tests.factories.params import repo_params
 
 pytestmark = pytest.mark.slow  # labels and identifies simulated logs
 
@@ -142,10 +143,9 @@ def identified_run(tmp_path_factory: pytest.TempPathFactory) -> dict:
 
     from pipeline.core.config import load_params
     from pipeline.stages import identify, ingest, label, simulate, smooth
-    from tests.conftest import REPO
 
     tmp = tmp_path_factory.mktemp("identified")
-    data = yaml.safe_load((REPO / "params.yaml").read_text())
+    data = repo_params()
     data["simulate"].update(workers=1, plots=False, mass_error=0.10, com_error_m=0.02)
     loads = [{"link": "hands", "mass_kg": 2.0}, {"link": "feet", "mass_kg": 6.0}]
     data["simulate"]["logs"] = [

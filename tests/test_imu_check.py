@@ -37,7 +37,7 @@ from pipeline.logs.tables import read_table_metadata
 from pipeline.physics.dynamics import ContactCase
 from pipeline.physics.imu import sensor_motion
 from pipeline.physics.robot import RobotModel
-from tests.factories.params import TRAIN_PARAMS
+from tests.factories.params import TRAIN_PARAMS, repo_params
 
 pytestmark = pytest.mark.slow  # trains the groups it checks
 
@@ -97,11 +97,10 @@ def test_axis_maps_read_literally_and_invert() -> None:
             {"imu_check": {"max_rms_m_s2": -1}},
             r"label.imu_check.max_rms_m_s2 must be a positive number",
         ),
-        ("label", {"imu_check": {"still_min_s": None}}, r"missing key label.imu_check.still_min_s"),
     ],
 )
 def test_bad_params_name_the_key(tmp_path: Path, section: str, value: dict, message: str) -> None:
-    data = yaml.safe_load((REPO / "params.yaml").read_text())
+    data = repo_params()
     for key, v in value.items():
         if isinstance(v, dict) and isinstance(data[section].get(key), dict):
             data[section][key] = {**data[section][key], **v}
@@ -166,7 +165,7 @@ def test_sensor_motion_matches_the_urdf_model_and_finite_differences(
 def _params(tmp: Path, name: str, ingest_axes: dict | None = None, **train: object) -> Path:
     """The repo's params with short logs, one board swapped in the simulator (and `ingest_axes` mapped),
     a small train section for the swapped board's group."""
-    data = yaml.safe_load((REPO / "params.yaml").read_text())
+    data = repo_params()
     data["simulate"].update({"logs": copy.deepcopy(LOGS), "workers": 1, "plots": False})
     data["simulate"]["imu"]["axes"] = {SWAPPED: SWAP}
     data["ingest"]["imu_axes"] = ingest_axes or {}

@@ -26,6 +26,7 @@ from pipeline.core.errors import DataError, JobError
 from pipeline.core.parallel import forked_map
 from tests.conftest import REPO
 from tests.factories.labelled import LEG
+from tests.factories.params import repo_params
 
 
 def scipy_error(*_: object, **__: object) -> None:
@@ -101,7 +102,7 @@ def _junk(folder: Path, suffix: str) -> list[Path]:
 
 
 def _simulate(tmp: Path, _: dict) -> tuple[list[str], str]:
-    data = yaml.safe_load((REPO / "params.yaml").read_text())
+    data = repo_params()
     data["simulate"].update(
         workers=2, plots=False, logs=[{"type": "pole", "duration_s": 2, "role": "train"}] * 2
     )
@@ -293,7 +294,7 @@ def test_a_failed_stage_leaves_no_process_and_closes_the_callers_pipes(tmp_path:
 @pytest.mark.slow
 @pytest.mark.parametrize("how", ["Ctrl-C", "SIGTERM"])
 def test_an_interrupted_stage_leaves_no_process_and_no_output(tmp_path: Path, how: str) -> None:
-    data = yaml.safe_load((REPO / "params.yaml").read_text())
+    data = repo_params()
     logs = [{"type": "pole", "duration_s": 300, "role": "train"}] * 2  # minutes of work each
     data["simulate"].update(workers=2, plots=False, logs=logs)
     (tmp_path / "params.yaml").write_text(yaml.safe_dump(data, sort_keys=False))

@@ -17,6 +17,7 @@ from pipeline.labels.contacts import guard_band, hysteresis
 from pipeline.logs import schema as S
 from pipeline.physics.cuts import pose_wrench_transforms
 from pipeline.stages.label import run
+from tests.factories.params import repo_params
 from tests.relabel import relabel_with_idyntree
 
 pytestmark = pytest.mark.slow  # labels simulated logs on both robots
@@ -31,7 +32,7 @@ LOGS = [
 
 
 def write_params(tmp: Path, name: str, **simulate: object) -> Path:
-    data = yaml.safe_load((REPO / "params.yaml").read_text())
+    data = repo_params()
     data["simulate"].update({"logs": copy.deepcopy(LOGS), "workers": 1, "plots": False, **simulate})
     path = tmp / f"{name}.yaml"
     path.write_text(yaml.safe_dump(data, sort_keys=False))
@@ -254,7 +255,7 @@ def test_label_stage_on_ergocub(tmp_path: Path, mlflow_store: None, monkeypatch:
     schema = S.arrow_schema(list(cols), S.KIND_SMOOTHED, {S.META_EXPERIMENT: experiment})
     (tmp_path / "smoothed").mkdir()
     pq.write_table(pa_table(cols, schema), tmp_path / "smoothed" / "ergo.parquet")
-    data = yaml.safe_load((REPO / "params.yaml").read_text())
+    data = repo_params()
     data["robot"]["urdf"] = str(robot.urdf_path)
     (tmp_path / "p.yaml").write_text(yaml.safe_dump(data))
     params = load_params(tmp_path / "p.yaml")

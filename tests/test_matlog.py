@@ -30,6 +30,7 @@ from pipeline.logs.matlog import MatLog, ns_to_seconds, seconds_to_ns
 from pipeline.logs.mcap_table import ingest_log
 from tests import matfile
 from tests.factories.logs import CFG_MAT, JOINTS, MAT, SENSORS, TOPICS, write_log
+from tests.factories.params import repo_params
 
 pytestmark = pytest.mark.slow  # writes and ingests whole logger files
 
@@ -313,7 +314,7 @@ def test_simulated_log_same_tables_and_labels(tmp_path: Path, mlflow_store: None
     from pipeline.stages import ingest as ingest_stage
     from pipeline.stages import label, simulate, smooth
 
-    data = yaml.safe_load((REPO / "params.yaml").read_text())
+    data = repo_params()
     data["simulate"].update({"logs": [{"type": "walking", "duration_s": 6, "role": "test"}], "workers": 1})
     data["simulate"]["plots"] = False
     (tmp_path / "params.yaml").write_text(yaml.safe_dump(data))

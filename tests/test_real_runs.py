@@ -25,6 +25,7 @@ import yaml
 
 from pipeline.cli import main
 from pipeline.logs import schema as S
+from tests.factories.params import repo_params
 from tests.lsref import reference, rmse
 
 pytestmark = pytest.mark.slow  # ingests, labels and trains real runs
@@ -47,7 +48,7 @@ def pole(tmp_path_factory: pytest.TempPathFactory, mlflow_store: None) -> Path:
         side = {"type": "pole", "robot": "iCubGenova02", "contacts": ["root_link"]}
         side["role"] = "test" if run == TEST_LOG else "train"
         (raw / f"{run}.yaml").write_text(yaml.safe_dump(side))
-    params = yaml.safe_load((REPO / "params.yaml").read_text())
+    params = repo_params()
     params["robot"]["urdf"] = "iCubGenova02"
     params["ingest"]["source"] = "data/raw"
     params["train"]["defaults"]["inputs"] = [6]
@@ -127,7 +128,7 @@ def test_the_one_foot_run_deploys_a_faithful_model_and_its_page_says_why_it_is_a
     ]
     side = {"type": "balancing", "robot": "iCubGenova02", "contacts": ["r_sole"], "segments": segments}
     (raw / "run41s.yaml").write_text(yaml.safe_dump(side))
-    params = yaml.safe_load((REPO / "params.yaml").read_text())
+    params = repo_params()
     params["robot"]["urdf"] = "iCubGenova02"
     params["ingest"]["fixed_joints"] = NECK
     params["train"]["defaults"]["inputs"] = [6]
@@ -167,7 +168,7 @@ def test_the_long_one_foot_run_s_least_squares_meets_an_independent_one(
     ]
     side = {"type": "balancing", "robot": "iCubGenova02", "contacts": ["r_sole"], "segments": segments}
     (raw / "run124s.yaml").write_text(yaml.safe_dump(side))
-    params = yaml.safe_load((REPO / "params.yaml").read_text())
+    params = repo_params()
     params["robot"]["urdf"] = "iCubGenova02"
     params["ingest"]["fixed_joints"] = NECK
     params["train"]["defaults"]["inputs"] = [6]
@@ -194,7 +195,7 @@ def test_the_one_foot_run_labels_its_stance_foot_with_the_neck_declared_still(
     shutil.copytree(ONE_FOOT / "run41s", raw / "run41s")
     side = {"type": "balancing", "robot": "iCubGenova02", "role": "train", "contacts": ["r_sole"]}
     (raw / "run41s.yaml").write_text(yaml.safe_dump({**side, "window": [24.0, 40.0]}))  # on one foot (README)
-    params = yaml.safe_load((REPO / "params.yaml").read_text())
+    params = repo_params()
     params["robot"]["urdf"] = "iCubGenova02"
     params["ingest"]["fixed_joints"] = NECK if neck == "declared still" else {}
     (tmp_path / "params.yaml").write_text(yaml.safe_dump(params, sort_keys=False))
@@ -241,7 +242,7 @@ def test_a_run_with_one_training_segment_validates_on_time_blocks_of_it(
     ]
     side = {"type": "pole", "robot": "iCubGenova02", "contacts": ["root_link"], "segments": segments}
     (raw / f"{run}.yaml").write_text(yaml.safe_dump(side))
-    params = yaml.safe_load((REPO / "params.yaml").read_text())
+    params = repo_params()
     params["robot"]["urdf"] = "iCubGenova02"
     params["train"]["defaults"]["inputs"] = [6]
     params["train"]["groups"] = {"r_leg_ft": {"sensor": "r_leg_ft", "n_trials": 1, "epochs": 2}}

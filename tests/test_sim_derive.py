@@ -20,6 +20,7 @@ from pipeline.sim.params import LogSpec, simulate_params
 from pipeline.sim.world import build_world
 from pipeline.stages.simulate import run
 from tests.conftest import robot_source
+from tests.factories.params import repo_params
 
 pytestmark = pytest.mark.slow  # simulates on both robots
 
@@ -34,7 +35,7 @@ SHORT_LOGS = [
 
 def params_file(tmp: Path, urdf: str, logs: list | None = None, **motion: object) -> Path:
     """The repo's params.yaml with only robot.urdf (and optionally logs and motion keys) changed."""
-    data = yaml.safe_load((REPO / "params.yaml").read_text())
+    data = repo_params()
     data["robot"]["urdf"] = urdf
     data["simulate"]["motion"].update(motion)
     if logs is not None:

@@ -364,10 +364,14 @@ def test_the_memory_variants_change_only_the_sensors_memory_physics() -> None:
     sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "benchmarks"))
     import variant
 
+    from pipeline.core.defaults import resolve
+
     text = (Path(__file__).resolve().parents[1] / "params.yaml").read_text()
-    default = yaml.safe_load(text)
+    default = resolve(yaml.safe_load(text))[0]
     for name, preset in variant.MEMORY.items():
-        changed = yaml.safe_load(variant.variant_params(text, default["seed"], 1.0, False, preset))
+        changed = resolve(yaml.safe_load(variant.variant_params(text, default["seed"], 1.0, False, preset)))[
+            0
+        ]
         sensors = changed["simulate"].pop("sensors")
         assert {k: sensors[k] for k in preset} == preset, name
         assert {k: v for k, v in sensors.items() if k not in preset} == {

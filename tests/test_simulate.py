@@ -18,6 +18,7 @@ from pipeline.sim.experiment import make_motion
 from pipeline.sim.params import simulate_params
 from pipeline.sim.world import build_world
 from pipeline.stages.simulate import run
+from tests.factories.params import repo_params
 
 pytestmark = pytest.mark.slow  # simulates whole logs
 
@@ -31,7 +32,7 @@ SHORT_LOGS = [
 
 
 def write_params(tmp: Path, seed: int = 42, plots: bool = False, **simulate: object) -> Path:
-    data = yaml.safe_load((REPO / "params.yaml").read_text())
+    data = repo_params()
     data["seed"] = seed
     data["simulate"].update({"logs": copy.deepcopy(SHORT_LOGS), "workers": 1, "plots": plots, **simulate})
     path = tmp / f"params_{seed}_{plots}.yaml"

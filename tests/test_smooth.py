@@ -16,6 +16,7 @@ from pipeline.logs import schema as S
 from pipeline.logs.smoothing import STILL_WINDOW_S, SmoothParams, segments, smooth_kinematics
 from pipeline.logs.tables import read_table_metadata
 from tests.factories.logs import JOINTS, SENSORS, T0, joint_position, run_one, write_log
+from tests.factories.params import repo_params
 
 ROOT = Path(__file__).resolve().parents[1]
 RATE = 100.0  # Hz
@@ -225,7 +226,7 @@ def test_stage_adds_kinematics_and_keeps_everything(
     ingested = tmp_path / "ingested"
     run_one(write_log(tmp_path / "log.mcap", duration=3.0), ingested)
     params = tmp_path / "params.yaml"
-    params.write_text((ROOT / "params.yaml").read_text())
+    params.write_text(yaml.safe_dump(repo_params()))
     out = tmp_path / "smoothed"
     assert main(["smooth", str(ingested), str(out), "--params", str(params)]) == 0
     assert [p.name for p in out.iterdir()] == ["log.parquet"]  # truth tables stay in ingested/

@@ -15,8 +15,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, TypeVar
 
-import yaml
-
+from pipeline.core.defaults import read_yaml_file, resolve
 from pipeline.core.errors import ConfigError
 
 PARAMS_FILE = "params.yaml"
@@ -328,50 +327,12 @@ class ExportParams:
 # --- loading -----------------------------------------------------------------------------------
 
 
-class _UniqueKeyLoader(yaml.SafeLoader):
-    """SafeLoader that rejects duplicate keys (PyYAML silently keeps the last one)."""
-
-
-def _construct_unique_mapping(loader: _UniqueKeyLoader, node: yaml.MappingNode, deep: bool = False) -> dict:
-    keys: set[Any] = set()
-    for key_node, _ in node.value:
-        key = loader.construct_object(key_node, deep=deep)
-        if key in keys:
-            raise yaml.constructor.ConstructorError(
-                "while constructing a mapping",
-                node.start_mark,
-                f"found duplicate key {key!r}",
-                key_node.start_mark,
-            )
-        keys.add(key)
-    return loader.construct_mapping(node, deep=deep)
-
-
-_UniqueKeyLoader.add_constructor(yaml.resolver.BaseResolver.DEFAULT_MAPPING_TAG, _construct_unique_mapping)
-
-
 def display_path(path: Path) -> str:
     """The path as the user would write it: relative to the working directory when under it."""
     try:
         return str(path.resolve().relative_to(Path.cwd().resolve()))
     except ValueError:
         return str(path)
-
-
-def _read_yaml(path: Path) -> Any:
-    try:
-        text = path.read_text(encoding="utf-8")
-    except FileNotFoundError:
-        raise ConfigError("file not found") from None
-    except (OSError, UnicodeDecodeError) as exc:
-        raise ConfigError(f"cannot read: {exc}") from None
-    try:
-        return yaml.load(text, Loader=_UniqueKeyLoader)  # a SafeLoader subclass
-    except yaml.YAMLError as exc:
-        mark = getattr(exc, "problem_mark", None)
-        where = f"line {mark.line + 1}, column {mark.column + 1}: " if mark is not None else ""
-        problem = getattr(exc, "problem", None) or str(exc)
-        raise ConfigError(f"invalid YAML at {where}{problem}") from None
 
 
 def _section(data: Mapping[str, Any], key: str, expected: set[str]) -> None:
@@ -479,7 +440,8 @@ def validate_sections(params: Params) -> None:
 
 
 def load_params(path: str | Path | None = None) -> Params:
-    """Load and validate params.yaml (default: ``<repo_root()>/params.yaml``).
+    """Load and validate params.yaml (default: ``<repo_root()>/params.yaml``) over the defaults
+    (`pipeline.core.defaults`: every key the file does not set takes its default).
 
     Raises:
         ConfigError: the file is missing or unreadable, is not valid YAML, or has a missing, unknown
@@ -487,7 +449,10 @@ def load_params(path: str | Path | None = None) -> Params:
     """
     path = Path(path) if path is not None else repo_root() / PARAMS_FILE
     try:
-        params = _parse(_read_yaml(path))
+        lab = read_yaml_file(path)
+        if lab is None:
+            raise ConfigError("the file is empty")
+        params = _parse(resolve(_mapping(lab, "the top level"))[0])
         params.raw["__file__"] = display_path(path)  # type: ignore[index]
     except ConfigError as exc:
         raise ConfigError(f"{display_path(path)}: {exc}") from None

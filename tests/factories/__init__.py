@@ -11,10 +11,3 @@
 - sensors: synthetic sensors of the calibration tests (a creeping reading, a free arm)
 - docs: README.md, docs/ and dvc.yaml read as data (their commands, stages, tracked files)
 """
-
-from __future__ import annotations
-
-# benchmarks/stability.py and benchmarks/search_scaling.py import these two from the package itself
-from tests.factories.labelled import LEG, write_labelled_logs
-
-__all__ = ["LEG", "write_labelled_logs"]

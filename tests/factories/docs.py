@@ -10,6 +10,8 @@ from pathlib import Path
 
 import yaml
 
+from tests.factories.params import repo_params
+
 ROOT = Path(__file__).resolve().parents[2]
 DOCS = [ROOT / "README.md", *sorted((ROOT / "docs").glob("*.md"))]
 # the first words of the shell commands the docs show
@@ -19,7 +21,7 @@ SHELL = ("ftcal", "dvc", "python", "mlflow", "export", "pip", "pytest", "for")
 @cache
 def params() -> dict:
     """params.yaml as data."""
-    return yaml.safe_load((ROOT / "params.yaml").read_text())
+    return repo_params()
 
 
 @cache

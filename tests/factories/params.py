@@ -61,8 +61,11 @@ TRAIN_PARAMS = {
 }
 
 
-def _repo_params() -> dict[str, Any]:
-    return yaml.safe_load((ROOT / "params.yaml").read_text())
+def repo_params() -> dict[str, Any]:
+    """The repository's params.yaml as every stage reads it: over pipeline/defaults.yaml (a new copy)."""
+    from pipeline.core.defaults import resolve
+
+    return resolve(yaml.safe_load((ROOT / "params.yaml").read_text()))[0]
 
 
 def _write(tmp_path: Path, data: dict[str, Any], sort_keys: bool = False) -> Path:
@@ -73,7 +76,7 @@ def _write(tmp_path: Path, data: dict[str, Any], sort_keys: bool = False) -> Pat
 
 def write_params(tmp_path: Path, train: dict[str, Any] | None = None, **defaults: Any) -> Path:
     """The repo's params.yaml with a small `train` section (and `defaults` overrides)."""
-    data = _repo_params()
+    data = repo_params()
     data["train"] = copy.deepcopy(train or TRAIN_PARAMS)
     data["train"]["defaults"].update(defaults)
     return _write(tmp_path, data)
@@ -81,7 +84,7 @@ def write_params(tmp_path: Path, train: dict[str, Any] | None = None, **defaults
 
 def write_ingest_params(tmp_path: Path, **ingest_values: object) -> Path:
     """The repo's params.yaml with `ingest_values` in its `ingest` section."""
-    data = _repo_params()
+    data = repo_params()
     data["ingest"].update(ingest_values)
     return _write(tmp_path, data, sort_keys=True)
 
@@ -89,7 +92,7 @@ def write_ingest_params(tmp_path: Path, **ingest_values: object) -> Path:
 def write_evaluate_params(tmp_path: Path, **evaluate: Any) -> Path:
     """The repo's params.yaml with two train groups (the leg sensor, the r_foot pair), `evaluate` values in
     its `evaluate` section and a 2 s zoom."""
-    data = _repo_params()
+    data = repo_params()
     data["train"] = copy.deepcopy(data["train"])
     data["train"]["groups"] = {LEG: {"sensor": LEG}, PAIR: {"pair": PAIR}}
     data["evaluate"].update(evaluate, zoom_s=2.0)
