@@ -23,7 +23,16 @@ from pipeline.physics.feet import robot_feet
 from pipeline.physics.robot import load_robot
 from tests.conftest import GRAVITY
 
-CFG = LabelParams(contact_on=0.04, contact_off=0.02, guard_s=0.01, zero_quantile=0.2, cut_max_sensors=4)
+CFG = LabelParams(
+    contact_on=0.04,
+    contact_off=0.02,
+    guard_s=0.01,
+    zero_quantile=0.2,
+    cut_max_sensors=4,
+    imu_check=None,
+    inertials="urdf",
+    identify=None,
+)
 G = np.array([0.0, 0.0, -GRAVITY])
 # (contacts, fixed link): on one sole, double support, on the pole, on the front of a foot (iCub 3)
 CASES = [({"r_sole"}, "r_sole"), ({"l_sole", "r_sole"}, "l_sole"), ({"root_link"}, "root_link")]

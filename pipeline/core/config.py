@@ -276,9 +276,9 @@ class LabelParams:
     guard_s: float  # s: half-width of the guard band around every contact change
     zero_quantile: float  # the foot's zero level is the median of its readings below this quantile
     cut_max_sensors: int  # cut sets (summed labels) of 2 to this many FT sensors; 1 = none
-    imu_check: Any = None  # label.imu_check: pipeline.labels.imu_params.ImuCheckParams (built there)
-    inertials: str = "urdf"  # the labels' inertial parameters: urdf or identified (checked in imu_params)
-    identify: Any = None  # label.identify: pipeline.labels.imu_params.IdentifyParams (built there)
+    imu_check: Any  # label.imu_check: pipeline.labels.imu_params.ImuCheckParams (built there)
+    inertials: str  # the labels' inertial parameters: urdf or identified (checked in imu_params)
+    identify: Any  # label.identify: pipeline.labels.imu_params.IdentifyParams (built there)
 
     def __post_init__(self) -> None:
         for name in ("contact_on", "contact_off", "guard_s", "zero_quantile"):

@@ -57,7 +57,7 @@ class EvaluateParams:
     target_nn7_over_oracle: float  # acceptance: NN7 RMSE / oracle RMSE at most this
     fidelity_tolerance: float  # a model whose virtual-push slope (pipeline.calib.fidelity) on any axis is
     # farther than this from 1 is flagged unfaithful and not recommended
-    memory_tolerance: float = 0.5  # a model with memory whose slope at a push's onset differs from its held
+    memory_tolerance: float  # a model with memory whose slope at a push's onset differs from its held
     # one by more than this (any axis, any scale) is flagged unfaithful: its memory stands in for the wrench
 
     def __post_init__(self) -> None:
