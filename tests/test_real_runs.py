@@ -118,39 +118,14 @@ def test_the_one_foot_run_deploys_a_faithful_model_and_its_page_says_why_it_is_a
     than the affine map with its cause (`_no_family_breaks_..._unnamed`)."""
     import json
 
-    if not ONE_FOOT.is_dir():
-        pytest.skip(f"{ONE_FOOT} absent (the real runs are not shipped with a clone)")
-    raw = tmp_path / "data" / "raw"
-    shutil.copytree(ONE_FOOT / "run41s", raw / "run41s")
-    segments = [
-        {"start_s": 24.0, "end_s": 35.0, "role": "train"},
-        {"start_s": 35.0, "end_s": 40.0, "role": "test"},
-    ]
-    side = {"type": "balancing", "robot": "iCubGenova02", "contacts": ["r_sole"], "segments": segments}
-    (raw / "run41s.yaml").write_text(yaml.safe_dump(side))
-    params = repo_params()
-    params["robot"]["urdf"] = "iCubGenova02"
-    params["ingest"]["fixed_joints"] = NECK
-    params["train"]["defaults"]["inputs"] = [6]
-    params["train"]["groups"] = {"r_foot_ft": {"sensor": "r_foot_ft", "n_trials": 1, "epochs": 2}}
-    (tmp_path / "params.yaml").write_text(yaml.safe_dump(params, sort_keys=False))
-    data, p = tmp_path / "data", ["--params", str(tmp_path / "params.yaml")]
-    models, reports = tmp_path / "models" / "r_foot_ft", tmp_path / "reports"
-    for step in (
-        ["ingest", raw, data / "ingested"],
-        ["smooth", data / "ingested", data / "smoothed"],
-        ["label", data / "smoothed", data / "labelled"],
-        ["train", "r_foot_ft", data / "labelled", models, "--studies", tmp_path / "optuna"],
-        ["evaluate", "r_foot_ft", models, data / "labelled", reports, "--smoothed", data / "smoothed"],
-    ):
-        assert main([str(a) for a in step] + p) == 0, step
+    reports, params = _one_foot_evaluated(tmp_path, "run41s", (24.0, 35.0, 40.0))
     report = json.loads((reports / "groups" / "r_foot_ft" / "report.json").read_text())
     assert report["recommended"] == "offset" and "affine" in report["unfaithful"], report["unfaithful"]
     errors = {m: v["rmse"] for m, v in report["tables"]["r_foot_ft"]["labels"].items()}
     assert errors["offset"] < 0.1 * errors["raw"]  # the factory offsets of 300 N removed
     why = report["held_out"]["r_foot_ft"]["why_not_lower"]
     assert "contradict the factory's gain" in why and "passed over as unfaithful" in why, why
-    _no_family_breaks_or_is_worse_than_the_affine_unnamed(reports, "r_foot_ft", tmp_path / "params.yaml")
+    _no_family_breaks_or_is_worse_than_the_affine_unnamed(reports, "r_foot_ft", params)
     _assert_ls_meets_the_reference(tmp_path, "r_foot_ft", "r_sole", "run41s__seg1")
 
 
@@ -159,34 +134,43 @@ def test_the_long_one_foot_run_s_least_squares_meets_an_independent_one(
 ) -> None:
     """run124s, on its right foot from about 36 to 115 s: trained on 40-95 s, held out 95-112 s; the deployed
     model at most the least squares' error there or the page saying why, no family breaking unnamed."""
+    reports, params = _one_foot_evaluated(tmp_path, "run124s", (40.0, 95.0, 112.0))
+    _assert_ls_meets_the_reference(tmp_path, "r_foot_ft", "r_sole", "run124s__seg1")
+    _no_family_breaks_or_is_worse_than_the_affine_unnamed(reports, "r_foot_ft", params)
+
+
+def _one_foot_evaluated(tmp_path: Path, run: str, cuts: tuple[float, float, float]) -> tuple[Path, Path]:
+    """One-foot run `run` (neck declared still) cut at `cuts` (s: train from the first to the second, test
+    to the third), its r_foot_ft ingested, smoothed, labelled, trained and evaluated in `tmp_path`:
+    (reports directory, params file). Skipped where ../shared is absent."""
     if not ONE_FOOT.is_dir():
         pytest.skip(f"{ONE_FOOT} absent (the real runs are not shipped with a clone)")
     raw = tmp_path / "data" / "raw"
-    shutil.copytree(ONE_FOOT / "run124s", raw / "run124s")
+    shutil.copytree(ONE_FOOT / run, raw / run)
+    start, split, end = cuts
     segments = [
-        {"start_s": 40.0, "end_s": 95.0, "role": "train"},
-        {"start_s": 95.0, "end_s": 112.0, "role": "test"},
+        {"start_s": start, "end_s": split, "role": "train"},
+        {"start_s": split, "end_s": end, "role": "test"},
     ]
     side = {"type": "balancing", "robot": "iCubGenova02", "contacts": ["r_sole"], "segments": segments}
-    (raw / "run124s.yaml").write_text(yaml.safe_dump(side))
+    (raw / f"{run}.yaml").write_text(yaml.safe_dump(side))
     params = repo_params()
     params["robot"]["urdf"] = "iCubGenova02"
     params["ingest"]["fixed_joints"] = NECK
     params["train"]["defaults"]["inputs"] = [6]
     params["train"]["groups"] = {"r_foot_ft": {"sensor": "r_foot_ft", "n_trials": 1, "epochs": 2}}
-    (tmp_path / "params.yaml").write_text(yaml.safe_dump(params, sort_keys=False))
-    data, p = tmp_path / "data", ["--params", str(tmp_path / "params.yaml")]
+    path = tmp_path / "params.yaml"
+    path.write_text(yaml.safe_dump(params, sort_keys=False))
+    data, models, reports = tmp_path / "data", tmp_path / "models" / "r_foot_ft", tmp_path / "reports"
     for step in (
         ["ingest", raw, data / "ingested"],
         ["smooth", data / "ingested", data / "smoothed"],
         ["label", data / "smoothed", data / "labelled"],
-        ["train", "r_foot_ft", data / "labelled", tmp_path / "models" / "r_foot_ft", "--studies", data / "o"],
-        ["evaluate", "r_foot_ft", tmp_path / "models" / "r_foot_ft", data / "labelled", tmp_path / "reports"]
-        + ["--smoothed", data / "smoothed"],
+        ["train", "r_foot_ft", data / "labelled", models, "--studies", tmp_path / "optuna"],
+        ["evaluate", "r_foot_ft", models, data / "labelled", reports, "--smoothed", data / "smoothed"],
     ):
-        assert main([str(a) for a in step] + p) == 0, step
-    _assert_ls_meets_the_reference(tmp_path, "r_foot_ft", "r_sole", "run124s__seg1")
-    _no_family_breaks_or_is_worse_than_the_affine_unnamed(tmp_path / "reports", "r_foot_ft", p[1])
+        assert main([str(a) for a in step] + ["--params", str(path)]) == 0, step
+    return reports, path
 
 
 @pytest.mark.parametrize("neck", ["declared still", "not declared"])
