@@ -30,7 +30,8 @@ def decisions(params_path: Path, group: str, labelled: Path, studies: Path) -> d
     one_thread()  # as the stage
     fitted = fit_models(params, prep, studies, ProgressLog(False))
     nets = {}
-    for name, r in fitted.nets.items():
+    searched = {n: m.result for n, m in fitted.models.items() if getattr(m, "result", None) is not None}
+    for name, r in searched.items():
         weights = hashlib.sha256(b"".join(v.numpy().tobytes() for v in r.model.state_dict().values()))
         nets[name] = {
             "trials": [

@@ -146,7 +146,7 @@ STAGES = {  # command -> (its inputs and argv, the function its forked jobs call
         "pipeline.deploy.prepare._prepare_one",
         scipy_error,
     ),
-    "train": (_train, "pipeline.calib.run.search_network", pinocchio_error),
+    "train": (_train, "pipeline.calib.search.search_network", pinocchio_error),
     "evaluate": (_evaluate, "pipeline.evaluation.results.noise_check", scipy_error),
 }
 

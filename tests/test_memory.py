@@ -15,7 +15,7 @@ import pytest
 from pipeline.calib.fidelity import memory_gaps, model_fidelity
 from pipeline.calib.linear import fit_linear_baseline
 from pipeline.calib.pushes import PushPrior
-from pipeline.calib.registry import FAMILIES, complexity, family_of, has_memory, kind_of, nn_name, poly_name
+from pipeline.calib.registry import complexity, families, family_of, has_memory, kind_of, nn_name, poly_name
 from pipeline.core.errors import DataError
 from pipeline.core.play import play_memory, play_operator
 from pipeline.evaluation.fidelity import unfaithful
@@ -138,7 +138,8 @@ def test_registry_names_every_family_once() -> None:
     assert [kind_of(n) for n in names] == ["identity"] + ["linear"] * 5 + ["network"] * 2 + ["window"]
     assert [n for n in names if has_memory(n)] == ["play", "arx", "win"]
     assert family_of("oracle") is None and family_of("poly") is None and family_of("nnx") is None
-    assert len({f.key for f in FAMILIES}) == len(FAMILIES)
+    assert len({f.key for f in families()}) == len(families())
+    assert len({f.rank for f in families()}) == len(families())
 
 
 def test_export_of_an_unknown_model_names_the_families(tmp_path: Path) -> None:

@@ -564,14 +564,15 @@ def test_prior_holds_a_sensor_without_its_own_label_near_the_affine_map(
     keeps its output at the affine map's; without it the network moves freely there."""
     from dataclasses import replace
 
-    from pipeline.calib.fit import fit_baselines, prepare
+    from pipeline.calib.fit import prepare
+    from pipeline.calib.fitting import fit_affine
     from pipeline.calib.training import NetSetting, predict
 
     train = copy.deepcopy(TRAIN_PARAMS)
     train["groups"] = {"shank": {"sensors": [LEG, FRONT, REAR], "inputs": [7], "epochs": 4, "lr": 0.03}}
     params = load_params(write_params(tmp_path, train))
     prep = prepare(params, "shank", labelled)
-    affine = fit_baselines(prep.gp, prep.group, prep.train, prep.seed)["affine"]
+    affine = fit_affine(prep.gp, prep.group, prep.train, prep.seed)
     free = ~prep.train.switches[:, 0]
     assert free.sum() > 50
     gaps, models = {}, {}

@@ -14,20 +14,16 @@ optimistic there; the other folds' are not.
 
 from __future__ import annotations
 
-import time
 from collections.abc import Mapping
-from functools import partial
 from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
 from pipeline.calib.data import GroupData, group_errors
-from pipeline.calib.linear import LinearBaseline
-from pipeline.calib.models import WRENCH
+from pipeline.calib.families.base import Task, Trained
+from pipeline.calib.fitting import fit_fold
 from pipeline.calib.params import fold_spread, select_by_folds, selection_steps
-from pipeline.calib.registry import RAW, WIN, complexity, patterns
-from pipeline.calib.training import NetSetting, one_thread, predict, train_network
-from pipeline.calib.window import fit_windowed, window_memory
+from pipeline.calib.registry import complexity, patterns
 from pipeline.core.progress import ProgressLog
 
 # How far apart a network's fold errors land between two trainings whose inputs differ beyond their last
@@ -38,58 +34,32 @@ CLOSE = 0.025
 
 if TYPE_CHECKING:
     from pipeline.calib.fit import Prepared
-    from pipeline.calib.search import NetResult
 
 
 def _fold_predictions(
-    prep: Prepared, nets: Mapping[str, NetResult], k: int, train: GroupData, val: GroupData, ui: ProgressLog
+    prep: Prepared, first: Mapping[str, Trained], k: int, train: GroupData, val: GroupData, ui: ProgressLog
 ) -> dict[str, np.ndarray]:
-    """Predictions (N, S, 6) on fold `k`'s validation samples of every model refitted on its training ones."""
-    from pipeline.calib.fit import fit_beside
-
-    gp, group = prep.gp, prep.group
-    names = list(nets)
-
-    def fit(name: str, start: LinearBaseline) -> tuple[np.ndarray, list[dict[str, float]], float]:
-        r, t = nets[name], time.perf_counter()
-        one_thread()
-        setting = NetSetting.of(gp, r.model.config.n_inputs, r.values)
-        model, history = train_network(group, train, val, setting, r.seed, None, start)
-        return predict(model, val), history, time.perf_counter() - t
-
-    # the networks of a fold are independent: one process per core (the same bits as one by one), the
-    # polynomial baselines fitted beside them
-    jobs, labels = [partial(fit, n) for n in names], [f"{n} fold {k + 1}" for n in names]
-    baselines, fits, _ = fit_beside(gp, group, train, prep.seed, jobs, labels)
-    preds = {RAW: val.x[:, :, :WRENCH].copy()}
-    preds.update({name: model.predict(val.x, val.memory) for name, model in baselines.items()})
-    window = fit_windowed(gp, group, train, val, baselines, prep.seed)
-    if window is not None:
-        pred = window.model.predict(val.x, window_memory(window.model.base, val))
-        names, fits = [*names, WIN], [*fits, (pred, window.history, window.seconds)]
-    for name, (pred, history, seconds) in zip(names, fits, strict=True):
-        preds[name] = pred
-        best = min(history, key=lambda h: h["val_rmse"])
-        ui.line(
-            f"{group.name} fold {k + 1}: {name} val RMSE {best['val_rmse']:.4g} "
-            f"(epoch {int(best['epoch']) + 1}) {seconds:.1f} s"
-        )
-    return preds
+    """Predictions (N, S, 6) on fold `k`'s validation samples of every model refitted on its training ones
+    (each family from fold 0's models `first`: the networks with their searches' hyperparameters)."""
+    task = Task(prep.gp, prep.group, train, val, prep.seed, fold=k, first=first)
+    models, _ = fit_fold(task, ui)
+    return {name: model.predict(val) for name, model in models.items()}
 
 
 def cross_validate(
     prep: Prepared,
     val_preds: Mapping[str, np.ndarray],
-    nets: Mapping[str, NetResult],
+    first: Mapping[str, Trained],
     margin: float,
     ui: ProgressLog,
 ) -> dict[str, Any]:
     """The ``cv`` entry of metrics.json: folds (their train/val logs), per-fold scores of every model,
-    mean and spread, the rule and the model it chooses. `val_preds`: fold 0's validation predictions."""
+    mean and spread, the rule and the model it chooses. `val_preds`: fold 0's validation predictions of its
+    models `first`."""
     group = prep.group
     scores = {m: [group_errors(group, prep.val, p)["rmse_labelled"]] for m, p in val_preds.items()}
     for k, (train, val) in enumerate(prep.folds, start=1):
-        preds = _fold_predictions(prep, nets, k, train, val, ui)
+        preds = _fold_predictions(prep, first, k, train, val, ui)
         for m in scores:
             scores[m].append(group_errors(group, val, preds[m])["rmse_labelled"])
     scores = {m: scores[m] for m in sorted(scores, key=complexity)}

@@ -1,12 +1,18 @@
-"""The model families of ftcal: one entry each, where training, scoring, export, the deployment tests and the
-pages find a family by the name of one of its models.
+"""The model families of ftcal, where training, scoring, export, the deployment tests and the pages find a
+family by the name of one of its models.
+
+A family is one module of `pipeline.calib.families` holding a ``FAMILY`` (a `Family`: its key, rank, kind,
+name, colours, and the hooks that fit, predict, cross-validate, save, read and export it); a family defined
+elsewhere (a lab's own, a test's) joins with `register`. Nothing else names a family: training
+(`pipeline.calib.fitting`), selection, scoring, the export, the deployment tests and the pages iterate
+`families()`.
 
 A model's name is its family's key, followed for a numbered family by its number: ``raw``, ``offset`` (the
 factory map with a constant correction: what a re-zeroing does), ``affine``,
 ``poly2`` (a polynomial of order 2), ``play`` (the affine map with play-operator features of the raw
 wrench: memory), ``arx`` (the affine map with low-pass departures of the raw wrench: memory), ``nn7`` (a
 network of 7 inputs per sensor), ``win`` (a network over a causal window of the raw wrench correcting the play
-model: memory). The families, simplest first (the order in which cross-validation walks
+model: memory). The built-in families, simplest first (the order in which cross-validation walks
 them, `pipeline.calib.params.select_by_folds`):
 
 | family | kind | memory | fitted by | exported as |
@@ -32,72 +38,77 @@ Light on purpose (no torch, no onnx): params and pages import it.
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+import importlib
+import pkgutil
 
-IDENTITY, LINEAR, NETWORK, WINDOW = "identity", "linear", "network", "window"
-KINDS = (IDENTITY, LINEAR, NETWORK, WINDOW)
+from pipeline.calib.families.base import IDENTITY, KINDS, LINEAR, NETWORK, WINDOW, Family
 
-
-@dataclass(frozen=True)
-class Family:
-    """One family of models."""
-
-    key: str  # the name of its model, or of every model with a number after it (numbered)
-    rank: int  # complexity: cross-validation prefers a lower rank unless a higher one wins by the margin
-    kind: str  # IDENTITY (the raw wrench), LINEAR (closed-form, baselines.json), NETWORK (nn<k>.json + .pt),
-    # WINDOW (win.json: the play model and its networks' weights)
-    memory: bool  # calibrates from a state carried over the past samples as well as the present ones
-    numbered: bool  # its names end in a number: poly<order>, nn<inputs per sensor>
-    title: str  # what the pages and the manifest say it is
-    colour: str  # its figure colour (the same in every figure) ...
-    colours: tuple[tuple[int, str], ...] = ()  # ... or, per number of a numbered family, another
-
-    def name(self, number: int | None = None) -> str:
-        """The name of a model of this family (`number`: a numbered family's order or inputs)."""
-        if self.numbered != (number is not None):
-            raise ValueError(f"{self.key}: {'a number is needed' if self.numbered else 'takes no number'}")
-        return self.key if number is None else f"{self.key}{number}"
-
-
-FAMILIES = (
-    Family("raw", 0, IDENTITY, False, False, "the factory map (the raw wrench)", "#8c8c8c"),
-    Family("offset", 1, LINEAR, False, False, "the factory map and a constant offset (least squares: the "
-           "factory's gains kept, as a re-zeroing does)", "#393b79"),
-    Family("affine", 2, LINEAR, False, False, "affine map with temperature (least squares)", "#bcbd22"),
-    Family("poly", 3, LINEAR, False, True, "polynomial of wrench and temperature (ridge)", "#c8553d",
-           ((1, "#d9b36c"), (2, "#e0894a"), (3, "#c8553d"), (4, "#8c2d04"))),
-    Family("play", 4, LINEAR, True, False, "affine map and play operators of the raw wrench (memory: "
-           "hysteresis)", "#9467bd"),
-    Family("arx", 5, LINEAR, True, False, "affine map and low-pass departures of the raw wrench (memory: a "
-           "lagged linear map, ARX with fixed poles)", "#17becf"),
-    Family("nn", 6, NETWORK, False, True, "neural network (a Lipschitz-bounded correction of the affine map)",
-           "#1f77b4", ((13, "#d62728"),)),
-    Family("win", 7, WINDOW, True, False, "windowed network (a Lipschitz-bounded correction of the play "
-           "model over a causal window of the raw wrench: memory)", "#8c564b"),
-)  # fmt: skip
-BY_KEY = {f.key: f for f in FAMILIES}
-RAW, OFFSET, AFFINE, POLY, PLAY, ARX, NN, WIN = (f.key for f in FAMILIES)
+__all__ = ["IDENTITY", "KINDS", "LINEAR", "NETWORK", "WINDOW", "Family"]
+PACKAGE = "pipeline.calib.families"  # every module of it with a FAMILY is a family
+RAW, OFFSET, AFFINE, POLY, PLAY, ARX, NN, WIN = "raw", "offset", "affine", "poly", "play", "arx", "nn", "win"
 OTHER_COLOUR = "#7f7f7f"  # a name of no family (the oracle and the labels have their own colours)
+_REGISTERED: dict[str, Family] = {}
+_FOUND: dict[str, Family] = {}
+
+
+def _found() -> dict[str, Family]:
+    """The families of `PACKAGE`'s modules, imported once."""
+    if not _FOUND:
+        package = importlib.import_module(PACKAGE)
+        for info in pkgutil.iter_modules(package.__path__):
+            family = getattr(importlib.import_module(f"{PACKAGE}.{info.name}"), "FAMILY", None)
+            if isinstance(family, Family):
+                _FOUND[family.key] = family
+    return _FOUND
+
+
+def families() -> list[Family]:
+    """Every family, simplest first (by rank): the built-in ones and those `register`-ed."""
+    return sorted({**_found(), **_REGISTERED}.values(), key=lambda f: (f.rank, f.key))
+
+
+def register(family: Family) -> Family:
+    """Add `family` (or replace the one of its key) for this process: training, selection, scoring, the
+    export, the deployment tests and the pages find it from now on. Returns it."""
+    if not family.key.isidentifier() or family.key[-1].isdigit():
+        raise ValueError(f"{family.key!r}: a family's key is a name that does not end in a digit")
+    if family.kind not in KINDS:
+        raise ValueError(f"{family.key}: kind {family.kind!r} is not one of {', '.join(KINDS)}")
+    clash = [f.key for f in families() if f.key != family.key and f.rank == family.rank]
+    if clash:
+        raise ValueError(f"{family.key}: rank {family.rank} is {clash[0]}'s")
+    _REGISTERED[family.key] = family
+    return family
+
+
+def unregister(key: str) -> None:
+    """Forget a `register`-ed family (a built-in one stays)."""
+    _REGISTERED.pop(key, None)
+
+
+def by_key(key: str) -> Family:
+    """The family of `key` (KeyError: none)."""
+    return {f.key: f for f in families()}[key]
 
 
 def nn_name(n_inputs: int) -> str:
     """The network with `n_inputs` inputs per sensor: nn7, nn13."""
-    return BY_KEY[NN].name(n_inputs)
+    return by_key(NN).name(n_inputs)
 
 
 def poly_name(order: int) -> str:
     """The polynomial of `order`: poly2, ..."""
-    return BY_KEY[POLY].name(order)
+    return by_key(POLY).name(order)
 
 
 def patterns() -> list[str]:
     """Every family's model name, simplest first: raw, affine, poly<n>, play, arx, nn<n>, win."""
-    return [f"{f.key}<n>" if f.numbered else f.key for f in sorted(FAMILIES, key=lambda f: f.rank)]
+    return [f"{f.key}<n>" if f.numbered else f.key for f in families()]
 
 
 def family_of(name: str) -> Family | None:
     """The family of model `name` (None: not a model of any family, e.g. ``oracle``)."""
-    for family in FAMILIES:
+    for family in families():
         if family.numbered:
             tail = name[len(family.key) :]
             if name.startswith(family.key) and tail.isdigit():
@@ -113,12 +124,12 @@ def number_of(name: str) -> int | None:
     return int(name[len(family.key) :]) if family is not None and family.numbered else None
 
 
-def complexity(name: str) -> tuple[int, int]:
+def complexity(name: str) -> tuple[float, int]:
     """Sort key, simplest first: the family's rank, then its number (poly1 < poly4, nn7 < nn13); a name of
     no family last."""
     family = family_of(name)
     if family is None:
-        return (len(FAMILIES), 0)
+        return (float("inf"), 0)
     return (family.rank, number_of(name) or 0)
 
 

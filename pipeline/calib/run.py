@@ -7,7 +7,6 @@ from __future__ import annotations
 
 import time
 from dataclasses import asdict, dataclass, field
-from functools import partial
 from pathlib import Path
 from typing import Any
 
@@ -18,26 +17,17 @@ from pipeline.calib.crossval import cross_validate
 from pipeline.calib.data import concat
 from pipeline.calib.exact import NOT_CALIBRATED, NotCalibrated, not_calibrated_record
 from pipeline.calib.excitation import group_excitation
+from pipeline.calib.families.base import Family, Saving, Search, Task, Trained
 from pipeline.calib.fidelity import group_fidelity
-from pipeline.calib.fit import (
-    Prepared,
-    fit_beside,
-    fit_plain_affine,
-    mlflow_metrics,
-    network_info,
-    prepare,
-    score,
-)
+from pipeline.calib.fit import Prepared, mlflow_metrics, prepare, score
+from pipeline.calib.fitting import fit_fold, fit_plain_affine, training
 from pipeline.calib.linear import LinearBaseline
 from pipeline.calib.memory import describe
-from pipeline.calib.models import WRENCH, save_model
 from pipeline.calib.params import LS_AFFINE
-from pipeline.calib.records import TrainResult, log_network, log_trial_run, write_predictions
-from pipeline.calib.registry import RAW, WIN, nn_name
-from pipeline.calib.search import NetResult, code_digest, data_digest, search_network
-from pipeline.calib.studies import open_storage, storage_url
-from pipeline.calib.training import flat_inputs, one_thread, predict, predict_inputs
-from pipeline.calib.window import WindowFit, fit_windowed, window_memory
+from pipeline.calib.records import TrainResult, write_predictions
+from pipeline.calib.search import code_digest, data_digest
+from pipeline.calib.studies import storage_url
+from pipeline.calib.training import one_thread
 from pipeline.core.config import Params
 from pipeline.core.io import write_json
 from pipeline.core.progress import ProgressLog
@@ -45,14 +35,14 @@ from pipeline.core.progress import ProgressLog
 
 @dataclass
 class Fitted:
-    """Every model of a group with its validation and test predictions (N, S, 6) and timings (s)."""
+    """Every model of a group (fold 0, in the families' order) with its validation and test predictions
+    (N, S, 6) and timings (s)."""
 
-    baselines: dict[str, LinearBaseline]
-    nets: dict[str, NetResult]
+    models: dict[str, Trained]
     preds: dict[str, dict[str, np.ndarray]]  # split (val, test) -> model -> predictions
     timings: dict[str, float] = field(default_factory=dict)
     cv: dict[str, Any] = field(default_factory=dict)  # `pipeline.calib.crossval.cross_validate`
-    window: WindowFit | None = None  # the windowed network, where the group trains one
+    reference: LinearBaseline | None = None  # recorded logs: the plain least-squares affine map (LS_AFFINE)
 
 
 def study_identity(params: Params, prep: Prepared) -> dict[str, Any]:
@@ -69,112 +59,71 @@ def study_identity(params: Params, prep: Prepared) -> dict[str, Any]:
 
 
 def fit_models(params: Params, prep: Prepared, studies: Path, ui: ProgressLog) -> Fitted:
-    """The baselines, the Optuna search of every network size of the group (studies in a journal under
-    `studies`, or in the database of ``train.storage``) and the cross-validation; nothing logged (the
-    trials are logged to MLflow by `write_outputs`)."""
-    gp, group = prep.gp, prep.group
-    data = {"val": prep.val, "test": prep.test}
-    fitted = Fitted({}, {}, {k: {RAW: d.x[:, :, :WRENCH].copy()} for k, d in data.items()})
-    identity = study_identity(params, prep)
+    """Every family's models of the group on fold 0 (`pipeline.calib.fitting.fit_fold`: the networks'
+    Optuna searches with their studies in a journal under `studies`, or in the database of
+    ``train.storage``), then the cross-validation; nothing logged (`write_outputs` logs)."""
     url = storage_url(prep.cfg.storage)
-    # the networks' searches are independent: one forked process per core (`forked_map`, the same bits as
-    # one after the other), each with its own connection to the studies, the polynomial baselines fitted
-    # beside them
     quiet = ProgressLog(ui.enabled)  # lines, no bars, from a forked search
-
-    def search(n_inputs: int, start: LinearBaseline) -> NetResult:
-        one_thread()
-        storage = open_storage(url, studies, prep.cfg.heartbeat)
-        return search_network(
-            gp, group, prep.train, prep.val, n_inputs, params.seed, storage, identity, quiet, None, start
-        )
-
-    jobs = [partial(search, n) for n in gp.inputs]
-    labels = [f"search of the {n}-input network" for n in gp.inputs]
-    fitted.baselines, searches, seconds = fit_beside(gp, group, prep.train, prep.seed, jobs, labels)
-    t = time.perf_counter()
-    for name, model in fitted.baselines.items():
-        for k, d in data.items():
-            fitted.preds[k][name] = model.predict(d.x, d.memory)
-    fitted.timings["baselines"] = seconds + time.perf_counter() - t
-    ui.line(f"{group.name}: baselines fitted on {len(prep.train)} samples in {seconds:.1f} s")
+    search = Search(params.seed, url, studies, prep.cfg.heartbeat, study_identity(params, prep), quiet)
+    task = Task(prep.gp, prep.group, prep.train, prep.val, prep.seed, search=search)
     if prep.memory:
-        ui.line(describe(group.name, prep.memory))
-    fitted.window = fit_windowed(gp, group, prep.train, prep.val, fitted.baselines, prep.seed)
-    if fitted.window is not None:
-        model, fitted.timings[WIN] = fitted.window.model, fitted.window.seconds
-        for k, d in data.items():
-            fitted.preds[k][WIN] = model.predict(d.x, window_memory(model.base, d))
-        info = fitted.window.info()
-        ui.line(
-            f"{group.name}: windowed network val RMSE {info['val_rmse_labelled']:.4g} (epoch "
-            f"{info['best_epoch'] + 1}) {fitted.timings[WIN]:.1f} s"
-        )
-    for n_inputs, result in zip(gp.inputs, searches, strict=True):
-        name = nn_name(n_inputs)
-        t = time.perf_counter()
-        fitted.nets[name] = result
-        for k, d in data.items():
-            fitted.preds[k][name] = predict(result.model, d)
-        fitted.timings[name] = result.seconds + time.perf_counter() - t
+        ui.line(describe(prep.group.name, prep.memory))
+    models, timings = fit_fold(task, ui)
+    data = {"val": prep.val, "test": prep.test}
     t = time.perf_counter()
-    fitted.cv = cross_validate(prep, fitted.preds["val"], fitted.nets, prep.cfg.selection_margin, ui)
+    preds = {k: {name: m.predict(d) for name, m in models.items()} for k, d in data.items()}
+    fitted = Fitted(models, preds, {**timings, "predictions": time.perf_counter() - t})
+    ui.line(f"{prep.group.name}: {len(models)} models fitted on {len(prep.train)} samples")
+    t = time.perf_counter()
+    fitted.cv = cross_validate(prep, fitted.preds["val"], models, prep.cfg.selection_margin, ui)
     fitted.timings["cross_validation"] = time.perf_counter() - t
     if prep.recorded:  # no truth: the plain least-squares affine map beside the models, never a candidate
         every = concat([prep.train, prep.val])  # a lab's script fits on all its training data: no selection
-        plain = fit_plain_affine(gp, group, every.subset(every.labelled()), prep.seed)
-        fitted.baselines[LS_AFFINE] = plain
+        gp, group = prep.gp, prep.group
+        fitted.reference = fit_plain_affine(gp, group, every.subset(every.labelled()), prep.seed)
         for k, d in data.items():
-            fitted.preds[k][LS_AFFINE] = plain.predict(d.x)
+            fitted.preds[k][LS_AFFINE] = fitted.reference.predict(d.x)
     return fitted
 
 
 def write_outputs(prep: Prepared, fitted: Fitted, out: Path, run_id: str, t0: float) -> TrainResult:
-    """Write `out` (metrics.json, networks, baselines.json, predictions.parquet) and log to MLflow."""
+    """Write `out` (metrics.json, each family's files, baselines.json, predictions.parquet) and log to
+    MLflow."""
     import mlflow
 
     group, timings = prep.group, fitted.timings
-    metrics = score(prep, fitted.preds, fitted.nets, fitted.cv)
+    metrics = score(prep, fitted.preds, fitted.cv)
+    by_family = _by_family(prep, fitted.models)
+    for family, models in by_family:
+        metrics.update(family.record(models, prep.gp))
     metrics["excitation"] = group_excitation(
         group.sensors, prep.train.x, prep.train.labels, prep.train.switches, prep.train.log, prep.train.stamp
     )
-    predictors = {RAW: (lambda x: x[:, :, :WRENCH].copy(), 7)}
-    predictors.update({name: (b.predict, 7) for name, b in fitted.baselines.items()})
-    memory = {name: prep.val.memory for name, b in fitted.baselines.items() if b.memory}
-    for name, r in fitted.nets.items():
-        predictors[name] = (lambda x, m=r.model: predict_inputs(m, x), r.model.config.n_inputs)
-    if fitted.window is not None:
-        predictors[WIN] = (fitted.window.model.predict, 7)
-        memory[WIN] = window_memory(fitted.window.model.base, prep.val)
+    predictors, memory = {}, {}
+    for name, m in fitted.models.items():
+        predict, state = m.fidelity(prep.val)
+        predictors[name] = (predict, m.n_inputs)
+        if state is not None:
+            memory[name] = state
+    if fitted.reference is not None:
+        predictors[LS_AFFINE] = (fitted.reference.predict, 7)
     # on the validation samples' inputs only (no label, no truth): what selection may look at
     metrics["fidelity"] = group_fidelity(predictors, prep.val.x, list(group.sensors), prep.gp.push, memory)
     out.mkdir(parents=True, exist_ok=True)
-    files = ["metrics.json", "baselines.json", "predictions.parquet"]
     example = prep.test.subset(np.arange(min(5, len(prep.test))))
-    versions: dict[str, dict[str, str]] = {}
-    for name, r in fitted.nets.items():
-        info = network_info(prep, r, metrics, name)
-        save_model(out / name, r.model, info)
-        files += [f"{name}.json", f"{name}.pt"]
-        t = time.perf_counter()
-        log = log_trial_run(group.name, name)
-        for record in r.trials:
-            log(*record)
-        columns = {k: info[k] for k in ("group", "sensors", "input_columns", "output_columns")}
-        x = flat_inputs(example, r.model.config.n_inputs)
-        versions[name] = log_network(group, name, r.model, x, columns)
-        timings[f"log_{name}"] = time.perf_counter() - t
-    write_json(out / "baselines.json", {name: b.to_dict() for name, b in fitted.baselines.items()})
-    if fitted.window is not None:
-        write_json(out / f"{WIN}.json", fitted.window.model.to_dict())
-        files.append(f"{WIN}.json")
-        metrics["windowed"] = fitted.window.info()
+    saving = Saving(out, group, example, metrics, timings=timings)
+    for family, models in by_family:
+        family.save(saving, models)
+    if fitted.reference is not None:
+        saving.baselines[LS_AFFINE] = fitted.reference.to_dict()
+    write_json(out / "baselines.json", saving.baselines)
+    files = ["metrics.json", "baselines.json", "predictions.parquet", *saving.files]
     write_predictions(out / "predictions.parquet", group, prep.test, prep.log_names, fitted.preds["test"])
     timings["total"] = time.perf_counter() - t0
     metrics["seconds"] = timings
     metrics["notes"] = prep.notes  # e.g. a network not trained, and why
     # how evaluate finds this run and the registered networks (by id, never by matching values)
-    metrics["mlflow"] = {"run_id": run_id, "models": versions}
+    metrics["mlflow"] = {"run_id": run_id, "models": saving.versions}
     write_json(out / "metrics.json", metrics)
     mlflow.log_metrics(mlflow_metrics(group, metrics))
     mlflow.set_tag("best_on_validation", metrics["best_on_validation"])
@@ -183,6 +132,16 @@ def write_outputs(prep: Prepared, fitted: Fitted, out: Path, run_id: str, t0: fl
     for name in ("metrics.json", "baselines.json"):
         mlflow.log_artifact(str(out / name))
     return TrainResult(group.name, metrics, time.perf_counter() - t0, run_id, files)
+
+
+def _by_family(prep: Prepared, models: dict[str, Trained]) -> list[tuple[Family, dict[str, Trained]]]:
+    """(family, its models) of every family that trained for the group, simplest first."""
+    out = []
+    for family in training(prep.gp, prep.group):
+        own = {n: models[n] for n in family.names(prep.gp, prep.group) if n in models}
+        if own:
+            out.append((family, own))
+    return out
 
 
 def write_not_calibrated(group: str, exc: NotCalibrated, out: Path, t0: float) -> TrainResult:

@@ -32,15 +32,14 @@ def _inputs(table: pd.DataFrame, sensors: list[str], n: int) -> np.ndarray:
 
 
 def group_models(model_dir: Path) -> tuple[list[str], dict[str, Predictor]]:
-    """(the group's sensors, model name -> predictor) of a train output directory ``models/<group>``: its
-    networks (a family of kind network, `pipeline.calib.registry`), every linear model of baselines.json and
-    the windowed network (win.json).
+    """(the group's sensors, model name -> predictor) of a train output directory ``models/<group>``: every
+    model it trained that its family can run (`pipeline.calib.families.base.Family.loaded`; raw has none),
+    and the plain least-squares affine map where the group has one.
     A predictor takes one log's table, its rows in time order (a model with memory starts afresh at the
     first)."""
-    from pipeline.calib.linear import LinearBaseline
-    from pipeline.calib.models import load_model
-    from pipeline.calib.registry import NETWORK, WIN, kind_of
-    from pipeline.calib.window import read_window
+    from pipeline.calib.families.closed_form import read_baseline
+    from pipeline.calib.params import LS_AFFINE
+    from pipeline.calib.registry import family_of
 
     try:
         metrics = json.loads((model_dir / "metrics.json").read_text(encoding="utf-8"))
@@ -48,43 +47,23 @@ def group_models(model_dir: Path) -> tuple[list[str], dict[str, Predictor]]:
     except (OSError, ValueError, KeyError) as exc:
         raise DataError(f"{model_dir}/metrics.json: not a trained group: {exc}") from None
     out: dict[str, Predictor] = {}
-    for file in sorted(model_dir.glob("*.json")):
-        if kind_of(file.stem) == NETWORK:
-            net, config = load_model(file.with_suffix(""))
-            out[file.stem] = _net_predictor(net, sensors, int(config["net"]["n_inputs"]))
-    baselines = model_dir / "baselines.json"
-    if baselines.is_file():
-        for name, d in json.loads(baselines.read_text(encoding="utf-8")).items():
-            out[name] = _log_predictor(LinearBaseline.from_dict(d), sensors)
-    window = model_dir / f"{WIN}.json"
-    if window.is_file():
-        out[WIN] = _log_predictor(read_window(window), sensors)
+    for name in metrics.get("test") or {}:
+        family = family_of(name)
+        if name == LS_AFFINE:
+            out[name] = _predictor(read_baseline(model_dir, name).predict_log, 7, sensors)
+        elif family is not None and (loaded := family.loaded(model_dir, name, sensors)) is not None:
+            out[name] = _predictor(*loaded, sensors)
     return sensors, out
 
 
-def _net_predictor(net, sensors: list[str], n: int) -> Predictor:
-    def predict(table: pd.DataFrame) -> dict[str, np.ndarray]:
-        import torch
+def _predictor(predict: Callable[[np.ndarray], np.ndarray], n: int, sensors: list[str]) -> Predictor:
+    """A model's predictor over one log's table: its `n` inputs per sensor -> sensor -> (N, 6) wrench."""
 
-        x = _inputs(table, sensors, n)
-        bad = ~np.isfinite(x).all(axis=(1, 2))
-        with torch.no_grad():
-            y = net(torch.as_tensor(np.nan_to_num(x).reshape(len(x), -1), dtype=torch.float32)).numpy()
-        y = y.astype(np.float64).reshape(len(x), len(sensors), 6)
-        y[bad] = np.nan
+    def run(table: pd.DataFrame) -> dict[str, np.ndarray]:
+        y = predict(_inputs(table, sensors, n))
         return {s: y[:, i] for i, s in enumerate(sensors)}
 
-    return predict
-
-
-def _log_predictor(model, sensors: list[str]) -> Predictor:
-    """A model with `predict_log` (a linear model, the windowed network) over one log's rows."""
-
-    def predict(table: pd.DataFrame) -> dict[str, np.ndarray]:
-        y = model.predict_log(_inputs(table, sensors, 7))
-        return {s: y[:, i] for i, s in enumerate(sensors)}
-
-    return predict
+    return run
 
 
 def deployed_models(exported: Path) -> dict[str, str]:

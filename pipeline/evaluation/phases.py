@@ -25,7 +25,7 @@ from typing import Any
 
 import numpy as np
 
-from pipeline.calib.registry import AFFINE, ARX, NN, PLAY, POLY, RAW, WIN, complexity, in_family
+from pipeline.calib.registry import complexity, families, in_family
 from pipeline.evaluation.params import ORACLE
 
 SINGLE, DOUBLE, POLE, AIR, OTHER = "single", "double", "pole", "air", "other"
@@ -104,12 +104,19 @@ def phases_of(contacts: np.ndarray, feet: Mapping[str, Foot]) -> np.ndarray:
 
 
 def phase_models(models: Sequence[str], ranking: Sequence[str], recommended: str | None) -> list[str]:
-    """The models of the phase tables, in order: raw, affine, the polynomial ranked best on validation,
-    play and arx (memory), the networks (6, 7, 13 inputs), the windowed network, the recommended model, the
-    oracle (those the group has, each once)."""
-    polys = [m for m in ranking if in_family(m, POLY) and m in models]
-    nets = sorted((m for m in models if in_family(m, NN)), key=complexity)
-    wanted = [RAW, AFFINE, *polys[:1], PLAY, ARX, *nets, WIN, recommended or "", ORACLE]
+    """The models of the phase tables, in order: every family's models simplest first (of a family shown
+    by its best on validation, `Family.one_on_tables`, the polynomials: that one; a family not
+    `Family.on_tables`, the offset, left out), then the recommended model and the oracle (those the group
+    has, each once)."""
+    wanted = []
+    for family in families():
+        own = [m for m in models if in_family(m, family.key)]
+        if not family.on_tables:
+            continue
+        if family.one_on_tables:
+            own = [m for m in ranking if m in own][:1]
+        wanted += sorted(own, key=complexity)
+    wanted += [recommended or "", ORACLE]
     return [m for m in dict.fromkeys(wanted) if m in models]
 
 

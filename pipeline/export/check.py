@@ -25,7 +25,7 @@ from typing import Any
 
 import numpy as np
 
-from pipeline.calib.registry import NETWORK
+from pipeline.calib.registry import family_of
 from pipeline.core.errors import DataError
 from pipeline.export.trained import PREDICTIONS_FILE, WRENCH, GroupModel, prediction_columns
 
@@ -162,12 +162,16 @@ def load_samples(model_dir: Path, model: GroupModel, labelled_dir: Path) -> Samp
     stored = frame[stored_cols].to_numpy(np.float64)
     if not model.memory:
         rounded = x.astype(np.float32).astype(np.float64)
-        return Samples(
-            x, stored, stored if model.kind == NETWORK else model.reference(rounded), model.reference(x)
-        )
+        return Samples(x, stored, stored if _float32(model) else model.reference(rounded), model.reference(x))
     keys = frame[[S.LOG, S.STAMP]].to_numpy(np.int64)
     bounds = np.flatnonzero(np.r_[True, keys[1:, 0] != keys[:-1, 0]])
     return Samples(x, stored, *_references(model, x, bounds), bounds, keys)
+
+
+def _float32(model: GroupModel) -> bool:
+    """Whether the model's stored predictions are its float32 computation (a network's)."""
+    family = family_of(model.name)
+    return family is not None and family.float32
 
 
 def _references(model: GroupModel, x: np.ndarray, bounds: np.ndarray) -> tuple[np.ndarray, np.ndarray]:

@@ -1,7 +1,7 @@
 """A dependency-free C99 calibrator generated from an export's models: one header, one source, libm only.
 
 `generate(models, entry)` writes what a YARP device, a ROS 2 node or a board's firmware wraps: the models of
-a graph (`pipeline.export.trained.GroupModel`, one group or every group fused) as constant tables and one
+a graph (`pipeline.calib.parts.GroupModel`, one group or every group fused) as constant tables and one
 small interpreter of them, computing what the graph computes (`pipeline.export.graph`), in double:
 
 - per sensor its calibrated wrench from its inputs (the manifest's ``inputs`` order: per sensor fx fy fz N,

@@ -1,6 +1,6 @@
 """The affine, play and arx parts of a graph, every sensor's in a few operations, and the memory's state.
 
-Every affine, play or arx part (`pipeline.export.trained.LinearPart` of order 1: the affine map, with play
+Every affine, play or arx part (`pipeline.calib.parts.LinearPart` of order 1: the affine map, with play
 widths the play model, with time constants the arx model) is ``f = x[:6] + c + A x[:k] + B z``: the
 standardisation folded into the weights (``A = W_1 / scale``, ``c = W_0 - A offset``) and z the states of its
 operators on the raw wrench, ``z = (xm - y) / s`` (xm its wrench columns, one per operator, y the operators'
@@ -21,7 +21,7 @@ the sensor, raw axis and operator of `state_layout`'s entry j (per sensor, the p
 filters, each operator's 6 axes in order, as `pipeline.core.lowpass.memory_of`); one sensor's columns can be
 carried alone.
 
-A windowed network (`pipeline.export.trained.WindowPart`) computes its play part here, with its filters
+A windowed network (`pipeline.calib.parts.WindowPart`) computes its play part here, with its filters
 among the operators (their weights zero: the play model does not read them); its network reads their outputs
 (`pipeline.export.window`), so its state is the operators' like the others'.
 """

@@ -2,8 +2,8 @@
 evaluated together, one operation per layer for all of them (`pipeline.export.graph`: why, and the layouts).
 
 A network here is anything with ``in_offset`` (n,), ``in_scale`` (n,), ``out_scale`` (6,) and ``layers``
-(`pipeline.export.trained.Dense`): ``out_scale * mlp((x - in_offset) / in_scale)``, the memoryless networks'
-correction (`pipeline.export.trained.NetworkPart`) and the windowed networks' (`pipeline.export.trained
+(`pipeline.calib.parts.Dense`): ``out_scale * mlp((x - in_offset) / in_scale)``, the memoryless networks'
+correction (`pipeline.calib.parts.NetworkPart`) and the windowed networks' (`pipeline.export.trained
 .WindowPart`). Hidden widths are padded with zero units, the normalisation folded into the first layer's
 weights and the output scale into the last's (exact in real arithmetic; in float32 within an ulp of torch's
 result); in float32 a grouped 1-D convolution per layer, in float64 a batched MatMul.

@@ -13,7 +13,7 @@ degC), and ``o`` the offset: estimated by its ``calib*`` RPCs (and at start-up u
 values: FT_OFFSET is added). Wrenches fx fy fz N, tx ty tz Nm in the URDF sensor frame; a sensor is named
 as in the URDF and must be among the device's ``SixAxisForceTorqueSensorsNames``.
 
-ftcal's ``affine`` family (`pipeline.export.trained.LinearPart` of order 1) is ``w = w_raw + A x + c_0``, x
+ftcal's ``affine`` family (`pipeline.calib.parts.LinearPart` of order 1) is ``w = w_raw + A x + c_0``, x
 the raw wrench and the board's temperature: so ``S = I + A[:, :6]``, ``c = A[:, 6]``, ``T_ref`` the
 training data's mean temperature (the model's standardisation centre) and ``FT_OFFSET = c_0 + c T_ref``;
 a re-zeroing's raw-side offset change delta (`pipeline.export.offsets`, subtracted from ``w_raw``) moves

@@ -1,6 +1,6 @@
 """The windowed networks' part of a graph (family ``win``): their networks' corrections of their play parts.
 
-A windowed sensor (`pipeline.export.trained.WindowPart`) is its play part, computed with every affine, play
+A windowed sensor (`pipeline.calib.parts.WindowPart`) is its play part, computed with every affine, play
 and arx part in the linear stack (`pipeline.export.linear`), where its exponential windows (first-order
 low-pass filters of its raw wrench) run among the play operators, in the same Scan and the same ``state``,
 plus a network's correction of z = [its raw wrench now, its filters' outputs after the row, its temperature

@@ -32,7 +32,8 @@ def run_worker_group(
         StudyError: the stage did not open a study within `wait` s, or the database is unreachable.
     """
     from pipeline.calib import studies
-    from pipeline.calib.fit import fit_affine, prepare
+    from pipeline.calib.fit import prepare
+    from pipeline.calib.fitting import fit_affine
     from pipeline.calib.run import study_identity
     from pipeline.calib.search import _Search  # the stage's search of one network, joined here
     from pipeline.calib.training import one_thread
